@@ -1,0 +1,210 @@
+"""`Trajectories`: the one container for simulated and measured data.
+
+Axis letters: B trajectories, T time points, N nodes, D state per node, C control per node, E edges,
+F static node features. mpsim is batch-first everywhere; the torchdiffeq boundary (time-first) converts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import torch
+
+from mpsim.errors import DataError
+
+
+@dataclass
+class Trajectories:
+    """A batch of trajectories of a graph of identical nodes on one shared time grid.
+
+    Attributes:
+        t: [T] time points (strictly increasing, shared by all trajectories).
+        x: [B, T, N, D] node states.
+        edge_index: [2, E] (sender, receiver) shared by all trajectories, or [B, 2, E] one graph per
+            trajectory, padded with -1 where a trajectory has fewer edges.
+        u: [B, T, N, C] per-node controls (zero-order hold between samples), or None.
+        node_features: [N, F] or [B, N, F] static node features (mass, charge, ...), or None.
+        meta: plain JSON-able metadata: ``system`` (name), ``state_names``, ``control_names``, ``dt``,
+            ``params`` (the generating system's parameters), plus anything a system records.
+    """
+
+    t: torch.Tensor
+    x: torch.Tensor
+    edge_index: torch.Tensor
+    u: torch.Tensor | None = None
+    node_features: torch.Tensor | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    # ---- shape facts ---------------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return self.x.shape[0]
+
+    @property
+    def n_times(self) -> int:
+        return self.x.shape[1]
+
+    @property
+    def n_nodes(self) -> int:
+        return self.x.shape[2]
+
+    @property
+    def state_dim(self) -> int:
+        return self.x.shape[3]
+
+    @property
+    def control_dim(self) -> int:
+        return 0 if self.u is None else self.u.shape[3]
+
+    @property
+    def shared_graph(self) -> bool:
+        return self.edge_index.dim() == 2
+
+    @property
+    def state_names(self) -> list[str]:
+        names = self.meta.get("state_names")
+        return list(names) if names else [f"x{i}" for i in range(self.state_dim)]
+
+    @property
+    def control_names(self) -> list[str]:
+        names = self.meta.get("control_names")
+        return list(names) if names else [f"u{i}" for i in range(self.control_dim)]
+
+    @property
+    def system_name(self) -> str:
+        return str(self.meta.get("system", "data"))
+
+    # ---- checks --------------------------------------------------------------------------------------
+    def validate(self, source: str = "trajectories") -> None:
+        """Raise `DataError` naming what is wrong with the arrays (shapes, finiteness, time grid, graph)."""
+        t, x = self.t, self.x
+        if t.dim() != 1:
+            raise DataError(f"{source}: `t` must be 1-D [T]; got shape {tuple(t.shape)}.")
+        if x.dim() != 4:
+            raise DataError(
+                f"{source}: `x` must be [B, T, N, D] (trajectories, times, nodes, states); got shape "
+                f"{tuple(x.shape)}. A single trajectory needs a leading axis of size 1."
+            )
+        if x.shape[1] != t.shape[0]:
+            raise DataError(f"{source}: `x` has {x.shape[1]} time points but `t` has {t.shape[0]}.")
+        if t.shape[0] < 2:
+            raise DataError(f"{source}: need at least 2 time points; got {t.shape[0]}.")
+        if not torch.isfinite(t).all():
+            raise DataError(f"{source}: `t` contains NaN or inf.")
+        steps = t[1:] - t[:-1]
+        if (steps <= 0).any():
+            k = int(torch.nonzero(steps <= 0)[0])
+            raise DataError(
+                f"{source}: time points must be strictly increasing; t[{k}]={float(t[k]):g} is followed by "
+                f"t[{k + 1}]={float(t[k + 1]):g}. Sort each trajectory by time and drop duplicates."
+            )
+        _check_finite(x, "x", source)
+        if self.u is not None:
+            if self.u.dim() != 4 or self.u.shape[:3] != x.shape[:3]:
+                raise DataError(
+                    f"{source}: `u` must be [B, T, N, C] matching x's [B, T, N] = {tuple(x.shape[:3])}; "
+                    f"got {tuple(self.u.shape)}."
+                )
+            _check_finite(self.u, "u", source)
+        ei = self.edge_index
+        if ei.dtype not in (torch.int64, torch.int32):
+            raise DataError(f"{source}: `edge_index` must be integer; got {ei.dtype}.")
+        if ei.dim() == 2:
+            if ei.shape[0] != 2:
+                raise DataError(f"{source}: `edge_index` must be [2, E] (sender, receiver); got {tuple(ei.shape)}.")
+        elif ei.dim() == 3:
+            if ei.shape[0] != x.shape[0] or ei.shape[1] != 2:
+                raise DataError(
+                    f"{source}: per-trajectory `edge_index` must be [B, 2, E] with B={x.shape[0]}; "
+                    f"got {tuple(ei.shape)}."
+                )
+        else:
+            raise DataError(f"{source}: `edge_index` must be [2, E] or [B, 2, E]; got {tuple(ei.shape)}.")
+        valid = ei[ei >= 0] if ei.dim() == 3 else ei
+        if ei.dim() == 2 and (ei < 0).any():
+            raise DataError(f"{source}: `edge_index` has negative node ids; node ids run from 0 to N-1.")
+        if valid.numel() and int(valid.max()) >= x.shape[2]:
+            raise DataError(
+                f"{source}: `edge_index` names node {int(valid.max())} but the data has only "
+                f"{x.shape[2]} nodes (ids 0..{x.shape[2] - 1})."
+            )
+        if self.node_features is not None and self.node_features.dim() not in (2, 3):
+            raise DataError(f"{source}: `node_features` must be [N, F] or [B, N, F].")
+        names = self.meta.get("state_names")
+        if names is not None and len(names) != x.shape[3]:
+            raise DataError(f"{source}: meta has {len(names)} state names but x has {x.shape[3]} state columns.")
+
+    # ---- views ---------------------------------------------------------------------------------------
+    def subset(self, index: torch.Tensor | slice | list[int]) -> Trajectories:
+        """The trajectories selected by `index` (along B), sharing meta."""
+        if isinstance(index, list):
+            index = torch.as_tensor(index, dtype=torch.long)
+        return replace(
+            self,
+            x=self.x[index],
+            u=None if self.u is None else self.u[index],
+            edge_index=self.edge_index if self.shared_graph else self.edge_index[index],
+            node_features=(
+                self.node_features
+                if self.node_features is None or self.node_features.dim() == 2
+                else self.node_features[index]
+            ),
+        )
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Trajectories:
+        """Move tensors to `device`; cast floating tensors to `dtype` (time stays float64 on CPU)."""
+
+        def cast(a: torch.Tensor | None) -> torch.Tensor | None:
+            if a is None:
+                return None
+            return a.to(device=device, dtype=dtype if a.is_floating_point() and dtype else a.dtype)
+
+        return replace(
+            self,
+            t=cast(self.t),
+            x=cast(self.x),
+            u=cast(self.u),
+            edge_index=self.edge_index.to(device),
+            node_features=cast(self.node_features),
+        )
+
+    @staticmethod
+    def concat(parts: list[Trajectories]) -> Trajectories:
+        """Stack trajectories that share a time grid and node count along B."""
+        first = parts[0]
+        for p in parts[1:]:
+            if p.t.shape != first.t.shape or not torch.allclose(p.t, first.t):
+                raise DataError("cannot concatenate trajectories on different time grids.")
+        shared = all(p.shared_graph for p in parts) and all(
+            p.edge_index.shape == first.edge_index.shape and torch.equal(p.edge_index, first.edge_index)
+            for p in parts
+        )
+        if shared:
+            edge_index = first.edge_index
+        else:
+            per = [p.edge_index.expand(len(p), -1, -1) if p.shared_graph else p.edge_index for p in parts]
+            e_max = max(e.shape[2] for e in per)
+            edge_index = torch.cat(
+                [torch.nn.functional.pad(e, (0, e_max - e.shape[2]), value=-1) for e in per], dim=0
+            )
+        return Trajectories(
+            t=first.t,
+            x=torch.cat([p.x for p in parts]),
+            edge_index=edge_index,
+            u=None if first.u is None else torch.cat([p.u for p in parts]),
+            node_features=first.node_features,
+            meta=dict(first.meta),
+        )
+
+
+def _check_finite(a: torch.Tensor, name: str, source: str) -> None:
+    bad = ~torch.isfinite(a)
+    if bad.any():
+        b, ti, n, d = (int(v) for v in torch.nonzero(bad)[0])
+        raise DataError(
+            f"{source}: `{name}` has NaN/inf (first at trajectory {b}, time index {ti}, node {n}, "
+            f"column {d}; {int(bad.sum())} values in all). Remove or interpolate those samples."
+        )

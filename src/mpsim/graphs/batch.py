@@ -1,0 +1,87 @@
+"""Batched graphs and neighbour aggregation without Python loops over nodes or edges.
+
+A batch of B graphs on N nodes each is flattened to one graph on B*N nodes (node b*N + i), so one
+`index_add_` aggregates every trajectory at once, whether the graph is shared or per trajectory.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass(frozen=True)
+class BatchedGraph:
+    """B copies (or B different graphs) of N nodes flattened to B*N nodes.
+
+    Attributes:
+        src: [E'] sender ids in 0..B*N-1.
+        dst: [E'] receiver ids in 0..B*N-1.
+        n_graphs: B.
+        n_nodes: N nodes per graph.
+        inv_degree: [B*N, 1] 1 / in-degree (0 where a node has no neighbours: its mean is 0).
+    """
+
+    src: torch.Tensor
+    dst: torch.Tensor
+    n_graphs: int
+    n_nodes: int
+    inv_degree: torch.Tensor
+
+    @property
+    def n_total(self) -> int:
+        return self.n_graphs * self.n_nodes
+
+
+def batch_graph(
+    edge_index: torch.Tensor,  # [2, E] shared, or [B, 2, E] per graph padded with -1
+    n_graphs: int,
+    n_nodes: int,
+    self_loops: bool = False,
+    dtype: torch.dtype = torch.float32,
+) -> BatchedGraph:
+    """Flatten a shared or per-trajectory graph to one block-diagonal graph on `n_graphs * n_nodes` nodes."""
+    device = edge_index.device
+    offsets = torch.arange(n_graphs, device=device) * n_nodes  # [B]
+    if edge_index.dim() == 2:
+        src = (edge_index[0][None, :] + offsets[:, None]).reshape(-1)
+        dst = (edge_index[1][None, :] + offsets[:, None]).reshape(-1)
+    else:
+        if edge_index.shape[0] != n_graphs:
+            raise ValueError(f"expected {n_graphs} graphs in edge_index [B, 2, E]; got {edge_index.shape[0]}.")
+        keep = (edge_index[:, 0] >= 0).reshape(-1)
+        src = (edge_index[:, 0] + offsets[:, None]).reshape(-1)[keep]
+        dst = (edge_index[:, 1] + offsets[:, None]).reshape(-1)[keep]
+    if self_loops:
+        loops = torch.arange(n_graphs * n_nodes, device=device)
+        not_loop = src != dst
+        src = torch.cat([src[not_loop], loops])
+        dst = torch.cat([dst[not_loop], loops])
+    degree = torch.zeros(n_graphs * n_nodes, device=device, dtype=dtype).index_add_(
+        0, dst, torch.ones_like(dst, dtype=dtype)
+    )
+    inv = torch.where(degree > 0, 1.0 / degree.clamp(min=1), torch.zeros_like(degree))
+    return BatchedGraph(src=src, dst=dst, n_graphs=n_graphs, n_nodes=n_nodes, inv_degree=inv[:, None])
+
+
+def mean_aggregate(
+    values: torch.Tensor,  # [B, N, F] per-node values (e.g. outgoing messages)
+    graph: BatchedGraph,
+) -> torch.Tensor:
+    """[B, N, F] mean over each node's in-neighbours of `values` (0 for a node with no neighbours)."""
+    b, n, f = values.shape
+    flat = values.reshape(b * n, f)
+    out = flat.new_zeros(b * n, f).index_add_(0, graph.dst, flat.index_select(0, graph.src))
+    return (out * graph.inv_degree.to(values.dtype)).reshape(b, n, f)
+
+
+def sum_aggregate(
+    values: torch.Tensor,  # [B, N, F] per-node values
+    graph: BatchedGraph,
+) -> torch.Tensor:
+    """[B, N, F] sum over each node's in-neighbours of `values`."""
+    b, n, f = values.shape
+    flat = values.reshape(b * n, f)
+    out = flat.new_zeros(b * n, f).index_add_(0, graph.dst, flat.index_select(0, graph.src))
+    return out.reshape(b, n, f)

@@ -1,0 +1,154 @@
+"""`System`: the true dynamics of a graph of identical nodes, and how to sample data from it.
+
+A system is vectorised over a batch of trajectories: `rhs(t, x)` takes x [B, N, D] and returns dx/dt of
+the same shape. Ground truth is integrated in float64 with an adaptive solver (`simulate`). Systems whose
+ground truth is not a plain ODE (a symplectic N-body integrator, a closed-loop controller) override
+`simulate`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from torchdiffeq import odeint
+
+from mpsim.data.trajectories import Trajectories
+from mpsim.errors import ConfigError
+
+
+class System:
+    """True dynamics of `n_nodes` identical subsystems coupled on a graph.
+
+    Subclasses set the class attributes below and implement `dynamics` and `sample_initial_states`.
+
+    Class attributes:
+        state_names: names of the D per-node state variables (also the CSV column names).
+        control_names: names of the C per-node controls (empty when the system has none).
+        dt: default sampling step of generated datasets.
+        horizon: default number of steps per generated trajectory (T = horizon + 1 points).
+
+    Args:
+        name: the name datasets and exported checkpoints carry (e.g. ``lorenz3``).
+        edge_index: [2, E] (sender, receiver) coupling graph.
+        effects: extra named terms added to the right-hand side (see `mpsim.effects`).
+    """
+
+    state_names: tuple[str, ...] = ()
+    control_names: tuple[str, ...] = ()
+    dt: float = 0.1
+    horizon: int = 50
+
+    def __init__(self, name: str, edge_index: torch.Tensor, effects: Sequence[Any] = ()) -> None:
+        self.name = name
+        self.edge_index = edge_index
+        self.effects = list(effects)
+
+    # ---- facts ---------------------------------------------------------------------------------------
+    @property
+    def n_nodes(self) -> int:
+        raise NotImplementedError
+
+    @property
+    def state_dim(self) -> int:
+        return len(self.state_names)
+
+    @property
+    def control_dim(self) -> int:
+        return len(self.control_names)
+
+    def params(self) -> dict[str, Any]:
+        """Physical parameters as plain JSON-able values (stored in data and checkpoint metadata)."""
+        return {}
+
+    def meta(self, dt: float) -> dict[str, Any]:
+        """Metadata carried by every `Trajectories` this system generates."""
+        return {
+            "system": self.name,
+            "system_class": f"{type(self).__module__}.{type(self).__qualname__}",
+            "state_names": list(self.state_names),
+            "control_names": list(self.control_names),
+            "dt": dt,
+            "n_nodes": self.n_nodes,
+            "params": self.params(),
+            "effects": [repr(e) for e in self.effects],
+        }
+
+    # ---- dynamics ------------------------------------------------------------------------------------
+    def dynamics(
+        self,
+        t: torch.Tensor,  # [] time
+        x: torch.Tensor,  # [B, N, D] node states
+        u: torch.Tensor | None = None,  # [B, N, C] controls
+    ) -> torch.Tensor:
+        """[B, N, D] the declared equations' dx/dt."""
+        raise NotImplementedError
+
+    def rhs(
+        self,
+        t: torch.Tensor,  # [] time
+        x: torch.Tensor,  # [B, N, D] node states
+        u: torch.Tensor | None = None,  # [B, N, C] controls
+    ) -> torch.Tensor:
+        """[B, N, D] dx/dt: the declared dynamics plus every effect's term."""
+        dx = self.dynamics(t, x, u)
+        for effect in self.effects:
+            dx = dx + effect(t, x, self)
+        return dx
+
+    def energy(self, x: torch.Tensor) -> torch.Tensor | None:  # x: [..., N, D]
+        """[...] total energy where the system has one (None otherwise)."""
+        return None
+
+    def sample_initial_states(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        """[n, N, D] float64 initial states drawn with `generator`."""
+        raise NotImplementedError
+
+    # ---- data ----------------------------------------------------------------------------------------
+    def simulate(
+        self,
+        x0: torch.Tensor,  # [B, N, D] initial states
+        t: torch.Tensor,  # [T] output times
+        rtol: float = 1e-8,
+        atol: float = 1e-10,
+        method: str = "dopri5",
+    ) -> Trajectories:
+        """Integrate the true dynamics in float64 from `x0` and return the sampled trajectories."""
+        x0 = x0.to(torch.float64)
+        t = t.to(torch.float64)
+        sol = odeint(lambda tt, xx: self.rhs(tt, xx), x0, t, rtol=rtol, atol=atol, method=method)  # [T, B, N, D]
+        return Trajectories(
+            t=t, x=sol.transpose(0, 1).contiguous(), edge_index=self.edge_index, meta=self.meta(_uniform_dt(t))
+        )
+
+    def generate(
+        self,
+        n: int,
+        seed: int,
+        dt: float | None = None,
+        horizon: int | None = None,
+        rtol: float = 1e-8,
+        atol: float = 1e-10,
+    ) -> Trajectories:
+        """`n` trajectories of `horizon` steps of `dt` from initial states drawn with `seed`."""
+        dt = self.dt if dt is None else dt
+        horizon = self.horizon if horizon is None else horizon
+        if dt <= 0 or horizon < 1 or n < 1:
+            raise ConfigError(f"need dt > 0, horizon >= 1 and n >= 1; got dt={dt}, horizon={horizon}, n={n}.")
+        generator = torch.Generator().manual_seed(int(seed))
+        x0 = self.sample_initial_states(n, generator)
+        t = torch.arange(horizon + 1, dtype=torch.float64) * dt
+        return self.simulate(x0, t, rtol=rtol, atol=atol)
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v}" for k, v in self.params().items() if not isinstance(v, list | dict))
+        return f"{type(self).__name__}({self.name}: N={self.n_nodes}, D={self.state_dim}, {args})"
+
+
+def _uniform_dt(t: torch.Tensor) -> float:
+    """The step of a uniform grid `t` [T] (NaN if the grid is not uniform)."""
+    steps = t[1:] - t[:-1]
+    dt = float(steps.mean())
+    return dt if math.isclose(float(steps.max()), float(steps.min()), rel_tol=1e-6, abs_tol=1e-12) else math.nan
