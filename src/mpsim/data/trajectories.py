@@ -179,17 +179,14 @@ class Trajectories:
             if p.t.shape != first.t.shape or not torch.allclose(p.t, first.t):
                 raise DataError("cannot concatenate trajectories on different time grids.")
         shared = all(p.shared_graph for p in parts) and all(
-            p.edge_index.shape == first.edge_index.shape and torch.equal(p.edge_index, first.edge_index)
-            for p in parts
+            p.edge_index.shape == first.edge_index.shape and torch.equal(p.edge_index, first.edge_index) for p in parts
         )
         if shared:
             edge_index = first.edge_index
         else:
             per = [p.edge_index.expand(len(p), -1, -1) if p.shared_graph else p.edge_index for p in parts]
             e_max = max(e.shape[2] for e in per)
-            edge_index = torch.cat(
-                [torch.nn.functional.pad(e, (0, e_max - e.shape[2]), value=-1) for e in per], dim=0
-            )
+            edge_index = torch.cat([torch.nn.functional.pad(e, (0, e_max - e.shape[2]), value=-1) for e in per], dim=0)
         return Trajectories(
             t=first.t,
             x=torch.cat([p.x for p in parts]),
@@ -208,3 +205,12 @@ def _check_finite(a: torch.Tensor, name: str, source: str) -> None:
             f"{source}: `{name}` has NaN/inf (first at trajectory {b}, time index {ti}, node {n}, "
             f"column {d}; {int(bad.sum())} values in all). Remove or interpolate those samples."
         )
+
+
+def grid_step(t: torch.Tensor) -> float:  # t: [T] time points
+    """The step of a uniform time grid (NaN if the grid is not uniform)."""
+    if t.numel() < 2:
+        return float("nan")
+    steps = (t[1:] - t[:-1]).double()
+    spread = float(steps.max() - steps.min())
+    return float(steps.mean()) if spread <= 1e-6 * float(steps.abs().max()) else float("nan")

@@ -8,14 +8,13 @@ ground truth is not a plain ODE (a symplectic N-body integrator, a closed-loop c
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from typing import Any
 
 import torch
 from torchdiffeq import odeint
 
-from mpsim.data.trajectories import Trajectories
+from mpsim.data.trajectories import Trajectories, grid_step
 from mpsim.errors import ConfigError
 
 
@@ -120,7 +119,7 @@ class System:
         t = t.to(torch.float64)
         sol = odeint(lambda tt, xx: self.rhs(tt, xx), x0, t, rtol=rtol, atol=atol, method=method)  # [T, B, N, D]
         return Trajectories(
-            t=t, x=sol.transpose(0, 1).contiguous(), edge_index=self.edge_index, meta=self.meta(_uniform_dt(t))
+            t=t, x=sol.transpose(0, 1).contiguous(), edge_index=self.edge_index, meta=self.meta(grid_step(t))
         )
 
     def generate(
@@ -145,10 +144,3 @@ class System:
     def __repr__(self) -> str:
         args = ", ".join(f"{k}={v}" for k, v in self.params().items() if not isinstance(v, list | dict))
         return f"{type(self).__name__}({self.name}: N={self.n_nodes}, D={self.state_dim}, {args})"
-
-
-def _uniform_dt(t: torch.Tensor) -> float:
-    """The step of a uniform grid `t` [T] (NaN if the grid is not uniform)."""
-    steps = t[1:] - t[:-1]
-    dt = float(steps.mean())
-    return dt if math.isclose(float(steps.max()), float(steps.min()), rel_tol=1e-6, abs_tol=1e-12) else math.nan

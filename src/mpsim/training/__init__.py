@@ -1,0 +1,4 @@
+"""Trainer, metrics and checkpoints."""
+
+from mpsim.training.trainer import Trainer as Trainer
+from mpsim.training.trainer import predict as predict

@@ -1,0 +1,294 @@
+"""What every command does with its config: runtime setup, systems, data, models and checkpoints.
+
+This is the command layer: the only code that reads config objects. Everything below it takes plain
+arguments.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from hydra.core.hydra_config import HydraConfig
+from hydra.errors import InstantiationException
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from mpsim.config import check_targets
+from mpsim.data.dataset import Splits, add_noise, fit_normalisation, simulate_splits, split_trajectories
+from mpsim.data.io import load_trajectories
+from mpsim.errors import CheckpointError, ConfigError, IncompatibleError, MpsimError
+from mpsim.models.base import Model
+from mpsim.solvers.odeint import ODESolver
+from mpsim.systems.base import System
+from mpsim.training.checkpoint import load_checkpoint
+
+log = logging.getLogger(__name__)
+
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+# ---- runtime -----------------------------------------------------------------------------------------------
+@dataclass
+class Runtime:
+    device: torch.device
+    dtype: torch.dtype
+    start_dir: Path
+    output_dir: Path
+    overrides: list[str]
+
+
+def hydra_overrides() -> list[str]:
+    """The task overrides given on the command line (empty outside a Hydra run)."""
+    if HydraConfig.initialized():
+        return list(HydraConfig.get().overrides.task)
+    return []
+
+
+def locate(output_dir: str | Path | None = None) -> tuple[Path, Path]:
+    """(directory the command was started from, this run's output directory), created if needed."""
+    if HydraConfig.initialized():
+        hc = HydraConfig.get()
+        start_dir, output_dir = Path(hc.runtime.cwd), Path(output_dir or hc.runtime.output_dir)
+    else:
+        start_dir, output_dir = Path.cwd(), Path(output_dir or Path.cwd())
+    output_dir.mkdir(parents=True, exist_ok=True)
+    return start_dir, output_dir
+
+
+def setup_runtime(cfg: DictConfig, output_dir: str | Path | None = None, overrides: list[str] | None = None) -> Runtime:
+    """Check `_target_` nodes, seed, set threads and pick device/dtype; return where things go."""
+    check_targets(cfg)
+    start_dir, output_dir = locate(output_dir)
+    threads = cfg.get("threads")
+    if threads is None and HydraConfig.initialized():
+        launcher = HydraConfig.get().launcher
+        if "joblib" in str(launcher.get("_target_", "")):
+            n_jobs = int(launcher.get("n_jobs", -1) or -1)
+            if n_jobs < 1:
+                n_jobs = os.cpu_count() or 1
+            threads = max(1, (os.cpu_count() or 1) // n_jobs)
+    if threads:
+        torch.set_num_threads(int(threads))
+    torch.manual_seed(int(cfg.seed))
+    if cfg.dtype not in DTYPES:
+        raise ConfigError(f"dtype={cfg.dtype!r} is not supported; choose one of {sorted(DTYPES)}.")
+    device = cfg.device
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    if str(device).startswith("cuda") and not torch.cuda.is_available():
+        raise ConfigError(f"device={device} but CUDA is not available on this machine; use device=cpu.")
+    return Runtime(
+        device=torch.device(device),
+        dtype=DTYPES[cfg.dtype],
+        start_dir=start_dir,
+        output_dir=output_dir,
+        overrides=hydra_overrides() if overrides is None else list(overrides),
+    )
+
+
+def resolve_path(path: str | Path, start_dir: Path) -> Path:
+    """An absolute path as given, else relative to the directory the command was started from."""
+    path = Path(os.path.expanduser(str(path)))
+    return path if path.is_absolute() else start_dir / path
+
+
+def resolve_init(init: str, rt: Runtime, ckpt_dir: str) -> Path:
+    """Find `init=`: an absolute path, a path from the start directory, then a name in `paths.ckpt_dir`."""
+    ckpt_root = resolve_path(ckpt_dir, rt.start_dir)
+    candidates = [resolve_path(init, rt.start_dir), ckpt_root / init]
+    if not init.endswith(".ckpt"):
+        candidates.append(ckpt_root / f"{init}.ckpt")
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate
+    available = sorted(p.name for p in ckpt_root.glob("*.ckpt")) if ckpt_root.is_dir() else []
+    listing = f" Available in {ckpt_root}: {', '.join(available)}." if available else f" {ckpt_root} has no checkpoints."
+    raise CheckpointError(f"init={init}: no such checkpoint (looked for {', '.join(map(str, candidates))}).{listing}")
+
+
+# ---- systems and data --------------------------------------------------------------------------------------
+def build(node: DictConfig, where: str, **kwargs: Any) -> Any:
+    """`hydra.utils.instantiate` with errors turned into one clear message naming the config key."""
+    try:
+        return instantiate(node, **kwargs)
+    except InstantiationException as err:
+        cause = err.__cause__
+        if isinstance(cause, MpsimError):
+            raise cause from None
+        text = str(cause or err).strip().splitlines()[-1]
+        raise ConfigError(f"cannot build {where} ({node.get('_target_')}): {text}") from None
+
+
+def build_system(cfg: DictConfig) -> System:
+    return build(cfg.system, "system")
+
+
+def build_solver(cfg: DictConfig) -> ODESolver:
+    return build(cfg.solver, "solver")
+
+
+def system_spec(cfg: DictConfig) -> dict[str, Any]:
+    """The system's config as plain data (part of the dataset cache key)."""
+    return OmegaConf.to_container(cfg.system, resolve=True)  # type: ignore[return-value]
+
+
+def load_splits(cfg: DictConfig, rt: Runtime, system: System | None) -> Splits:
+    """Simulate the system's three splits (cached), or load `data.path` and split it by trajectory."""
+    data = cfg.data
+    if data.path:
+        graph = None
+        if data.graph == "system":
+            if system is None:
+                raise ConfigError("data.graph=system needs system=<name>.")
+            graph = system.edge_index
+        elif data.graph not in (None, "system"):
+            raise ConfigError(f"data.graph={data.graph!r}: use null (graph from the file) or 'system'.")
+        edges = resolve_path(data.edges, rt.start_dir) if data.edges else None
+        loaded = load_trajectories(resolve_path(data.path, rt.start_dir), edges, graph, list(data.control_columns))
+        log.info(f"loaded {len(loaded)} trajectories from {data.path}: T={loaded.n_times}, N={loaded.n_nodes}, "
+                 f"D={loaded.state_dim}")
+        return split_trajectories(loaded, tuple(data.split), data.seed)
+    if system is None:
+        raise ConfigError("no data: pass system=<name> or data.path=<file>.")
+    cache_dir = resolve_path(cfg.paths.cache_dir, rt.start_dir) if data.cache else None
+    return simulate_splits(system, system_spec(cfg), data.n_train, data.n_val, data.n_test, data.seed, data.dt,
+                           data.horizon, data.gt_rtol, data.gt_atol, cache_dir)
+
+
+def noisy_train(splits: Splits, std: torch.Tensor, scale: float, seed: int) -> Splits:
+    """Training split with measurement noise (`data.noise_std` × feature std); val/test stay clean."""
+    return Splits(train=add_noise(splits.train, std, scale, seed), val=splits.val, test=splits.test)
+
+
+# ---- models and checkpoints --------------------------------------------------------------------------------
+def explicit_model_keys(overrides: list[str]) -> tuple[set[str], bool]:
+    """(model.* keys given on the command line, whether the model group itself was chosen)."""
+    keys, group = set(), False
+    for item in overrides:
+        key = item.split("=", 1)[0].lstrip("+~")
+        if key == "model":
+            group = True
+        elif key.startswith("model."):
+            keys.add(key[len("model.") :].split(".")[0])
+    return keys, group
+
+
+def model_config(cfg: DictConfig, ckpt: dict[str, Any] | None, overrides: list[str]) -> dict[str, Any]:
+    """The model config to build: the checkpoint's, with the command line's `model.*` overrides on top.
+
+    Without a checkpoint it is simply `cfg.model`.
+    """
+    current = OmegaConf.to_container(cfg.model, resolve=True)
+    if ckpt is None:
+        return current  # type: ignore[return-value]
+    saved = dict(ckpt["model"]["config"])
+    keys, group_chosen = explicit_model_keys(overrides)
+    if group_chosen and current.get("_target_") != saved.get("_target_"):
+        raise IncompatibleError(
+            f"{ckpt['path']} holds a {saved.get('_target_')} model but model= asks for {current.get('_target_')}. "
+            "Drop the model= override or use a checkpoint of that model."
+        )
+    for key in keys:
+        if key in current:
+            saved[key] = current[key]
+    return saved
+
+
+def build_model(
+    model_cfg: dict[str, Any],
+    state_dim: int,
+    control_dim: int,
+    solver: ODESolver,
+    rt: Runtime,
+) -> Model:
+    node = OmegaConf.create(model_cfg)
+    model = build(node, "model", state_dim=state_dim, control_dim=control_dim, solver=solver)
+    if not isinstance(model, Model):
+        raise ConfigError(f"model._target_={model_cfg.get('_target_')} does not build an mpsim Model.")
+    return model.to(device=rt.device, dtype=rt.dtype)
+
+
+def load_weights(model: Model, ckpt: dict[str, Any], model_cfg: dict[str, Any]) -> None:
+    """Load checkpoint weights, naming the config key that makes them not fit."""
+    state = ckpt["model"]["state_dict"]
+    own = model.state_dict()
+    mismatched = [k for k in state if k in own and state[k].shape != own[k].shape]
+    missing = [k for k in own if k not in state]
+    if mismatched or missing:
+        saved_cfg = ckpt["model"]["config"]
+        differ = [f"model.{k}: checkpoint {saved_cfg[k]!r}, config {model_cfg[k]!r}"
+                  for k in saved_cfg if k in model_cfg and saved_cfg[k] != model_cfg[k] and not k.startswith("_")]
+        detail = "; ".join(differ) if differ else f"tensors {(mismatched + missing)[:3]} do not fit"
+        raise CheckpointError(
+            f"{ckpt['path']} does not fit this model ({detail}). Drop the override(s) to use the checkpoint's "
+            "architecture, or train from scratch without init=."
+        )
+    model.load_state_dict({k: v.to(own[k]) for k, v in state.items() if k in own})
+
+
+def check_checkpoint_system(ckpt: dict[str, Any], state_dim: int, control_dim: int, state_names: list[str]) -> None:
+    """A checkpoint trained on D states per node cannot run on data with another D (or control count)."""
+    meta = ckpt["system"]
+    ck_d, ck_c = int(ckpt["model"]["state_dim"]), int(ckpt["model"].get("control_dim", 0))
+    if ck_d != state_dim or ck_c != control_dim:
+        raise IncompatibleError(
+            f"{ckpt['path']} was trained on {meta.get('system')} ({ck_d} states {meta.get('state_names')}, "
+            f"{ck_c} controls per node) but this data has {state_dim} states {state_names} and {control_dim} "
+            "controls per node. Use a checkpoint of a system with the same node state, or drop init=."
+        )
+
+
+def checkpoint_base(
+    model_cfg: dict[str, Any], model: Model, system_meta: dict[str, Any], extra: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """The static part of every checkpoint a run writes."""
+    return {
+        "model": {"config": model_cfg, "state_dim": model.state_dim, "control_dim": model.control_dim},
+        "normalisation": {"mean": model.state_mean.detach().cpu().clone(), "std": model.state_std.detach().cpu().clone()},
+        "system": _plain(system_meta),
+        **(extra or {}),
+    }
+
+
+def _plain(obj: Any) -> Any:
+    """Metadata reduced to containers that `torch.load(weights_only=True)` accepts."""
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_plain(v) for v in obj]
+    if obj is None or isinstance(obj, bool | int | float | str):
+        return obj
+    return str(obj)
+
+
+def prepare_model(
+    cfg: DictConfig, rt: Runtime, splits: Splits, ckpt: dict[str, Any] | None, refit: bool
+) -> tuple[Model, dict[str, Any]]:
+    """Build the model for `splits` (from scratch or from `ckpt`) and set its normalisation."""
+    train = splits.train
+    if ckpt is not None:
+        check_checkpoint_system(ckpt, train.state_dim, train.control_dim, train.state_names)
+    model_cfg = model_config(cfg, ckpt, rt.overrides)
+    model = build_model(model_cfg, train.state_dim, train.control_dim, build_solver(cfg), rt)
+    trained_nodes = None if ckpt is None else ckpt["system"].get("n_nodes")
+    model.check_compatible(train.state_dim, train.control_dim, train.n_nodes, trained_nodes)
+    if ckpt is not None:
+        load_weights(model, ckpt, model_cfg)
+    if ckpt is None or refit:
+        mean, std = fit_normalisation(train)
+        model.set_normalisation(mean, std)
+    return model, model_cfg
+
+
+def load_init(cfg: DictConfig, rt: Runtime) -> dict[str, Any] | None:
+    if not cfg.init:
+        return None
+    path = resolve_init(str(cfg.init), rt, cfg.paths.ckpt_dir)
+    ckpt = load_checkpoint(path)
+    log.info(f"init: {path}")
+    return ckpt

@@ -1,0 +1,171 @@
+"""`mpsim train`: build data and model, then train from scratch, finetune from `init=`, or (mode=zeroshot)
+evaluate `init=` without training. Writes metrics.csv, summary.json, checkpoints/{best,last}.ckpt, plots/,
+and exports the best checkpoint as <paths.ckpt_dir>/<system name>.ckpt."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig
+
+from mpsim import __version__, plotting
+from mpsim.commands.common import (
+    Runtime,
+    build,
+    build_system,
+    checkpoint_base,
+    load_init,
+    load_splits,
+    noisy_train,
+    prepare_model,
+    resolve_path,
+    setup_runtime,
+)
+from mpsim.commands.console import duration, fmt, print_summary
+from mpsim.commands.eval import evaluate_checkpoint, evaluate_model, horizon_rows
+from mpsim.errors import CheckpointError, ConfigError
+from mpsim.files import atomic_write, write_json
+from mpsim.training.checkpoint import load_checkpoint
+from mpsim.training.metrics import epochs_x_min_error
+
+log = logging.getLogger(__name__)
+
+MODES = ("scratch", "finetune", "zeroshot")
+
+
+def resolve_mode(name: str, init: str | None) -> str:
+    """scratch (default) becomes finetune when `init=` is given; finetune and zeroshot need `init=`."""
+    if name not in MODES:
+        raise ConfigError(f"mode={name!r} is unknown; choose one of {', '.join(MODES)}.")
+    if name == "scratch":
+        return "finetune" if init else "scratch"
+    if not init:
+        raise ConfigError(f"mode={name} needs init=<checkpoint> (a path, or a name in paths.ckpt_dir).")
+    return name
+
+
+def run_train(cfg: DictConfig, output_dir: str | Path | None = None, overrides: list[str] | None = None) -> dict:
+    """Run one training job; returns the summary (also written to summary.json)."""
+    rt = setup_runtime(cfg, output_dir, overrides)
+    mode = resolve_mode(cfg.mode.name, cfg.init)
+    if mode == "zeroshot":
+        return evaluate_checkpoint(cfg, rt, task="train")
+    t0 = time.perf_counter()
+    last = _resume_checkpoint(cfg, rt)
+    ckpt = load_init(cfg, rt) if last is None else None
+    system = None if cfg.data.path and cfg.data.graph != "system" else build_system(cfg)
+    splits = load_splits(cfg, rt, system)
+    if last is None:
+        model, model_cfg = prepare_model(cfg, rt, splits, ckpt, refit=bool(cfg.mode.refit_normalisation))
+    else:  # the interrupted run's own model (config, weights, normalisation)
+        model, model_cfg = prepare_model(cfg, rt, splits, last, refit=False)
+    init_path = last.get("init") if last is not None else (None if ckpt is None else ckpt["path"])
+    if cfg.data.noise_std > 0:
+        splits = noisy_train(splits, model.state_std.detach().cpu().double(), cfg.data.noise_std, cfg.data.seed)
+    train, val, test = splits.train, splits.val, splits.test
+    if last is None:
+        log.info(f"{mode}: {model.describe()['model']} ({model.describe()['n_params']:,} params) on "
+                 f"{train.system_name}: {len(train)}/{len(val)}/{len(test)} trajectories, N={train.n_nodes}, "
+                 f"{train.n_times - 1} steps of {fmt(train.meta.get('dt'))}")
+    base = checkpoint_base(
+        model_cfg, model, train.meta,
+        {"mode": mode, "init": init_path, "mpsim_version": __version__},
+    )
+    trainer = build(cfg.trainer, "trainer")
+    trainer.fit(model, train, val, test, run_dir=rt.output_dir, seed=cfg.seed, checkpoint_base=base,
+                resume_state=None if last is None else last["trainer"])
+    history = trainer.history_
+    plotting.learning_curves(history, rt.output_dir / "plots" / "learning_curves.png",
+                             title=f"{train.system_name}: {mode}")
+    metrics = evaluate_model(model, test, rt.output_dir, list(cfg.eval.horizons),
+                             None if cfg.data.path else system, cfg.eval.n_plot, cfg.eval.plots,
+                             title=f"{train.system_name}: {mode}, best epoch {trainer.best_epoch_}")
+    trained = [r for r in history if r["epoch"] >= 1]
+    table2 = epochs_x_min_error([r["epoch"] for r in trained], [r["test_error"] for r in trained])
+    best_path = rt.output_dir / "checkpoints" / "best.ckpt"
+    exported = _export(best_path, cfg, rt, train.system_name) if trainer.best_epoch_ >= 1 else None
+    summary: dict[str, Any] = {
+        "task": "train",
+        "mode": mode,
+        "status": trainer.status_,
+        "divergence": trainer.divergence_,
+        "init": init_path,
+        "system": {"name": train.system_name, "n_nodes": train.n_nodes, "state_names": train.state_names,
+                   "params": {k: v for k, v in train.meta.get("params", {}).items() if k != "H"}},
+        "model": {**model.describe(), "config": model_cfg},
+        "data": {**splits.sizes(), "n_times": train.n_times, "dt": train.meta.get("dt"),
+                 "source": cfg.data.path or "simulated", "seed": cfg.data.seed, "noise_std": cfg.data.noise_std},
+        "seed": cfg.seed,
+        "epochs_run": history[-1]["epoch"],
+        "best_epoch": trainer.best_epoch_,
+        "best_val_error": trainer.best_val_,
+        **table2,
+        "initial_test_error": history[0]["test_error"],
+        "final": {"val_error": history[-1]["val_error"], "test_error": history[-1]["test_error"]},
+        "test": metrics,
+        "wall_time": history[-1]["wall_time"],
+        "command_time": time.perf_counter() - t0,
+        "run_dir": str(rt.output_dir),
+        "checkpoint": str(best_path),
+        "exported": None if exported is None else str(exported),
+    }
+    write_json(rt.output_dir / "summary.json", summary)
+    _print(summary, train)
+    return summary
+
+
+def _resume_checkpoint(cfg: DictConfig, rt: Runtime) -> dict | None:
+    """`<run dir>/checkpoints/last.ckpt` when `resume` is set (the CLI points the run directory at the run
+    being resumed)."""
+    if not cfg.resume:
+        return None
+    last = rt.output_dir / "checkpoints" / "last.ckpt"
+    if not last.is_file():
+        raise CheckpointError(
+            f"resume: no {last}. Resume reruns the same command in the directory of the run it continues; "
+            "pass resume=<run dir> to name it, or drop resume=true to start afresh."
+        )
+    state = load_checkpoint(last)
+    if "trainer" not in state:
+        raise CheckpointError(f"resume: {last} holds no trainer state.")
+    return state
+
+
+def _export(best: Path, cfg: DictConfig, rt: Runtime, name: str) -> Path | None:
+    """Copy best.ckpt to <paths.ckpt_dir>/<name>.ckpt atomically (so `init=<name>.ckpt` finds it)."""
+    if not cfg.export or not best.is_file():
+        return None
+    dest = resolve_path(cfg.paths.ckpt_dir, rt.start_dir) / f"{name}.ckpt"
+    with open(best, "rb") as src:
+        atomic_write(dest, lambda f: shutil.copyfileobj(src, f))
+    return dest
+
+
+def _print(s: dict[str, Any], train) -> None:
+    title = f"mpsim train: {s['system']['name']} ({s['mode']})"
+    rows = [
+        ("model", f"{s['model']['model']} ({s['model']['n_params']:,} params)"
+                  + (f", from {s['init']}" if s["init"] else "")),
+        ("data", f"{s['data']['train']}/{s['data']['val']}/{s['data']['test']} train/val/test trajectories, "
+                 f"N={train.n_nodes}, {train.n_times - 1} steps of {fmt(train.meta.get('dt'))}"),
+        ("epochs", f"{s['epochs_run']} ({s['status'].replace('_', ' ')}), wall time {duration(s['wall_time'])}"),
+        ("min test error", f"{fmt(s['min_test_error'])} at epoch {s['min_test_error_epoch']} "
+                           f"(untrained/initial: {fmt(s['initial_test_error'])})"),
+        ("epochs_x_min_error", fmt(s["epochs_x_min_error"])),
+        ("final val/test error", f"{fmt(s['final']['val_error'])} / {fmt(s['final']['test_error'])}"),
+        ("best model test RMSE", f"{fmt(s['test']['rmse'])} normalised, {fmt(s['test']['rmse_raw'])} raw"),
+        *horizon_rows(s["test"]),
+    ]
+    if "energy_error" in s["test"]:
+        rows.append(("energy error", f"{fmt(s['test']['energy_error'])} (data's own drift "
+                                     f"{fmt(s['test']['data_energy_drift'], 2)})"))
+    if s["divergence"]:
+        rows.append(("diverged", s["divergence"]))
+    rows.append(("run dir", s["run_dir"]))
+    if s["exported"]:
+        rows.append(("checkpoint", f"{s['exported']}  (use init={Path(s['exported']).name})"))
+    print_summary(title, rows)

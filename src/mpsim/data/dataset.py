@@ -1,0 +1,119 @@
+"""Train/validation/test splits, normalisation statistics and measurement noise.
+
+Simulated splits are drawn from separate seed streams (train 3s, validation 3s+1, test 3s+2 for
+`data.seed = s`), so the test set does not change when the training set grows, and a larger training
+set extends a smaller one (the first n trajectories are the same).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from mpsim.data.cache import cached
+from mpsim.data.trajectories import Trajectories
+from mpsim.errors import ConfigError, DataError
+from mpsim.systems.base import System
+
+SPLITS = ("train", "val", "test")
+
+
+@dataclass
+class Splits:
+    """The three splits of one dataset."""
+
+    train: Trajectories
+    val: Trajectories
+    test: Trajectories
+
+    def sizes(self) -> dict[str, int]:
+        return {"train": len(self.train), "val": len(self.val), "test": len(self.test)}
+
+
+def simulate_splits(
+    system: System,
+    system_spec: dict[str, Any],
+    n_train: int,
+    n_val: int,
+    n_test: int,
+    seed: int = 0,
+    dt: float | None = None,
+    horizon: int | None = None,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    cache_dir: str | Path | None = None,
+) -> Splits:
+    """Generate (or fetch from the cache) the three splits of a simulated dataset.
+
+    Args:
+        system: the ground-truth system.
+        system_spec: the system's full config (part of the cache key).
+        n_train, n_val, n_test: trajectories per split.
+        seed: dataset seed.
+        dt, horizon: sampling step and steps per trajectory (None: the system's defaults).
+        rtol, atol: ground-truth solver tolerances.
+        cache_dir: dataset cache (None: no cache).
+    """
+    dt = system.dt if dt is None else float(dt)
+    horizon = system.horizon if horizon is None else int(horizon)
+    sizes = {"train": n_train, "val": n_val, "test": n_test}
+    for name, n in sizes.items():
+        if n < 1:
+            raise ConfigError(f"data.n_{name} must be >= 1; got {n}.")
+    out = {}
+    for k, name in enumerate(SPLITS):
+        split_seed = 3 * int(seed) + k
+        spec = {"system": system_spec, "n": sizes[name], "seed": split_seed, "dt": dt, "horizon": horizon,
+                "rtol": rtol, "atol": atol}
+        out[name] = cached(
+            cache_dir,
+            spec,
+            lambda n=sizes[name], s=split_seed: system.generate(n, s, dt=dt, horizon=horizon, rtol=rtol, atol=atol),
+        )
+    return Splits(**out)
+
+
+def split_trajectories(data: Trajectories, fractions: tuple[float, float, float], seed: int = 0) -> Splits:
+    """Split loaded data by trajectory with a seeded permutation (`fractions` of train/val/test)."""
+    if len(fractions) != 3 or any(f < 0 for f in fractions) or sum(fractions) <= 0:
+        raise ConfigError(f"data.split must be three non-negative fractions (train, val, test); got {list(fractions)}.")
+    b = len(data)
+    total = sum(fractions)
+    n_val = int(round(b * fractions[1] / total))
+    n_test = int(round(b * fractions[2] / total))
+    n_train = b - n_val - n_test
+    if b < 3 or n_train < 1 or n_val < 1 or n_test < 1:
+        raise DataError(
+            f"{data.meta.get('source', 'data')}: {b} trajectories cannot be split into train/val/test "
+            f"{list(fractions)} with at least one each; provide at least 3 trajectories or change data.split."
+        )
+    order = torch.randperm(b, generator=torch.Generator().manual_seed(int(seed)))
+    return Splits(
+        train=data.subset(order[:n_train]),
+        val=data.subset(order[n_train : n_train + n_val]),
+        test=data.subset(order[n_train + n_val :]),
+    )
+
+
+def fit_normalisation(train: Trajectories, min_std: float = 1e-8) -> tuple[torch.Tensor, torch.Tensor]:
+    """([D] mean, [D] std) per state feature, pooled over trajectories, times and nodes of the training split.
+
+    A constant feature gets std 1 (it is only centred).
+    """
+    flat = train.x.double().reshape(-1, train.state_dim)
+    mean = flat.mean(0)
+    std = flat.std(0) if flat.shape[0] > 1 else torch.ones_like(mean)
+    return mean, torch.where(std > min_std, std, torch.ones_like(std))
+
+
+def add_noise(data: Trajectories, std: torch.Tensor, scale: float, seed: int) -> Trajectories:
+    """Copy of `data` with i.i.d. Gaussian noise of `scale`·std (per feature, [D]) added to every state."""
+    if scale <= 0:
+        return data
+    gen = torch.Generator().manual_seed(int(seed) + 7919)
+    noise = torch.randn(data.x.shape, generator=gen, dtype=torch.float64) * (scale * std.double())
+    return Trajectories(t=data.t, x=data.x + noise.to(data.x), edge_index=data.edge_index, u=data.u,
+                        node_features=data.node_features, meta={**data.meta, "noise_std": scale})

@@ -1,0 +1,317 @@
+"""Reading and writing trajectories: `.npz` and long-format `.csv` (the formats users bring data in).
+
+`.npz`: arrays ``t`` [T], ``x`` [B, T, N, D], optional ``u`` [B, T, N, C], ``edge_index`` [2, E] or
+[B, 2, E] (padded with −1), ``node_features`` [N, F] or [B, N, F], and ``meta`` (a JSON string).
+
+Long CSV: one row per (trajectory, time, node) with columns ``traj, t, node, <state names…>[, <control
+names…>]``; the graph comes from an edge-list CSV with columns ``src, dst`` (optionally ``traj`` for one
+graph per trajectory), by default ``<stem>_edges.csv`` beside the data. An optional sidecar
+``<stem>.json`` holds the metadata. Bad files are refused with a message naming the file, the row or
+column, and the fix.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+
+from mpsim.data.trajectories import Trajectories, grid_step
+from mpsim.errors import DataError
+from mpsim.files import atomic_write, json_default
+
+INDEX_COLUMNS = ("traj", "t", "node")
+
+
+# ---- npz -----------------------------------------------------------------------------------------------
+def save_npz(traj: Trajectories, path: str | Path) -> Path:
+    """Write `traj` to `path` atomically (float64 states, JSON metadata)."""
+    arrays: dict[str, Any] = {
+        "t": traj.t.double().cpu().numpy(),
+        "x": traj.x.double().cpu().numpy(),
+        "edge_index": traj.edge_index.long().cpu().numpy(),
+        "meta": np.array(json.dumps(traj.meta, default=json_default)),
+    }
+    if traj.u is not None:
+        arrays["u"] = traj.u.double().cpu().numpy()
+    if traj.node_features is not None:
+        arrays["node_features"] = traj.node_features.double().cpu().numpy()
+    return atomic_write(path, lambda f: np.savez(f, **arrays))
+
+
+def load_npz(path: str | Path, edge_index: torch.Tensor | None = None) -> Trajectories:
+    """Read an `.npz` written by `save_npz` or by hand (see the module docstring for the arrays)."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except Exception as err:  # noqa: BLE001
+        raise DataError(f"{path}: cannot read as .npz ({type(err).__name__}: {err}).") from None
+    missing = [k for k in ("t", "x") if k not in arrays]
+    if missing:
+        raise DataError(
+            f"{path}: missing array(s) {missing}; found {sorted(arrays)}. An mpsim .npz needs t [T] and "
+            "x [B, T, N, D] (see README, 'Data formats')."
+        )
+    meta: dict[str, Any] = {}
+    if "meta" in arrays:
+        try:
+            meta = json.loads(str(arrays["meta"]))
+        except json.JSONDecodeError as err:
+            raise DataError(f"{path}: array 'meta' is not valid JSON ({err}).") from None
+    for key in ("t", "x", "u", "node_features"):
+        if key in arrays and not np.issubdtype(arrays[key].dtype, np.number):
+            raise DataError(f"{path}: array '{key}' must be numeric; got dtype {arrays[key].dtype}.")
+    if "edge_index" in arrays:
+        ei = torch.from_numpy(np.asarray(arrays["edge_index"])).long()
+    elif edge_index is not None:
+        ei = edge_index
+    else:
+        raise DataError(
+            f"{path}: no 'edge_index' array and no graph given. Add edge_index [2, E] to the file, or pass "
+            "data.edges=<edges.csv> or data.graph=system (with system=<name>)."
+        )
+    meta.setdefault("system", path.stem)
+    x = torch.from_numpy(arrays["x"]).double()
+    t = torch.from_numpy(arrays["t"]).double()
+    meta.setdefault("dt", grid_step(t))
+    return _build(
+        path,
+        t=t,
+        x=x,
+        edge_index=ei,
+        u=torch.from_numpy(arrays["u"]).double() if "u" in arrays else None,
+        node_features=torch.from_numpy(arrays["node_features"]).double() if "node_features" in arrays else None,
+        meta=meta,
+    )
+
+
+# ---- csv -----------------------------------------------------------------------------------------------
+def save_csv(traj: Trajectories, path: str | Path) -> tuple[Path, Path]:
+    """Write long-format `<path>`, its edge list `<stem>_edges.csv` and metadata `<stem>.json`."""
+    path = Path(path)
+    b, t_len, n, d = traj.x.shape
+    grid = {
+        "traj": np.repeat(np.arange(b), t_len * n),
+        "t": np.tile(np.repeat(traj.t.double().cpu().numpy(), n), b),
+        "node": np.tile(np.arange(n), b * t_len),
+    }
+    for k, name in enumerate(traj.state_names):
+        grid[name] = traj.x[..., k].double().cpu().numpy().reshape(-1)
+    for k, name in enumerate(traj.control_names):
+        grid[name] = traj.u[..., k].double().cpu().numpy().reshape(-1)
+    frame = pd.DataFrame(grid)
+    atomic_write(path, lambda f: frame.to_csv(f, index=False, float_format="%.17g"), mode="w")
+    ei = traj.edge_index.cpu()
+    if ei.dim() == 2:
+        edges = pd.DataFrame({"src": ei[0].numpy(), "dst": ei[1].numpy()})
+    else:
+        keep = ei[:, 0] >= 0
+        traj_ids = torch.arange(b)[:, None].expand(-1, ei.shape[2])[keep]
+        edges = pd.DataFrame({"traj": traj_ids.numpy(), "src": ei[:, 0][keep].numpy(), "dst": ei[:, 1][keep].numpy()})
+    edge_path = path.with_name(f"{path.stem}_edges.csv")
+    atomic_write(edge_path, lambda f: edges.to_csv(f, index=False), mode="w")
+    meta = {**traj.meta, "control_columns": traj.control_names}
+    atomic_write(path.with_suffix(".json"), lambda f: json.dump(meta, f, indent=1, default=json_default), mode="w")
+    return path, edge_path
+
+
+def load_csv(
+    path: str | Path,
+    edges: str | Path | None = None,
+    edge_index: torch.Tensor | None = None,
+    control_columns: list[str] | tuple[str, ...] = (),
+) -> Trajectories:
+    """Read a long-format CSV (see the module docstring).
+
+    Args:
+        path: the data file.
+        edges: edge-list CSV (default: ``<stem>_edges.csv`` beside `path` if it exists).
+        edge_index: [2, E] graph to use when there is no edge list (e.g. a system's graph).
+        control_columns: columns that are controls rather than states (default: from the sidecar JSON).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"data file {path} does not exist.")
+    try:
+        frame = pd.read_csv(path)
+    except Exception as err:  # noqa: BLE001
+        raise DataError(f"{path}: cannot parse as CSV ({type(err).__name__}: {err}).") from None
+    sidecar = path.with_suffix(".json")
+    meta: dict[str, Any] = json.loads(sidecar.read_text()) if sidecar.is_file() else {}
+    control_columns = list(control_columns) or list(meta.pop("control_columns", []) or [])
+    missing = [c for c in INDEX_COLUMNS if c not in frame.columns]
+    if missing:
+        raise DataError(
+            f"{path}: missing column(s) {missing}; found {list(frame.columns)}. A long CSV needs columns "
+            "traj, t, node followed by one column per state variable."
+        )
+    unknown_controls = [c for c in control_columns if c not in frame.columns]
+    if unknown_controls:
+        raise DataError(
+            f"{path}: control column(s) {unknown_controls} not in the file's columns {list(frame.columns)}."
+        )
+    value_cols = [c for c in frame.columns if c not in INDEX_COLUMNS]
+    state_cols = [c for c in value_cols if c not in control_columns]
+    if not state_cols:
+        raise DataError(f"{path}: no state columns besides traj, t, node.")
+    if len(frame) == 0:
+        raise DataError(f"{path}: the file has a header but no rows.")
+    numeric = {c: _numeric_column(frame, c, path) for c in ["t", "node", *value_cols]}
+    node = numeric["node"]
+    if not np.all(node == np.round(node)):
+        row = int(np.nonzero(node != np.round(node))[0][0])
+        raise DataError(f"{path}: row {row + 2}, column 'node': node ids must be integers; got {node[row]}.")
+    node = node.astype(np.int64)
+    node_ids = np.unique(node)
+    n = int(node_ids.max()) + 1
+    if node_ids.min() < 0 or len(node_ids) != n:
+        raise DataError(
+            f"{path}: column 'node' must hold the ids 0..N-1 with none missing; found {len(node_ids)} distinct "
+            f"ids from {node_ids.min()} to {node_ids.max()}. Renumber the nodes from 0."
+        )
+    traj_codes, traj_labels = pd.factorize(frame["traj"], sort=True)
+    b = len(traj_labels)
+    t_vals = numeric["t"]
+    key = pd.DataFrame({"traj": traj_codes, "t": t_vals, "node": node})
+    dup = key.duplicated(keep=False).to_numpy()
+    if dup.any():
+        rows = (np.nonzero(dup)[0][:4] + 2).tolist()
+        raise DataError(f"{path}: rows {rows} repeat the same (traj, t, node); each must appear once.")
+    order = np.lexsort((node, t_vals, traj_codes))
+    counts = np.bincount(traj_codes, minlength=b)
+    times = np.unique(t_vals[traj_codes == 0])
+    t_len = len(times)
+    for_check = t_vals[order].reshape(-1)
+    expected = b * t_len * n
+    if len(frame) != expected or np.any(counts != t_len * n):
+        bad = int(np.nonzero(counts != t_len * n)[0][0]) if np.any(counts != t_len * n) else 0
+        raise DataError(
+            f"{path}: ragged data: trajectory {traj_labels[bad]!r} has {counts[bad]} rows but a full grid needs "
+            f"{t_len} times × {n} nodes = {t_len * n} (trajectory {traj_labels[0]!r} has {t_len} time points). "
+            "Every trajectory must have every node at the same times; resample or split the file."
+        )
+    grid_t = for_check.reshape(b, t_len, n)
+    if not np.allclose(grid_t, times[None, :, None], rtol=1e-9, atol=1e-12):
+        bad = int(np.nonzero(~np.isclose(grid_t, times[None, :, None]).all(axis=(1, 2)))[0][0])
+        raise DataError(
+            f"{path}: ragged times: trajectory {traj_labels[bad]!r} is not sampled at the same times as trajectory "
+            f"{traj_labels[0]!r} (or not at every node). All trajectories must share one time grid; subtract each "
+            "trajectory's start time or resample."
+        )
+    x = np.stack([numeric[c][order] for c in state_cols], axis=-1).reshape(b, t_len, n, len(state_cols))
+    u = None
+    if control_columns:
+        u = np.stack([numeric[c][order] for c in control_columns], axis=-1).reshape(b, t_len, n, len(control_columns))
+    edge_path = Path(edges) if edges else path.with_name(f"{path.stem}_edges.csv")
+    if edges or edge_path.is_file():
+        ei = load_edges(edge_path, n, traj_labels)
+    elif edge_index is not None:
+        ei = edge_index
+    else:
+        raise DataError(
+            f"{path}: no graph: expected an edge list {edge_path.name} beside it. Pass data.edges=<edges.csv> "
+            "(columns src,dst) or data.graph=system with system=<name>."
+        )
+    meta.update({"state_names": state_cols, "control_names": list(control_columns), "source": str(path)})
+    meta.setdefault("system", path.stem)
+    t = torch.from_numpy(times).double()
+    meta.setdefault("dt", grid_step(t))
+    return _build(
+        path,
+        t=t,
+        x=torch.from_numpy(x).double(),
+        edge_index=ei,
+        u=None if u is None else torch.from_numpy(u).double(),
+        node_features=None,
+        meta=meta,
+    )
+
+
+def load_edges(path: str | Path, n_nodes: int, traj_labels: Any = None) -> torch.Tensor:
+    """Edge list CSV (``src, dst`` [, ``traj``]) → [2, E] or [B, 2, E] padded with −1."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"edge list {path} does not exist; pass data.edges=<path> (columns src,dst).")
+    try:
+        frame = pd.read_csv(path)
+    except Exception as err:  # noqa: BLE001
+        raise DataError(f"{path}: cannot parse as CSV ({type(err).__name__}: {err}).") from None
+    missing = [c for c in ("src", "dst") if c not in frame.columns]
+    if missing:
+        raise DataError(f"{path}: missing column(s) {missing}; found {list(frame.columns)}. Use columns src,dst.")
+    src, dst = (_numeric_column(frame, c, path) for c in ("src", "dst"))
+    for name, col in (("src", src), ("dst", dst)):
+        bad = np.nonzero((col != np.round(col)) | (col < 0) | (col >= n_nodes))[0]
+        if len(bad):
+            r = int(bad[0])
+            raise DataError(
+                f"{path}: row {r + 2}, column '{name}': node {col[r]:g} is outside the graph's nodes 0..{n_nodes - 1}."
+            )
+    ei = torch.from_numpy(np.stack([src, dst]).astype(np.int64))
+    if "traj" not in frame.columns:
+        return ei
+    labels = list(traj_labels) if traj_labels is not None else sorted(frame["traj"].unique())
+    lookup = {lab: i for i, lab in enumerate(labels)}
+    unknown = [v for v in frame["traj"].unique() if v not in lookup]
+    if unknown:
+        raise DataError(f"{path}: column 'traj' names trajectories {unknown[:4]} that are not in the data.")
+    codes = np.array([lookup[v] for v in frame["traj"]])
+    counts = np.bincount(codes, minlength=len(labels))
+    e_max = int(counts.max()) if len(counts) else 0
+    order = np.argsort(codes, kind="stable")
+    slot = np.arange(len(codes)) - np.repeat(np.cumsum(counts) - counts, counts)
+    out = torch.full((len(labels), 2, e_max), -1, dtype=torch.long)
+    out[torch.from_numpy(codes[order]), :, torch.from_numpy(slot)] = ei[:, order].T
+    return out
+
+
+def load_trajectories(
+    path: str | Path,
+    edges: str | Path | None = None,
+    edge_index: torch.Tensor | None = None,
+    control_columns: list[str] | tuple[str, ...] = (),
+) -> Trajectories:
+    """Load `.npz` or `.csv` by extension."""
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"data file {path} does not exist (data.path={path}).")
+    if path.suffix == ".npz":
+        ei = load_edges(edges, _npz_nodes(path)) if edges else edge_index
+        return load_npz(path, ei)
+    if path.suffix == ".csv":
+        return load_csv(path, edges, edge_index, control_columns)
+    raise DataError(f"{path}: unknown data format {path.suffix!r}; use .npz or .csv (see README, 'Data formats').")
+
+
+# ---- helpers -------------------------------------------------------------------------------------------
+def _build(path: Path, **kwargs: Any) -> Trajectories:
+    # the container's own checks, reported against the file
+    try:
+        return Trajectories(**kwargs)
+    except DataError as err:
+        msg = str(err)
+        raise DataError(msg.replace("trajectories:", f"{path}:", 1)) from None
+
+
+def _numeric_column(frame: pd.DataFrame, col: str, path: Path) -> np.ndarray:
+    values = pd.to_numeric(frame[col], errors="coerce").to_numpy(dtype=np.float64)
+    bad = ~np.isfinite(values)
+    if bad.any():
+        row = int(np.nonzero(bad)[0][0])
+        raw = frame[col].iloc[row]
+        what = "is empty" if pd.isna(raw) else f"holds {raw!r}"
+        raise DataError(
+            f"{path}: row {row + 2}, column '{col}' {what} (not a finite number; {int(bad.sum())} such values in "
+            "that column). Remove or interpolate those rows."
+        )
+    return values
+
+
+def _npz_nodes(path: Path) -> int:
+    with np.load(path, allow_pickle=False) as z:
+        return int(z["x"].shape[2])

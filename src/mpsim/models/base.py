@@ -1,0 +1,98 @@
+"""`Model`: the interface every learned or white-box simulator implements.
+
+A model maps initial node states to a predicted trajectory on a given graph: `rollout(x0, t, edge_index, u)`.
+It holds the normalisation statistics of the data it was trained on (`state_mean`, `state_std`, buffers
+saved with its weights) and takes and returns states in raw units, so a checkpoint can be used on new data
+without any outside bookkeeping. Training losses are computed in normalised units (see `normalise`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import nn
+
+from mpsim.errors import IncompatibleError
+
+
+class Model(nn.Module):
+    """Base class: normalisation buffers, compatibility checks and the rollout signature.
+
+    Args:
+        state_dim: D, state variables per node.
+        control_dim: C, control inputs per node (0 without controls).
+    """
+
+    #: whether a trained model can run on a graph with a different number of nodes
+    transfers_across_graphs: bool = True
+
+    def __init__(self, state_dim: int, control_dim: int = 0) -> None:
+        super().__init__()
+        if state_dim < 1:
+            raise IncompatibleError(f"a model needs state_dim >= 1; got {state_dim}.")
+        self.state_dim, self.control_dim = int(state_dim), int(control_dim)
+        self.register_buffer("state_mean", torch.zeros(state_dim))
+        self.register_buffer("state_std", torch.ones(state_dim))
+
+    # ---- normalisation -------------------------------------------------------------------------------
+    def set_normalisation(
+        self,
+        mean: torch.Tensor,  # [D] per-feature mean of the training states
+        std: torch.Tensor,  # [D] per-feature standard deviation
+    ) -> None:
+        self.state_mean.copy_(mean.to(self.state_mean))
+        self.state_std.copy_(std.to(self.state_std))
+
+    def normalise(self, x: torch.Tensor) -> torch.Tensor:  # x: [..., D] raw states
+        """[..., D] z-scored states."""
+        return (x - self.state_mean) / self.state_std
+
+    def denormalise(self, z: torch.Tensor) -> torch.Tensor:  # z: [..., D] z-scored states
+        """[..., D] raw states."""
+        return z * self.state_std + self.state_mean
+
+    # ---- interface -----------------------------------------------------------------------------------
+    def check_compatible(
+        self, state_dim: int, control_dim: int, n_nodes: int, trained_nodes: int | None = None
+    ) -> None:
+        """Raise `IncompatibleError` when this model cannot run on data of the given shape."""
+        name = type(self).__name__
+        if state_dim != self.state_dim:
+            raise IncompatibleError(
+                f"{name} was built for {self.state_dim} state variables per node but the data has {state_dim}. "
+                "Use a checkpoint trained on this system, or train from scratch (drop init=)."
+            )
+        if control_dim != self.control_dim:
+            raise IncompatibleError(
+                f"{name} was built for {self.control_dim} controls per node but the data has {control_dim}."
+            )
+        if not self.transfers_across_graphs and trained_nodes is not None and n_nodes != trained_nodes:
+            raise IncompatibleError(
+                f"{name} models the whole flattened state of {trained_nodes} nodes and cannot run on a graph of "
+                f"{n_nodes} nodes. Use a modular model (model=mpnode) to transfer across graph sizes."
+            )
+
+    def rollout(
+        self,
+        x0: torch.Tensor,  # [B, N, D] initial states (raw units)
+        t: torch.Tensor,  # [T] times, t[0] is the time of x0
+        edge_index: torch.Tensor,  # [2, E] shared or [B, 2, E] per-trajectory graph (padded with -1)
+        u: torch.Tensor | None = None,  # [B, T, N, C] controls
+    ) -> torch.Tensor:
+        """[B, T, N, D] predicted states (raw units), the first equal to x0."""
+        raise NotImplementedError
+
+    def rollout_aux(
+        self,
+        x0: torch.Tensor,  # [B, N, D] initial states
+        t: torch.Tensor,  # [T] times
+        edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
+        u: torch.Tensor | None = None,  # [B, T, N, C] controls
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """Prediction plus internal signals worth plotting (e.g. MP-NODE messages); default: none."""
+        return self.rollout(x0, t, edge_index, u), {}
+
+    def describe(self) -> dict[str, Any]:
+        """Plain facts for summaries: class, parameter count."""
+        return {"model": type(self).__name__, "n_params": sum(p.numel() for p in self.parameters())}

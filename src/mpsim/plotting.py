@@ -1,0 +1,97 @@
+"""Plots people would rather look at than read: learning curves, trajectories with messages, error growth."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import torch  # noqa: E402
+
+from mpsim.files import atomic_write  # noqa: E402
+
+
+def _save(fig: plt.Figure, path: Path) -> Path:
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=110, bbox_inches="tight"))
+    plt.close(fig)
+    return path
+
+
+def learning_curves(history: Sequence[dict[str, Any]], path: str | Path, title: str = "") -> Path:
+    """Train loss and validation/test rollout error per epoch (log scale)."""
+    epochs = [r["epoch"] for r in history]
+    fig, (ax_loss, ax_err) = plt.subplots(1, 2, figsize=(10, 3.6))
+    train = [(e, r["train_loss"]) for e, r in zip(epochs, history, strict=True) if _finite(r["train_loss"])]
+    if train:
+        ax_loss.plot(*zip(*train, strict=True), color="tab:gray")
+    ax_loss.set(xlabel="epoch", ylabel="train loss", yscale="log", title="training loss")
+    for key, colour in (("val_error", "tab:blue"), ("test_error", "tab:red")):
+        pts = [(e, r[key]) for e, r in zip(epochs, history, strict=True) if _finite(r[key])]
+        if pts:
+            ax_err.plot(*zip(*pts, strict=True), color=colour, label=key.replace("_", " "))
+    ax_err.set(xlabel="epoch", ylabel="rollout RMSE (normalised)", yscale="log", title="rollout error")
+    ax_err.legend()
+    if title:
+        fig.suptitle(title)
+    return _save(fig, Path(path))
+
+
+def trajectories(
+    t: torch.Tensor,  # [T] times
+    true: torch.Tensor,  # [B, T, N, D] true states
+    pred: torch.Tensor,  # [B, T, N, D] predicted states
+    path: str | Path,
+    state_names: Sequence[str],
+    messages: torch.Tensor | None = None,  # [B, T, N, M] MP-NODE messages
+    n_traj: int = 2,
+    max_nodes: int = 6,
+    title: str = "",
+) -> Path:
+    """Predicted (red) vs observed (blue) states, one column per node, one block of rows per trajectory,
+    and the norm of each node's outgoing message (green), like the MP-NODE paper's Figure 2."""
+    b, _, n, d = true.shape
+    n_traj, nodes = min(n_traj, b), min(n, max_nodes)
+    rows_per = d + (1 if messages is not None and messages.shape[-1] > 0 else 0)
+    fig, axes = plt.subplots(n_traj * rows_per, nodes, figsize=(2.6 * nodes + 1, 1.7 * n_traj * rows_per),
+                             squeeze=False, sharex=True)
+    tt = t.cpu().numpy()
+    for i in range(n_traj):
+        for k in range(nodes):
+            for j in range(d):
+                ax = axes[i * rows_per + j, k]
+                ax.plot(tt, true[i, :, k, j].cpu().numpy(), color="tab:blue", lw=1.4, label="observed")
+                ax.plot(tt, pred[i, :, k, j].cpu().numpy(), color="tab:red", lw=1.1, ls="--", label="predicted")
+                if k == 0:
+                    ax.set_ylabel(f"traj {i}\n{state_names[j]}")
+                if i == 0 and j == 0:
+                    ax.set_title(f"node {k}")
+            if rows_per > d:
+                ax = axes[i * rows_per + d, k]
+                ax.plot(tt, messages[i, :, k].norm(dim=-1).cpu().numpy(), color="tab:green", lw=1.2)
+                if k == 0:
+                    ax.set_ylabel(f"traj {i}\n|message|")
+    for ax in axes[-1]:
+        ax.set_xlabel("t")
+    axes[0, 0].legend(fontsize=7, loc="best")
+    if title:
+        fig.suptitle(title)
+    return _save(fig, Path(path))
+
+
+def error_growth(t: torch.Tensor, per_step: Sequence[float], path: str | Path, title: str = "") -> Path:
+    """Rollout RMSE (normalised) against time: how fast predictions drift."""
+    fig, ax = plt.subplots(figsize=(5, 3.4))
+    if per_step:
+        ax.plot(t[: len(per_step)].cpu().numpy(), per_step, color="tab:red")
+    ax.set(xlabel="t", ylabel="RMSE (normalised)", title=title or "error growth over the rollout")
+    ax.set_yscale("symlog", linthresh=1e-3)
+    return _save(fig, Path(path))
+
+
+def _finite(v: Any) -> bool:
+    return isinstance(v, int | float) and math.isfinite(v)

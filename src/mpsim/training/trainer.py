@@ -1,0 +1,338 @@
+"""`Trainer`: the one stateful object — optimiser, schedule, early stopping, checkpoints, metrics, progress.
+
+Training follows MPNODE.jl: full free-running rollouts from each trajectory's first state (single shooting),
+loss on states only, Adam with a global-norm gradient clip, learning rate halved on a plateau of the
+validation error. Every epoch ends with a validation and a test rollout, one row in `metrics.csv`, and an
+atomic `last.ckpt` that holds everything needed to continue exactly (`resume`).
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import io
+import logging
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import torch
+from tqdm.auto import tqdm
+
+from mpsim.data.trajectories import Trajectories
+from mpsim.errors import ConfigError, DivergenceError
+from mpsim.files import atomic_write
+from mpsim.models.base import Model
+from mpsim.training.checkpoint import save_checkpoint
+from mpsim.training.metrics import LOSSES, rollout_metrics
+
+log = logging.getLogger(__name__)
+
+METRIC_COLUMNS = ("epoch", "train_loss", "val_error", "test_error", "lr", "grad_norm", "epoch_time", "wall_time")
+
+
+def predict(
+    model: Model,
+    data: Trajectories,
+    batch_size: int = 512,
+    aux: bool = False,
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Roll `model` out from every trajectory's first state, in batches, without gradients.
+
+    A batch whose solve fails (step-size underflow) is filled with NaN and reported as diverged by the
+    metrics instead of aborting the evaluation.
+
+    Returns:
+        ([B, T, N, D] predictions in raw units, auxiliary signals such as MP-NODE messages [B, T, N, M]).
+    """
+    preds, auxes = [], []
+    device = model.state_mean.device
+    t = data.t.to(device)
+    with torch.no_grad():
+        for start in range(0, len(data), batch_size):
+            part = data.subset(slice(start, start + batch_size)).to(device, model.state_mean.dtype)
+            try:
+                if aux:
+                    p, a = model.rollout_aux(part.x[:, 0], t.to(part.x.dtype), part.edge_index, part.u)
+                else:
+                    p, a = model.rollout(part.x[:, 0], t.to(part.x.dtype), part.edge_index, part.u), {}
+            except DivergenceError:
+                p, a = torch.full_like(part.x, math.nan), {}
+            preds.append(p.cpu())
+            auxes.append({k: v.cpu() for k, v in a.items()})
+    merged = {k: torch.cat([a[k] for a in auxes]) for k in auxes[0]} if auxes and all(auxes) else {}
+    return torch.cat(preds), merged
+
+
+def rollout_error(model: Model, data: Trajectories, batch_size: int = 512) -> float:
+    """Normalised rollout RMSE of `model` on `data` over steps 1..T−1 (NaN if every trajectory diverged)."""
+    pred, _ = predict(model, data, batch_size)
+    return rollout_metrics(pred, data.x.to(pred.dtype), model.state_std.cpu().to(pred.dtype), data.t)["rmse"]
+
+
+class Trainer:
+    """Fits a `Model` to trajectories by full-rollout single shooting.
+
+    Args:
+        max_epochs: upper bound on epochs.
+        batch_size: trajectories per optimiser step (reference: 128; the last batch may be partial).
+        lr: Adam learning rate (reference: 1e-3).
+        weight_decay: Adam weight decay.
+        clip_norm: global gradient-norm clip (reference: 500).
+        loss: ``huber`` (reference: summed over steps and features, mean over node-trajectories) or ``mse``.
+        huber_delta: Huber threshold in normalised units.
+        plateau_patience: epochs without validation improvement before the learning rate is multiplied
+            by `plateau_factor`.
+        plateau_factor: learning-rate factor on a plateau (reference: 0.5).
+        min_lr: the learning rate is never reduced below this.
+        early_stop_patience: stop after this many epochs without validation improvement (0: never).
+        eval_batch_size: trajectories per batch when evaluating.
+        progress: show a progress bar.
+    """
+
+    def __init__(
+        self,
+        max_epochs: int = 100,
+        batch_size: int = 128,
+        lr: float = 1e-3,
+        weight_decay: float = 0.0,
+        clip_norm: float = 500.0,
+        loss: str = "huber",
+        huber_delta: float = 1.0,
+        plateau_patience: int = 25,
+        plateau_factor: float = 0.5,
+        min_lr: float = 1e-6,
+        early_stop_patience: int = 100,
+        eval_batch_size: int = 512,
+        progress: bool = True,
+    ) -> None:
+        if loss not in LOSSES:
+            raise ConfigError(f"trainer.loss={loss!r} is unknown; choose one of {sorted(LOSSES)}.")
+        if max_epochs < 0 or batch_size < 1 or lr <= 0:
+            raise ConfigError(
+                f"need trainer.max_epochs >= 0, trainer.batch_size >= 1 and trainer.lr > 0; got "
+                f"{max_epochs}, {batch_size}, {lr}."
+            )
+        self.max_epochs, self.batch_size, self.lr, self.weight_decay = max_epochs, batch_size, lr, weight_decay
+        self.clip_norm, self.loss, self.huber_delta = clip_norm, loss, huber_delta
+        self.plateau_patience, self.plateau_factor, self.min_lr = plateau_patience, plateau_factor, min_lr
+        self.early_stop_patience, self.eval_batch_size, self.progress = early_stop_patience, eval_batch_size, progress
+
+    # ---- fitting -------------------------------------------------------------------------------------
+    def fit(
+        self,
+        model: Model,
+        train: Trajectories,
+        val: Trajectories,
+        test: Trajectories | None = None,
+        *,
+        run_dir: str | Path,
+        seed: int = 0,
+        checkpoint_base: dict[str, Any] | None = None,
+        resume_state: dict[str, Any] | None = None,
+        on_epoch: Callable[[dict[str, Any]], None] | None = None,
+    ) -> Trainer:
+        """Train `model` in place; afterwards it holds the weights of the best validation epoch.
+
+        Args:
+            model: the model (its normalisation buffers already set).
+            train, val, test: splits; `test` is only evaluated (for the test-error curve and Table 2 metric).
+            run_dir: where `metrics.csv` and `checkpoints/{best,last}.ckpt` go.
+            seed: seed of the batch shuffling.
+            checkpoint_base: static checkpoint content (model config, system metadata, normalisation).
+            resume_state: the ``trainer`` entry of a `last.ckpt` to continue from.
+            on_epoch: called with each epoch's metrics row.
+
+        Sets:
+            history_ (list of metric rows), best_epoch_, best_val_, status_ (complete, early_stopped,
+            diverged), divergence_ (message or None), best_state_ (weights of the best epoch).
+        """
+        run_dir = Path(run_dir)
+        self._ckpt_dir = run_dir / "checkpoints"
+        self._metrics_path = run_dir / "metrics.csv"
+        self._base = dict(checkpoint_base or {})
+        device, dtype = model.state_mean.device, model.state_mean.dtype
+        train_d = train.to(device, dtype)
+        loss_fn = LOSSES[self.loss]
+        opt = torch.optim.Adam(model.parameters(), lr=self.lr, weight_decay=self.weight_decay)
+        sched = torch.optim.lr_scheduler.ReduceLROnPlateau(
+            opt, mode="min", factor=self.plateau_factor, patience=self.plateau_patience, min_lr=self.min_lr
+        )
+        shuffle = torch.Generator().manual_seed(int(seed))
+        self.history_: list[dict[str, Any]] = []
+        self.best_val_, self.best_epoch_, self.status_, self.divergence_ = math.inf, 0, "complete", None
+        self.best_state_ = copy.deepcopy(model.state_dict())
+        since_best, wall_before, start_epoch = 0, 0.0, 1
+
+        if resume_state is not None:
+            model.load_state_dict(resume_state["model_state"])
+            opt.load_state_dict(resume_state["optimizer"])
+            sched.load_state_dict(resume_state["scheduler"])
+            shuffle.set_state(resume_state["shuffle_rng"])
+            self.history_ = list(resume_state["history"])
+            self.best_val_, self.best_epoch_ = resume_state["best_val"], resume_state["best_epoch"]
+            self.best_state_ = resume_state["best_state"]
+            since_best = resume_state["since_best"]
+            wall_before = self.history_[-1]["wall_time"] if self.history_ else 0.0
+            start_epoch = resume_state["epoch"] + 1
+            log.info(
+                f"resuming after epoch {resume_state['epoch']} (best val {self.best_val_:.4g} at epoch "
+                f"{self.best_epoch_})"
+            )
+        else:  # epoch 0: the starting point (untrained, or the checkpoint being finetuned)
+            row = self._evaluate_row(model, val, test, 0, math.nan, opt, math.nan, 0.0, 0.0)
+            self.best_val_ = row["val_error"] if row["val_error"] == row["val_error"] else math.inf
+            self._record(row, on_epoch)
+            self._save_last(model, opt, sched, shuffle, 0, since_best)
+
+        t_start = time.perf_counter()
+        bar = tqdm(
+            range(start_epoch, self.max_epochs + 1),
+            initial=start_epoch - 1,
+            total=self.max_epochs,
+            disable=not self.progress,
+            desc="train",
+            unit="epoch",
+            dynamic_ncols=True,
+            leave=True,
+        )
+        for epoch in bar:
+            t0 = time.perf_counter()
+            try:
+                train_loss, grad_norm = self._train_epoch(model, train_d, opt, loss_fn, shuffle, epoch)
+            except DivergenceError as err:
+                self.status_, self.divergence_ = "diverged", str(err)
+                log.error(str(err))
+                break
+            epoch_time = time.perf_counter() - t0
+            wall = wall_before + time.perf_counter() - t_start
+            row = self._evaluate_row(model, val, test, epoch, train_loss, opt, grad_norm, epoch_time, wall)
+            val_err = row["val_error"]
+            if val_err == val_err:  # NaN validation error never counts as an improvement
+                sched.step(val_err)
+            if val_err < self.best_val_:
+                self.best_val_, self.best_epoch_, since_best = val_err, epoch, 0
+                self.best_state_ = copy.deepcopy(model.state_dict())
+                self._save_best(model)
+            else:
+                since_best += 1
+            self._record(row, on_epoch)
+            self._save_last(model, opt, sched, shuffle, epoch, since_best)
+            bar.set_postfix(
+                loss=f"{train_loss:.3g}", val=f"{val_err:.3g}", test=f"{row['test_error']:.3g}", lr=f"{row['lr']:.1g}"
+            )
+            if self.early_stop_patience and since_best >= self.early_stop_patience:
+                self.status_ = "early_stopped"
+                log.info(f"early stop: no validation improvement for {since_best} epochs")
+                break
+        bar.close()
+        model.load_state_dict(self.best_state_)
+        return self
+
+    def _train_epoch(self, model, data, opt, loss_fn, shuffle, epoch) -> tuple[float, float]:
+        model.train()
+        order = torch.randperm(len(data), generator=shuffle)
+        t = data.t.to(data.x)
+        total, norms, count = 0.0, [], 0
+        for k, start in enumerate(range(0, len(data), self.batch_size)):
+            idx = order[start : start + self.batch_size]
+            batch = data.subset(idx.to(data.x.device))
+            pred = model.rollout(batch.x[:, 0], t, batch.edge_index, batch.u)
+            loss = loss_fn(model.normalise(pred), model.normalise(batch.x), self.huber_delta)
+            if not torch.isfinite(loss):
+                raise DivergenceError(_divergence_message(pred, data.t, epoch, k, idx))
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            clip = self.clip_norm if self.clip_norm and self.clip_norm > 0 else math.inf
+            gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), clip)
+            if not torch.isfinite(gnorm):
+                raise DivergenceError(
+                    f"epoch {epoch}, batch {k}: the gradient became {float(gnorm)} (trajectories "
+                    f"{_ids(idx)}). Lower trainer.lr or trainer.clip_norm."
+                )
+            opt.step()
+            total += float(loss.detach()) * len(idx)
+            count += len(idx)
+            norms.append(float(gnorm))
+        return total / max(count, 1), sum(norms) / max(len(norms), 1)
+
+    def _evaluate_row(self, model, val, test, epoch, train_loss, opt, grad_norm, epoch_time, wall) -> dict:
+        model.eval()
+        val_err = rollout_error(model, val, self.eval_batch_size)
+        test_err = rollout_error(model, test, self.eval_batch_size) if test is not None else math.nan
+        return {
+            "epoch": epoch,
+            "train_loss": train_loss,
+            "val_error": val_err,
+            "test_error": test_err,
+            "lr": opt.param_groups[0]["lr"],
+            "grad_norm": grad_norm,
+            "epoch_time": epoch_time,
+            "wall_time": wall,
+        }
+
+    # ---- records -------------------------------------------------------------------------------------
+    def _record(self, row: dict[str, Any], on_epoch) -> None:
+        self.history_.append(row)
+        buf = io.StringIO()
+        writer = csv.DictWriter(buf, fieldnames=METRIC_COLUMNS)
+        writer.writeheader()
+        writer.writerows(self.history_)
+        atomic_write(self._metrics_path, lambda f: f.write(buf.getvalue()), mode="w")
+        if on_epoch is not None:
+            on_epoch(row)
+
+    def _save_best(self, model: Model) -> None:
+        save_checkpoint(
+            self._ckpt_dir / "best.ckpt",
+            {
+                **self._base,
+                "model": {**self._base.get("model", {}), "state_dict": model.state_dict()},
+                "metrics": {"epoch": self.best_epoch_, "val_error": self.best_val_},
+            },
+        )
+
+    def _save_last(self, model, opt, sched, shuffle, epoch, since_best) -> None:
+        state = {
+            "epoch": epoch,
+            "model_state": model.state_dict(),
+            "optimizer": opt.state_dict(),
+            "scheduler": sched.state_dict(),
+            "shuffle_rng": shuffle.get_state(),
+            "history": self.history_,
+            "best_val": self.best_val_,
+            "best_epoch": self.best_epoch_,
+            "best_state": self.best_state_,
+            "since_best": since_best,
+            "max_epochs": self.max_epochs,
+        }
+        save_checkpoint(
+            self._ckpt_dir / "last.ckpt",
+            {
+                **self._base,
+                "model": {**self._base.get("model", {}), "state_dict": model.state_dict()},
+                "metrics": {"epoch": epoch},
+                "trainer": state,
+            },
+        )
+
+
+def _ids(idx: torch.Tensor, limit: int = 8) -> str:
+    ids = [int(i) for i in idx[:limit]]
+    return f"{ids}{' ...' if len(idx) > limit else ''}"
+
+
+def _divergence_message(pred: torch.Tensor, t: torch.Tensor, epoch: int, batch: int, idx: torch.Tensor) -> str:
+    """Name the batch, the first trajectory and the first time at which the rollout went non-finite."""
+    bad = ~torch.isfinite(pred.detach()).flatten(2).all(dim=-1)  # [B, T]
+    if bad.any():
+        b, k = (int(v) for v in torch.nonzero(bad)[0])
+        where = f"trajectory {int(idx[b])} first became non-finite at t={float(t[k]):.4g} (step {k})"
+    else:
+        where = "the loss overflowed although every prediction is finite"
+    return (
+        f"training diverged in epoch {epoch}, batch {batch} (trajectories {_ids(idx)}): {where}. "
+        "Lower trainer.lr, tighten trainer.clip_norm or use a shorter data.horizon."
+    )
