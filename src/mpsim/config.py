@@ -48,8 +48,8 @@ class DataConf:
 @dataclass
 class TrainerConf:
     _target_: str = "mpsim.training.Trainer"
-    max_epochs: int = 60
-    batch_size: int = 128
+    max_epochs: int = 100
+    batch_size: int = 32
     lr: float = 3.0e-3
     weight_decay: float = 0.0
     clip_norm: float = 500.0
@@ -96,7 +96,7 @@ class CommonConf:
     init: str | None = None
     device: str = "auto"  # auto | cpu | cuda | cuda:1 ...
     dtype: str = "float32"  # model precision: float32 | float64
-    threads: int | None = None  # torch CPU threads (null: torch's default, or cores / jobs under joblib)
+    threads: int | None = 1  # torch CPU threads (null: torch's default, or cores / jobs under joblib)
 
 
 @dataclass

@@ -21,6 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 from mpsim.config import check_targets
 from mpsim.data.dataset import Splits, add_noise, fit_normalisation, simulate_splits, split_trajectories
 from mpsim.data.io import load_trajectories
+from mpsim.data.trajectories import Trajectories
 from mpsim.errors import CheckpointError, ConfigError, IncompatibleError, MpsimError
 from mpsim.models.base import Model
 from mpsim.solvers.odeint import ODESolver
@@ -266,23 +267,47 @@ def _plain(obj: Any) -> Any:
     return str(obj)
 
 
-def prepare_model(
-    cfg: DictConfig, rt: Runtime, splits: Splits, ckpt: dict[str, Any] | None, refit: bool
+@dataclass(frozen=True)
+class Shape:
+    """What a model must fit: per-node state and control sizes, node count, state names."""
+
+    state_dim: int
+    control_dim: int
+    n_nodes: int
+    state_names: list[str]
+
+    @staticmethod
+    def of(source: System | Trajectories) -> Shape:
+        return Shape(source.state_dim, source.control_dim, source.n_nodes, list(source.state_names))
+
+
+def build_model_for(
+    cfg: DictConfig, rt: Runtime, shape: Shape, ckpt: dict[str, Any] | None
 ) -> tuple[Model, dict[str, Any]]:
-    """Build the model for `splits` (from scratch or from `ckpt`) and set its normalisation."""
-    train = splits.train
+    """Build the model for data of `shape`, from scratch or with `ckpt`'s weights, checking that they fit."""
     if ckpt is not None:
-        check_checkpoint_system(ckpt, train.state_dim, train.control_dim, train.state_names)
+        check_checkpoint_system(ckpt, shape.state_dim, shape.control_dim, shape.state_names)
     model_cfg = model_config(cfg, ckpt, rt.overrides)
-    model = build_model(model_cfg, train.state_dim, train.control_dim, build_solver(cfg), rt)
+    model = build_model(model_cfg, shape.state_dim, shape.control_dim, build_solver(cfg), rt)
     trained_nodes = None if ckpt is None else ckpt["system"].get("n_nodes")
-    model.check_compatible(train.state_dim, train.control_dim, train.n_nodes, trained_nodes)
+    model.check_compatible(shape.state_dim, shape.control_dim, shape.n_nodes, trained_nodes)
     if ckpt is not None:
         load_weights(model, ckpt, model_cfg)
-    if ckpt is None or refit:
-        mean, std = fit_normalisation(train)
-        model.set_normalisation(mean, std)
     return model, model_cfg
+
+
+def model_and_data(
+    cfg: DictConfig, rt: Runtime, system: System | None, ckpt: dict[str, Any] | None, refit: bool
+) -> tuple[Model, dict[str, Any], Splits]:
+    """Model and splits, checked in the order that writes nothing before a bad input is found: the model
+    (and checkpoint) is checked against the system before any data is simulated into the cache."""
+    splits = load_splits(cfg, rt, system) if cfg.data.path else None
+    model, model_cfg = build_model_for(cfg, rt, Shape.of(splits.train if splits else system), ckpt)
+    if splits is None:
+        splits = load_splits(cfg, rt, system)
+    if ckpt is None or refit:
+        model.set_normalisation(*fit_normalisation(splits.train))
+    return model, model_cfg, splits
 
 
 def load_init(cfg: DictConfig, rt: Runtime) -> dict[str, Any] | None:

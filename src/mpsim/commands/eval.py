@@ -10,7 +10,7 @@ from typing import Any
 from omegaconf import DictConfig
 
 from mpsim import plotting
-from mpsim.commands.common import Runtime, build_system, load_init, load_splits, prepare_model, setup_runtime
+from mpsim.commands.common import Runtime, build_system, load_init, model_and_data, setup_runtime
 from mpsim.commands.console import fmt, print_summary
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError
@@ -73,8 +73,7 @@ def evaluate_checkpoint(cfg: DictConfig, rt: Runtime, task: str) -> dict:
     t0 = time.perf_counter()
     ckpt = load_init(cfg, rt)
     system = None if cfg.data.path and cfg.data.graph != "system" else build_system(cfg)
-    splits = load_splits(cfg, rt, system)
-    model, model_cfg = prepare_model(cfg, rt, splits, ckpt, refit=False)
+    model, model_cfg, splits = model_and_data(cfg, rt, system, ckpt, refit=False)
     test = splits.test
     title = f"{test.system_name}: {ckpt['system'].get('system')} checkpoint, no training"
     metrics = evaluate_model(model, test, rt.output_dir, list(cfg.eval.horizons),

@@ -9,9 +9,8 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from mpsim import plotting
-from mpsim.commands.common import build_system, load_init, prepare_model, setup_runtime
+from mpsim.commands.common import Shape, build_model_for, build_system, load_init, setup_runtime
 from mpsim.commands.console import fmt, print_summary
-from mpsim.data.dataset import Splits
 from mpsim.data.io import save_csv, save_npz
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError
@@ -50,7 +49,7 @@ def run_simulate(cfg: DictConfig, output_dir: str | Path | None = None, override
     rows = [("system", repr(system)), ("trajectories", f"{cfg.n} × {truth.n_times} time points")]
     ckpt = load_init(cfg, rt)
     if ckpt is not None:
-        model, _ = prepare_model(cfg, rt, Splits(truth, truth, truth), ckpt, refit=False)
+        model, _ = build_model_for(cfg, rt, Shape.of(truth), ckpt)
         pred, aux = predict(model, truth, aux=True)
         model_traj = Trajectories(t=truth.t, x=pred.double(), edge_index=truth.edge_index, u=truth.u,
                                   meta={**truth.meta, "model": ckpt["path"]})

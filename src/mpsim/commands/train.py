@@ -19,9 +19,8 @@ from mpsim.commands.common import (
     build_system,
     checkpoint_base,
     load_init,
-    load_splits,
+    model_and_data,
     noisy_train,
-    prepare_model,
     resolve_path,
     setup_runtime,
 )
@@ -58,11 +57,10 @@ def run_train(cfg: DictConfig, output_dir: str | Path | None = None, overrides: 
     last = _resume_checkpoint(cfg, rt)
     ckpt = load_init(cfg, rt) if last is None else None
     system = None if cfg.data.path and cfg.data.graph != "system" else build_system(cfg)
-    splits = load_splits(cfg, rt, system)
     if last is None:
-        model, model_cfg = prepare_model(cfg, rt, splits, ckpt, refit=bool(cfg.mode.refit_normalisation))
+        model, model_cfg, splits = model_and_data(cfg, rt, system, ckpt, bool(cfg.mode.refit_normalisation))
     else:  # the interrupted run's own model (config, weights, normalisation)
-        model, model_cfg = prepare_model(cfg, rt, splits, last, refit=False)
+        model, model_cfg, splits = model_and_data(cfg, rt, system, last, refit=False)
     init_path = last.get("init") if last is not None else (None if ckpt is None else ckpt["path"])
     if cfg.data.noise_std > 0:
         splits = noisy_train(splits, model.state_std.detach().cpu().double(), cfg.data.noise_std, cfg.data.seed)

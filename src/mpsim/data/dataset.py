@@ -2,7 +2,8 @@
 
 Simulated splits are drawn from separate seed streams (train 3s, validation 3s+1, test 3s+2 for
 `data.seed = s`), so the test set does not change when the training set grows, and a larger training
-set extends a smaller one (the first n trajectories are the same).
+set extends a smaller one (the first n initial states are the same; the adaptive ground-truth solver
+shares its steps across a batch, so trajectories agree to its tolerance).
 """
 
 from __future__ import annotations

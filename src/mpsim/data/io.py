@@ -191,16 +191,16 @@ def load_csv(
     if len(frame) != expected or np.any(counts != t_len * n):
         bad = int(np.nonzero(counts != t_len * n)[0][0]) if np.any(counts != t_len * n) else 0
         raise DataError(
-            f"{path}: ragged data: trajectory {traj_labels[bad]!r} has {counts[bad]} rows but a full grid needs "
-            f"{t_len} times × {n} nodes = {t_len * n} (trajectory {traj_labels[0]!r} has {t_len} time points). "
+            f"{path}: ragged data: trajectory {_label(traj_labels[bad])} has {counts[bad]} rows but a full grid needs "
+            f"{t_len} times × {n} nodes = {t_len * n} (trajectory {_label(traj_labels[0])} has {t_len} time points). "
             "Every trajectory must have every node at the same times; resample or split the file."
         )
     grid_t = for_check.reshape(b, t_len, n)
     if not np.allclose(grid_t, times[None, :, None], rtol=1e-9, atol=1e-12):
         bad = int(np.nonzero(~np.isclose(grid_t, times[None, :, None]).all(axis=(1, 2)))[0][0])
         raise DataError(
-            f"{path}: ragged times: trajectory {traj_labels[bad]!r} is not sampled at the same times as trajectory "
-            f"{traj_labels[0]!r} (or not at every node). All trajectories must share one time grid; subtract each "
+            f"{path}: ragged times: trajectory {_label(traj_labels[bad])} is not sampled at the same times as trajectory "
+            f"{_label(traj_labels[0])} (or not at every node). All trajectories must share one time grid; subtract each "
             "trajectory's start time or resample."
         )
     x = np.stack([numeric[c][order] for c in state_cols], axis=-1).reshape(b, t_len, n, len(state_cols))
@@ -296,6 +296,11 @@ def _build(path: Path, **kwargs: Any) -> Trajectories:
     except DataError as err:
         msg = str(err)
         raise DataError(msg.replace("trajectories:", f"{path}:", 1)) from None
+
+
+def _label(value: Any) -> str:
+    """A trajectory label as the user wrote it (numpy scalars unwrapped)."""
+    return repr(value.item() if hasattr(value, "item") else value)
 
 
 def _numeric_column(frame: pd.DataFrame, col: str, path: Path) -> np.ndarray:

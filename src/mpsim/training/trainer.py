@@ -284,15 +284,21 @@ class Trainer:
         if on_epoch is not None:
             on_epoch(row)
 
+    def _payload(self, model: Model, **extra: Any) -> dict[str, Any]:
+        """A complete checkpoint: the static base plus the model's current weights and normalisation."""
+        return {
+            **self._base,
+            "model": {"state_dim": model.state_dim, "control_dim": model.control_dim, **self._base.get("model", {}),
+                      "state_dict": model.state_dict()},
+            "normalisation": {"mean": model.state_mean.detach().cpu().clone(),
+                              "std": model.state_std.detach().cpu().clone()},
+            "system": self._base.get("system", {}),
+            **extra,
+        }
+
     def _save_best(self, model: Model) -> None:
-        save_checkpoint(
-            self._ckpt_dir / "best.ckpt",
-            {
-                **self._base,
-                "model": {**self._base.get("model", {}), "state_dict": model.state_dict()},
-                "metrics": {"epoch": self.best_epoch_, "val_error": self.best_val_},
-            },
-        )
+        metrics = {"epoch": self.best_epoch_, "val_error": self.best_val_}
+        save_checkpoint(self._ckpt_dir / "best.ckpt", self._payload(model, metrics=metrics))
 
     def _save_last(self, model, opt, sched, shuffle, epoch, since_best) -> None:
         state = {
@@ -308,15 +314,7 @@ class Trainer:
             "since_best": since_best,
             "max_epochs": self.max_epochs,
         }
-        save_checkpoint(
-            self._ckpt_dir / "last.ckpt",
-            {
-                **self._base,
-                "model": {**self._base.get("model", {}), "state_dict": model.state_dict()},
-                "metrics": {"epoch": epoch},
-                "trainer": state,
-            },
-        )
+        save_checkpoint(self._ckpt_dir / "last.ckpt", self._payload(model, metrics={"epoch": epoch}, trainer=state))
 
 
 def _ids(idx: torch.Tensor, limit: int = 8) -> str:

@@ -1,0 +1,82 @@
+import multiprocessing as mp
+
+import pytest
+import torch
+
+from mpsim.data.cache import cache_key, cached
+from mpsim.data.dataset import fit_normalisation, simulate_splits, split_trajectories
+from mpsim.errors import DataError
+from mpsim.systems import CoupledLorenz, CoupledPendulums
+
+SPEC = {"_target_": "mpsim.systems.CoupledPendulums", "name": "pendulum2"}
+
+
+def test_test_split_does_not_depend_on_training_size(tmp_path):
+    system = CoupledPendulums()
+    small = simulate_splits(system, SPEC, 4, 2, 3, seed=0, horizon=5, cache_dir=tmp_path)
+    large = simulate_splits(system, SPEC, 10, 2, 3, seed=0, horizon=5, cache_dir=tmp_path)
+    assert torch.equal(small.test.x, large.test.x)
+    # a larger training set extends the smaller one: same initial states; trajectories agree to the solver tolerance
+    assert torch.equal(small.train.x[:, 0], large.train.x[:4, 0])
+    assert torch.allclose(small.train.x, large.train.x[:4], atol=1e-6)
+    assert not torch.equal(small.train.x[:2], small.val.x)  # splits come from different seed streams
+
+
+def test_normalisation_uses_the_training_split_only():
+    system = CoupledLorenz(n_nodes=2)
+    splits = simulate_splits(system, {"n": 2}, 6, 3, 3, seed=1, horizon=20)
+    mean, std = fit_normalisation(splits.train)
+    flat = splits.train.x.reshape(-1, 3)
+    assert torch.allclose(mean, flat.mean(0)) and torch.allclose(std, flat.std(0))
+    assert not torch.allclose(mean, splits.test.x.reshape(-1, 3).mean(0))
+
+
+def test_split_trajectories_fractions_and_error():
+    data = CoupledPendulums().generate(10, seed=0, horizon=3)
+    s = split_trajectories(data, (0.6, 0.2, 0.2), seed=0)
+    assert s.sizes() == {"train": 6, "val": 2, "test": 2}
+    ids = torch.cat([s.train.x[:, 0, 0, 0], s.val.x[:, 0, 0, 0], s.test.x[:, 0, 0, 0]])
+    assert len(set(ids.tolist())) == 10
+    with pytest.raises(DataError, match="at least one each"):
+        split_trajectories(data.subset(slice(0, 2)), (0.7, 0.15, 0.15))
+
+
+def test_cache_hit_returns_the_stored_data(tmp_path):
+    calls = []
+
+    def build():
+        calls.append(1)
+        return CoupledPendulums().generate(2, seed=0, horizon=3)
+
+    a = cached(tmp_path, {"k": 1}, build)
+    b = cached(tmp_path, {"k": 1}, build)
+    assert len(calls) == 1 and torch.equal(a.x, b.x)
+    cached(tmp_path, {"k": 2}, build)
+    assert len(calls) == 2
+
+
+def test_damaged_cache_entry_is_rebuilt(tmp_path):
+    build = lambda: CoupledPendulums().generate(2, seed=0, horizon=3)  # noqa: E731
+    cached(tmp_path, {"k": 1}, build)
+    (tmp_path / f"{cache_key({'k': 1})}.npz").write_bytes(b"not a zip file")
+    assert cached(tmp_path, {"k": 1}, build).x.shape == (2, 4, 2, 2)
+
+
+def _worker(args):
+    cache_dir, marker_dir, i = args
+    import pathlib
+
+    def build():
+        pathlib.Path(marker_dir, f"built-{i}").touch()
+        return CoupledPendulums().generate(16, seed=0, horizon=40)
+
+    return cached(cache_dir, {"shared": True}, build).x.sum().item()
+
+
+def test_concurrent_jobs_build_once_and_agree(tmp_path):
+    markers = tmp_path / "markers"
+    markers.mkdir()
+    with mp.get_context("spawn").Pool(3) as pool:
+        sums = pool.map(_worker, [(str(tmp_path / "cache"), str(markers), i) for i in range(3)])
+    assert len(set(sums)) == 1
+    assert len(list(markers.iterdir())) == 1  # the lock made the other jobs wait and reuse the entry

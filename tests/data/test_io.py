@@ -1,0 +1,124 @@
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from mpsim.data.io import load_csv, load_npz, load_trajectories, save_csv, save_npz
+from mpsim.data.trajectories import Trajectories
+from mpsim.errors import DataError
+from mpsim.systems import CoupledPendulums
+
+
+@pytest.fixture
+def traj():
+    return CoupledPendulums(n_nodes=3, graph="chain").generate(4, seed=0, horizon=6)
+
+
+def test_npz_round_trip(traj, tmp_path):
+    path = save_npz(traj, tmp_path / "d.npz")
+    back = load_npz(path)
+    assert torch.equal(back.x, traj.x) and torch.equal(back.t, traj.t)
+    assert torch.equal(back.edge_index, traj.edge_index)
+    assert back.meta["system"] == "pendulum2" and back.meta["state_names"] == ["theta", "omega"]
+    assert not list(tmp_path.glob(".*tmp"))  # atomic write leaves no temporary file
+
+
+def test_csv_round_trip_with_edge_list(traj, tmp_path):
+    path, edges = save_csv(traj, tmp_path / "d.csv")
+    assert edges.name == "d_edges.csv"
+    back = load_csv(path)
+    assert torch.allclose(back.x, traj.x, rtol=0, atol=1e-15)
+    assert torch.equal(back.edge_index, traj.edge_index)
+    assert back.state_names == ["theta", "omega"]
+
+
+def _write(tmp_path, rows, columns=("traj", "t", "node", "theta", "omega"), edges=((0, 1), (1, 0))):
+    path = tmp_path / "m.csv"
+    pd.DataFrame(rows, columns=list(columns)).to_csv(path, index=False)
+    pd.DataFrame(list(edges), columns=["src", "dst"]).to_csv(tmp_path / "m_edges.csv", index=False)
+    return path
+
+
+def _grid(n_traj=2, times=(0.0, 0.1, 0.2), nodes=2):
+    return [[b, t, n, 0.1 * n + t, -t] for b in range(n_traj) for t in times for n in range(nodes)]
+
+
+def test_hand_written_csv_loads(tmp_path):
+    rows = _grid()
+    rows.reverse()  # row order must not matter
+    data = load_trajectories(_write(tmp_path, rows))
+    assert data.x.shape == (2, 3, 2, 2)
+    assert torch.allclose(data.x[1, 2, 1], torch.tensor([0.1 + 0.2, -0.2], dtype=torch.float64))
+    assert data.meta["dt"] == pytest.approx(0.1)
+
+
+@pytest.mark.parametrize(
+    "mutate, match",
+    [
+        (lambda r: r.__setitem__(3, [0, 0.1, 1, float("nan"), 0.0]), r"row 5, column 'theta' is empty"),
+        (lambda r: r.__setitem__(2, [0, 0.1, 0, "abc", 0.0]), r"row 4, column 'theta' holds 'abc'"),
+        (lambda r: r.__setitem__(4, [0, 0.2, 0, float("inf"), 0.0]), r"row 6, column 'theta'"),
+        (lambda r: r.pop(5), r"ragged data: trajectory 0 has 5 rows"),
+        (lambda r: r.__setitem__(6, [1, 0.15, 0, 0.0, 0.0]) or r.__setitem__(7, [1, 0.15, 1, 0.0, 0.0]),
+         r"ragged times: trajectory 1"),
+        (lambda r: r.__setitem__(1, [0, 0.0, 0, 0.0, 0.0]), r"repeat the same \(traj, t, node\)"),
+        (lambda r: [row.__setitem__(2, row[2] + 1) for row in r], r"ids 0..N-1"),
+    ],
+)
+def test_bad_csv_is_refused_with_row_and_column(tmp_path, mutate, match):
+    rows = _grid()
+    mutate(rows)
+    with pytest.raises(DataError, match=match) as err:
+        load_trajectories(_write(tmp_path, rows))
+    assert "m.csv" in str(err.value)
+
+
+def test_missing_columns_are_named(tmp_path):
+    path = _write(tmp_path, [[0, 0.0, 0.1]], columns=("traj", "time", "theta"))
+    with pytest.raises(DataError, match=r"missing column\(s\) \['t', 'node'\]"):
+        load_trajectories(path)
+
+
+def test_edge_outside_the_graph_is_refused(tmp_path):
+    path = _write(tmp_path, _grid(), edges=((0, 1), (1, 5)))
+    with pytest.raises(DataError, match=r"m_edges.csv: row 3, column 'dst': node 5 is outside the graph's nodes 0..1"):
+        load_trajectories(path)
+
+
+def test_missing_graph_says_how_to_give_one(tmp_path):
+    path = _write(tmp_path, _grid())
+    (tmp_path / "m_edges.csv").unlink()
+    with pytest.raises(DataError, match="data.edges"):
+        load_trajectories(path)
+
+
+def test_per_trajectory_edge_lists(tmp_path):
+    rows = [[b, t, n, 0.0, 0.0] for b in ("a", "b") for t in (0.0, 1.0) for n in range(3)]
+    path = tmp_path / "g.csv"
+    pd.DataFrame(rows, columns=["traj", "t", "node", "theta", "omega"]).to_csv(path, index=False)
+    pd.DataFrame([["a", 0, 1], ["b", 1, 2], ["b", 2, 1]], columns=["traj", "src", "dst"]).to_csv(
+        tmp_path / "g_edges.csv", index=False)
+    data = load_trajectories(path)
+    assert data.edge_index.shape == (2, 2, 2)
+    assert data.edge_index[0].tolist() == [[0, -1], [1, -1]]
+    assert data.edge_index[1].tolist() == [[1, 2], [2, 1]]
+
+
+def test_npz_without_x_or_with_bad_shape(tmp_path):
+    np.savez(tmp_path / "a.npz", t=np.arange(3.0))
+    with pytest.raises(DataError, match=r"missing array\(s\) \['x'\]"):
+        load_trajectories(tmp_path / "a.npz")
+    np.savez(tmp_path / "b.npz", t=np.arange(3.0), x=np.zeros((3, 2, 2)), edge_index=np.zeros((2, 0), int))
+    with pytest.raises(DataError, match=r"b.npz: `x` must be \[B, T, N, D\]"):
+        load_trajectories(tmp_path / "b.npz")
+
+
+def test_unknown_extension(tmp_path):
+    (tmp_path / "d.txt").write_text("x")
+    with pytest.raises(DataError, match="use .npz or .csv"):
+        load_trajectories(tmp_path / "d.txt")
+
+
+def test_container_checks_time_grid():
+    with pytest.raises(DataError, match="strictly increasing"):
+        Trajectories(t=torch.tensor([0.0, 1.0, 1.0]), x=torch.zeros(1, 3, 1, 1), edge_index=torch.zeros(2, 0).long())

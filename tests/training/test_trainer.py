@@ -1,0 +1,89 @@
+import math
+
+import torch
+from torch import nn
+
+from mpsim.data.dataset import fit_normalisation
+from mpsim.models import MPNODE
+from mpsim.models.base import Model
+from mpsim.solvers import ODESolver
+from mpsim.systems import CoupledPendulums
+from mpsim.training import Trainer
+from mpsim.training.checkpoint import load_checkpoint
+
+
+def _data():
+    system = CoupledPendulums()
+    return [system.generate(n, seed=s, horizon=10) for n, s in ((16, 0), (6, 1), (6, 2))]
+
+
+def _model(train):
+    torch.manual_seed(0)
+    model = MPNODE(2, solver=ODESolver("rk4"))
+    model.set_normalisation(*fit_normalisation(train))
+    return model
+
+
+def _trainer(epochs, **kw):
+    return Trainer(max_epochs=epochs, batch_size=5, lr=1e-2, plateau_patience=2, early_stop_patience=0,
+                   progress=False, **kw)
+
+
+def test_training_reduces_the_validation_error(tmp_path):
+    train, val, test = _data()
+    model = _model(train)
+    trainer = _trainer(8).fit(model, train, val, test, run_dir=tmp_path)
+    hist = trainer.history_
+    assert [r["epoch"] for r in hist] == list(range(9))  # epoch 0 = the untrained model
+    assert trainer.best_val_ < 0.7 * hist[0]["val_error"]
+    assert (tmp_path / "checkpoints" / "best.ckpt").is_file() and (tmp_path / "metrics.csv").is_file()
+    lines = (tmp_path / "metrics.csv").read_text().splitlines()
+    assert lines[0].startswith("epoch,train_loss,val_error,test_error,lr") and len(lines) == 10
+
+
+def test_resume_gives_the_same_result_as_an_uninterrupted_run(tmp_path):
+    train, val, test = _data()
+    full = _trainer(6).fit(_model(train), train, val, test, run_dir=tmp_path / "full")
+    full_state = load_checkpoint(tmp_path / "full" / "checkpoints" / "last.ckpt")
+
+    _trainer(3).fit(_model(train), train, val, test, run_dir=tmp_path / "part")  # "killed" after epoch 3
+    last = load_checkpoint(tmp_path / "part" / "checkpoints" / "last.ckpt")
+    model = _model(train)
+    resumed = _trainer(6).fit(model, train, val, test, run_dir=tmp_path / "part", resume_state=last["trainer"])
+
+    keys = ("epoch", "train_loss", "val_error", "test_error", "lr")
+    rows = lambda h: [[None if r[k] != r[k] else r[k] for k in keys] for r in h]  # noqa: E731 (NaN-safe)
+    assert rows(resumed.history_) == rows(full.history_)
+    resumed_last = load_checkpoint(tmp_path / "part" / "checkpoints" / "last.ckpt")
+    for k, v in full_state["model"]["state_dict"].items():
+        assert torch.equal(v, resumed_last["model"]["state_dict"][k]), k
+    assert resumed.best_epoch_ == full.best_epoch_
+
+
+class _Exploding(Model):
+    """dx/dt = x·exp(w): with a huge w the rollout overflows."""
+
+    def __init__(self):
+        super().__init__(2)
+        self.w = nn.Parameter(torch.tensor(3.0))
+
+    def rollout(self, x0, t, edge_index, u=None):
+        return x0[:, None] * torch.exp(torch.exp(self.w) * 30 * t)[None, :, None, None]
+
+
+def test_divergence_stops_cleanly_and_names_the_batch_and_time(tmp_path):
+    train, val, test = _data()
+    model = _Exploding()
+    trainer = _trainer(3).fit(model, train, val, test, run_dir=tmp_path)
+    assert trainer.status_ == "diverged"
+    assert "epoch 1, batch 0" in trainer.divergence_ and "first became non-finite at t=" in trainer.divergence_
+    assert math.isnan(trainer.history_[0]["val_error"]) or trainer.history_[0]["val_error"] > 1e3
+    assert (tmp_path / "checkpoints" / "last.ckpt").is_file()  # what was saved before is kept
+
+
+def test_early_stopping(tmp_path):
+    train, val, test = _data()
+    model = _model(train)
+    trainer = Trainer(max_epochs=50, batch_size=8, lr=1e-9, early_stop_patience=2, progress=False)
+    trainer.fit(model, train, val, test, run_dir=tmp_path)
+    assert trainer.status_ == "early_stopped" and len(trainer.history_) < 10
