@@ -126,6 +126,8 @@ class ReportConf:
     group_by: list[str] = field(default_factory=list)  # override keys to group by (default: all that vary)
     paths: PathsConf = field(default_factory=PathsConf)
     title: str = "mpsim report"
+    target: Any = None  # test error for `epochs_to_target`: a number, or max_min (the level every run reached)
+    columns: list[str] = field(default_factory=list)  # metrics to show (default: all)
 
 
 def register_schemas() -> None:

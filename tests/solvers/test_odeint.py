@@ -55,3 +55,25 @@ def test_blow_up_is_a_divergence_error():
 def test_unknown_method_lists_choices():
     with pytest.raises(ConfigError, match="dopri5"):
         ODESolver("tsit5")
+
+
+def test_adjoint_gradients_match_backprop():
+    torch.manual_seed(0)
+    net = nn.Sequential(nn.Linear(2, 8), nn.Tanh(), nn.Linear(8, 2)).double()
+
+    class Field(nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.net = net
+
+        def forward(self, t, y):
+            return self.net(y)
+
+    y0 = torch.randn(3, 2, dtype=torch.float64)
+    t = torch.linspace(0, 1, 5, dtype=torch.float64)
+    grads = []
+    for adjoint in (False, True):
+        net.zero_grad()
+        ODESolver("dopri5", rtol=1e-9, atol=1e-9, adjoint=adjoint)(Field(), y0, t).pow(2).sum().backward()
+        grads.append(torch.cat([p.grad.flatten() for p in net.parameters()]))
+    assert torch.allclose(grads[0], grads[1], rtol=1e-5, atol=1e-7)

@@ -21,12 +21,13 @@ from omegaconf import DictConfig
 from mpsim.commands.common import locate, resolve_path
 from mpsim.commands.console import print_summary
 from mpsim.files import atomic_write
+from mpsim.training.metrics import first_epoch_below
 
 log = logging.getLogger(__name__)
 
 METRICS = ("mode", "status", "epochs_run", "min_test_error", "min_test_error_epoch", "epochs_x_min_error",
            "initial_test_error", "test_error", "wall_time")
-NUMERIC = ("min_test_error", "min_test_error_epoch", "epochs_x_min_error", "initial_test_error", "test_error",
+NUMERIC = ("epochs_to_target", "min_test_error", "min_test_error_epoch", "epochs_x_min_error", "initial_test_error", "test_error",
            "epochs_run", "wall_time")
 
 
@@ -56,6 +57,30 @@ def _row(run: Path) -> dict[str, Any]:
     if isinstance(summary.get("test"), dict):
         row["test_error"] = summary["test"].get("rmse", row.get("test_error"))
     return row
+
+
+def add_epochs_to_target(frame: pd.DataFrame, target: str | float) -> float:
+    """Add `epochs_to_target`: the first epoch (≥ 1) whose test error is at or below `target`.
+
+    `target` is a number, or "max_min": the largest of the runs' minimum test errors, i.e. the best level
+    that every run reached (so each run has an answer and the slowest run's is its min epoch).
+    """
+    curves = {}
+    for run in frame["run"]:
+        path = Path(run) / "metrics.csv"
+        if path.is_file():
+            m = pd.read_csv(path)
+            curves[run] = m[m["epoch"] >= 1]
+    if target == "max_min":
+        value = max(float(c["test_error"].min()) for c in curves.values()) if curves else math.nan
+    else:
+        value = float(target)
+    frame["target_error"] = value
+    frame["epochs_to_target"] = [
+        first_epoch_below(curves[r]["epoch"].tolist(), curves[r]["test_error"].tolist(), value) if r in curves else None
+        for r in frame["run"]
+    ]
+    return value
 
 
 def aggregate(frame: pd.DataFrame, group_by: list[str]) -> pd.DataFrame:
@@ -98,13 +123,19 @@ def run_report(cfg: DictConfig, output_dir: str | Path | None = None, overrides:
     if frame.empty:
         print_summary("mpsim report", [("runs", f"no summary.json found under {list(cfg.runs)}")])
         return {"n_runs": 0}
-    frame = frame[~frame["run"].str.startswith(str(out_dir))]
-    fixed = {"run", "seed", *METRICS}
+    frame = frame[~frame["run"].str.startswith(str(out_dir))].reset_index(drop=True)
+    if cfg.target is not None:
+        add_epochs_to_target(frame, cfg.target)
+    fixed = {"run", "seed", "target_error", "status", *NUMERIC}
     varying = [c for c in frame.columns if c not in fixed and frame[c].astype(str).nunique() > 1]
     group_by = list(cfg.group_by) or varying
     table = aggregate(frame, group_by) if group_by else frame.drop(columns=["run"])
+    if cfg.columns:
+        order = [*group_by, *cfg.columns, "runs"]
+        table = table[[c for c in order if c in table.columns]]
     atomic_write(out_dir / "report.csv", lambda f: frame.to_csv(f, index=False), mode="w")
-    text = f"# {cfg.title}\n\n{len(frame)} runs under {', '.join(map(str, roots))}.\n\n{markdown(table)}\n"
+    note = f" Target test error {frame['target_error'].iloc[0]:.4g} ({cfg.target})." if cfg.target is not None else ""
+    text = f"# {cfg.title}\n\n{len(frame)} runs under {', '.join(map(str, roots))}.{note}\n\n{markdown(table)}\n"
     atomic_write(out_dir / "report.md", lambda f: f.write(text), mode="w")
     print(text)
     return {"n_runs": len(frame), "report": str(out_dir / "report.md"), "table": table}
