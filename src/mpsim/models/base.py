@@ -8,12 +8,16 @@ without any outside bookkeeping. Training losses are computed in normalised unit
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import nn
 
 from mpsim.errors import IncompatibleError
+
+if TYPE_CHECKING:
+    from mpsim.data.trajectories import Trajectories
 
 
 class Model(nn.Module):
@@ -82,6 +86,22 @@ class Model(nn.Module):
     ) -> torch.Tensor:
         """[B, T, N, D] predicted states (raw units), the first equal to x0."""
         raise NotImplementedError
+
+    def training_loss(
+        self,
+        batch: Trajectories,
+        t: torch.Tensor,  # [T] times in the model's dtype
+        loss_fn: Callable[..., torch.Tensor],
+        delta: float = 1.0,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(loss, [B, T, N, D] prediction) for one batch. Default: MPNODE.jl's single shooting — a free
+        rollout of the whole trajectory from its first state, loss on the normalised states. Models trained
+        differently (one-step targets, windows) override this."""
+        pred = self.rollout(batch.x[:, 0], t, batch.edge_index, batch.u)
+        return loss_fn(self.normalise(pred), self.normalise(batch.x), delta), pred
+
+    def after_step(self) -> None:
+        """Called after every optimiser step (e.g. sparsity thresholding); default: nothing."""
 
     def rollout_aux(
         self,

@@ -31,6 +31,7 @@ class System:
 
     Args:
         name: the name datasets and exported checkpoints carry (e.g. ``lorenz3``).
+        n_nodes: N, the number of subsystems.
         edge_index: [2, E] (sender, receiver) coupling graph.
         effects: extra named terms added to the right-hand side (see `mpsim.effects`).
     """
@@ -40,15 +41,13 @@ class System:
     dt: float = 0.1
     horizon: int = 50
 
-    def __init__(self, name: str, edge_index: torch.Tensor, effects: Sequence[Any] = ()) -> None:
+    def __init__(self, name: str, n_nodes: int, edge_index: torch.Tensor, effects: Sequence[Any] = ()) -> None:
         self.name = name
+        self.n_nodes = int(n_nodes)
         self.edge_index = edge_index
         self.effects = list(effects)
 
     # ---- facts ---------------------------------------------------------------------------------------
-    @property
-    def n_nodes(self) -> int:
-        raise NotImplementedError
 
     @property
     def state_dim(self) -> int:

@@ -61,20 +61,16 @@ class CoupledLorenz(System):
     ) -> None:
         if n_nodes < 1:
             raise ConfigError(f"system.n_nodes must be >= 1; got {n_nodes}.")
-        super().__init__(name, complete(n_nodes), effects)
-        self._n = n_nodes
+        super().__init__(name, n_nodes, complete(n_nodes), effects)
         self.coupling, self.coupling_seed = float(coupling), int(coupling_seed)
         self.sigma, self.rho, self.beta = float(sigma), float(rho), float(beta)
         self.ic_range = tuple(float(v) for v in ic_range)
         self.H = lorenz_coupling(n_nodes, self.coupling, self.coupling_seed)  # [3N, 3N]
 
-    @property
-    def n_nodes(self) -> int:
-        return self._n
 
     def params(self) -> dict[str, Any]:
         return {
-            "n_nodes": self._n,
+            "n_nodes": self.n_nodes,
             "coupling": self.coupling,
             "coupling_seed": self.coupling_seed,
             "sigma": self.sigma,
@@ -92,11 +88,11 @@ class CoupledLorenz(System):
     ) -> torch.Tensor:
         a, b, c = x[..., 0], x[..., 1], x[..., 2]
         own = torch.stack([self.sigma * (b - a), a * (self.rho - c) - b, a * b - self.beta * c], dim=-1)
-        if self._n == 1 or self.coupling == 0.0:
+        if self.n_nodes == 1 or self.coupling == 0.0:
             return own
-        flat = x.reshape(*x.shape[:-2], 3 * self._n)
+        flat = x.reshape(*x.shape[:-2], 3 * self.n_nodes)
         return own + (flat @ self.H.to(x).T).reshape(x.shape)
 
     def sample_initial_states(self, n: int, generator: torch.Generator) -> torch.Tensor:
         lo, hi = self.ic_range
-        return lo + (hi - lo) * torch.rand(n, self._n, 3, generator=generator, dtype=torch.float64)
+        return lo + (hi - lo) * torch.rand(n, self.n_nodes, 3, generator=generator, dtype=torch.float64)

@@ -116,8 +116,7 @@ class NBody(System):
                 "directly and never calls rhs(). Remove `system.effects`."
             )
         # the coupling is all-pairs and changes with the positions: graphs are built per state by the models
-        super().__init__(name, torch.zeros(2, 0, dtype=torch.long), effects)
-        self._n = int(n_particles)
+        super().__init__(name, n_particles, torch.zeros(2, 0, dtype=torch.long), effects)
         self.force = force
         self.box_size = float(math.sqrt(12 * n_particles) if box_size is None else box_size)
         self.softening = float(softening)
@@ -129,13 +128,10 @@ class NBody(System):
         self.velocity_range = tuple(float(v) for v in velocity_range)
         self.charge_range = tuple(float(v) for v in charge_range)
 
-    @property
-    def n_nodes(self) -> int:
-        return self._n
 
     def params(self) -> dict[str, Any]:
         return {
-            "n_particles": self._n,
+            "n_particles": self.n_nodes,
             "force": self.force,
             "box_size": self.box_size,
             "softening": self.softening,
@@ -224,19 +220,19 @@ class NBody(System):
     # ---- sampling ------------------------------------------------------------------------------------
     def sample_initial_states(self, n: int, generator: torch.Generator) -> torch.Tensor:
         """[n, N, 4] uniform positions in the box and uniform velocity components (net momentum kept)."""
-        pos = (torch.rand(n, self._n, 2, generator=generator, dtype=torch.float64) - 0.5) * self.box_size
+        pos = (torch.rand(n, self.n_nodes, 2, generator=generator, dtype=torch.float64) - 0.5) * self.box_size
         lo, hi = self.velocity_range
-        vel = lo + (hi - lo) * torch.rand(n, self._n, 2, generator=generator, dtype=torch.float64)
+        vel = lo + (hi - lo) * torch.rand(n, self.n_nodes, 2, generator=generator, dtype=torch.float64)
         return torch.cat([wrap_positions(pos, self.box_size), vel], dim=-1)
 
     def sample_node_features(self, n: int, generator: torch.Generator) -> torch.Tensor:
         """[n, N, 2] (mass, charge): constant masses; charges ±U(charge_range) for Coulomb, 0 for gravity."""
-        mass = torch.full((n, self._n), self.mass, dtype=torch.float64)
+        mass = torch.full((n, self.n_nodes), self.mass, dtype=torch.float64)
         if self.force == "gravity":
             return torch.stack([mass, torch.zeros_like(mass)], dim=-1)
         lo, hi = self.charge_range
-        size = lo + (hi - lo) * torch.rand(n, self._n, generator=generator, dtype=torch.float64)
-        sign = torch.where(torch.rand(n, self._n, generator=generator, dtype=torch.float64) < 0.5, -1.0, 1.0)
+        size = lo + (hi - lo) * torch.rand(n, self.n_nodes, generator=generator, dtype=torch.float64)
+        sign = torch.where(torch.rand(n, self.n_nodes, generator=generator, dtype=torch.float64) < 0.5, -1.0, 1.0)
         return torch.stack([mass, sign * size], dim=-1)
 
     # ---- data ----------------------------------------------------------------------------------------
@@ -266,8 +262,8 @@ class NBody(System):
         """
         x0 = x0.to(torch.float64)
         t = t.to(dtype=torch.float64, device=x0.device)
-        if x0.dim() != 3 or x0.shape[1:] != (self._n, 4):
-            raise ConfigError(f"x0 must be [B, {self._n}, 4] (x, y, vx, vy); got {tuple(x0.shape)}.")
+        if x0.dim() != 3 or x0.shape[1:] != (self.n_nodes, 4):
+            raise ConfigError(f"x0 must be [B, {self.n_nodes}, 4] (x, y, vx, vy); got {tuple(x0.shape)}.")
         steps = t[1:] - t[:-1]
         if t.dim() != 1 or t.shape[0] < 2 or not torch.allclose(steps, steps[0], rtol=1e-9, atol=1e-12):
             raise ConfigError("NBody.simulate needs a uniform time grid t [T] with T >= 2.")
@@ -279,12 +275,12 @@ class NBody(System):
         if node_features is None:
             s, m = self._strengths(None, x0.shape[:-1], x0)
             node_features = torch.stack([m, torch.zeros_like(m)], dim=-1)
-        node_features = node_features.to(x0).expand(b, self._n, 2).contiguous()
+        node_features = node_features.to(x0).expand(b, self.n_nodes, 2).contiguous()
         s, m = self._strengths(node_features, x0.shape[:-1], x0)
         scale = self._coef * s / m
         h, eps2, box = base / n_sub, self.softening**2, self.box_size
 
-        out = torch.empty(b, t.shape[0], self._n, 4, dtype=torch.float64, device=x0.device)
+        out = torch.empty(b, t.shape[0], self.n_nodes, 4, dtype=torch.float64, device=x0.device)
         pos, vel = wrap_positions(x0[..., :2], box), x0[..., 2:].clone()
         acc = _pair_accelerations(pos, s, scale, box, eps2)
         out[:, 0] = torch.cat([pos, vel], dim=-1)

@@ -66,20 +66,16 @@ class CoupledPendulums(System):
         a[edge_index[1], edge_index[0]] = 1.0
         if not torch.equal(a, a.T):
             raise ConfigError(f"pendulum springs need an undirected graph; graph={graph!r} is directed.")
-        super().__init__(name, edge_index, effects)
-        self._n = n_nodes
+        super().__init__(name, n_nodes, edge_index, effects)
         self.graph = graph
         self.mass, self.length, self.spring, self.gravity = float(mass), float(length), float(spring), float(gravity)
         self.theta_range = tuple(float(v) for v in theta_range)
         self.omega_range = tuple(float(v) for v in omega_range)
 
-    @property
-    def n_nodes(self) -> int:
-        return self._n
 
     def params(self) -> dict[str, Any]:
         return {
-            "n_nodes": self._n,
+            "n_nodes": self.n_nodes,
             "graph": self.graph,
             "mass": self.mass,
             "length": self.length,
@@ -121,7 +117,7 @@ class CoupledPendulums(System):
         return kinetic + gravity + springs
 
     def sample_initial_states(self, n: int, generator: torch.Generator) -> torch.Tensor:
-        r = torch.rand(n, self._n, 2, generator=generator, dtype=torch.float64)
+        r = torch.rand(n, self.n_nodes, 2, generator=generator, dtype=torch.float64)
         lo = torch.tensor([self.theta_range[0], self.omega_range[0]], dtype=torch.float64)
         hi = torch.tensor([self.theta_range[1], self.omega_range[1]], dtype=torch.float64)
         return lo + (hi - lo) * r

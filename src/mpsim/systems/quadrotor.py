@@ -279,8 +279,7 @@ class QuadrotorSwarm(System):
             raise ConfigError(f"system.u_sampling must be 'mean' or 'first'; got {u_sampling!r}.")
         if control_dt <= 0 or substeps < 1:
             raise ConfigError(f"need control_dt > 0 and substeps >= 1; got {control_dt}, {substeps}.")
-        super().__init__(name, complete(n_quads), effects)
-        self._n = int(n_quads)
+        super().__init__(name, n_quads, complete(n_quads), effects)
         self.dt, self.horizon = float(dt), int(horizon)
         self.control_dt, self.substeps = float(control_dt), int(substeps)
         self.quad_mass, self.load_mass = float(quad_mass), float(load_mass)
@@ -294,11 +293,11 @@ class QuadrotorSwarm(System):
         self.k_rot, self.k_omega = tuple(float(v) for v in k_rot), tuple(float(v) for v in k_omega)
         self.ff_damping = float(ff_damping)
         if fan_half_angle is None:
-            if self._n <= 3:
+            if self.n_nodes <= 3:
                 fan_half_angle = (40.0, 50.0)
             else:
                 # neighbouring fan slots are 2L·sin(β/(N−1)) apart: keep that ≥ 0.7 m (> 2 quad radii)
-                low = (self._n - 1) * math.degrees(math.asin(0.35 / self.cable_length))
+                low = (self.n_nodes - 1) * math.degrees(math.asin(0.35 / self.cable_length))
                 fan_half_angle = (low, low + 5.0)
         self.fan_half_angle = tuple(float(v) for v in fan_half_angle)
         self.r_config_range = tuple(float(v) for v in r_config_range)
@@ -325,17 +324,14 @@ class QuadrotorSwarm(System):
         )  # [4 rotors, 4]: wrench = u @ _wrench
         self._mixer = torch.linalg.inv(self._wrench)  # [4, 4]: u = wrench @ _mixer
         self._door = torch.tensor(DOOR_CENTRES, dtype=f64)  # [4, 2]
-        self._eye = torch.eye(self._n, dtype=f64)  # [N, N]
+        self._eye = torch.eye(self.n_nodes, dtype=f64)  # [N, N]
         self._eye3 = torch.eye(3, dtype=f64)  # [3, 3]
 
     # ---- facts ---------------------------------------------------------------------------------------
-    @property
-    def n_nodes(self) -> int:
-        return self._n
 
     def params(self) -> dict[str, Any]:
         return {
-            "n_quads": self._n,
+            "n_quads": self.n_nodes,
             "control_dt": self.control_dt,
             "substeps": self.substeps,
             "quad_mass": self.quad_mass,
@@ -481,7 +477,7 @@ class QuadrotorSwarm(System):
         """
         n_circ = self._circle(r_config, phi)  # [B, N, 3]
         cos_alpha = n_circ[..., 2:3]
-        tension = self.load_mass * self.gravity / (self._n * cos_alpha)  # [B, N, 1]
+        tension = self.load_mass * self.gravity / (self.n_nodes * cos_alpha)  # [B, N, 1]
         force = -self.quad_mass * self._g + tension * n_circ  # thrust that cancels gravity and the cable
         q = rotation_to_quat(self._attitude(force))
         zeros = torch.zeros_like(n_circ)
@@ -494,7 +490,7 @@ class QuadrotorSwarm(System):
         """[B, N, 3] cable directions with the quads evenly on a circle of radius r_config around the load."""
         sin_a = r_config / self.cable_length
         cos_a = torch.sqrt(1 - sin_a * sin_a)
-        theta = phi[:, None] + 2 * math.pi * torch.arange(self._n, dtype=torch.float64) / self._n  # [B, N]
+        theta = phi[:, None] + 2 * math.pi * torch.arange(self.n_nodes, dtype=torch.float64) / self.n_nodes  # [B, N]
         sin_a = sin_a[:, None]
         return torch.stack(
             [sin_a * torch.cos(theta), sin_a * torch.sin(theta), cos_a[:, None].expand_as(theta)], dim=-1
@@ -502,7 +498,7 @@ class QuadrotorSwarm(System):
 
     def sample_scenarios(self, n: int, generator: torch.Generator) -> DoorwayScenario:
         """`n` random doorway scenarios (spec §5) with their trim initial states, drawn with `generator`."""
-        f64, N = torch.float64, self._n
+        f64, N = torch.float64, self.n_nodes
 
         def uniform(lo: float, hi: float, *shape: int) -> torch.Tensor:
             return lo + (hi - lo) * torch.rand(n, *shape, generator=generator, dtype=f64)
@@ -779,7 +775,7 @@ class QuadrotorSwarm(System):
     ) -> None:
         p, p_load = x[..., 0:3], load[:, 0:3]
         worst["min_height_gap"] = torch.minimum(worst["min_height_gap"], (p[..., 2] - p_load[:, None, 2]).amin(-1))
-        if self._n > 1:
+        if self.n_nodes > 1:
             dist = (p[:, :, None] - p[:, None]).norm(dim=-1) + 1e9 * self._eye  # ignore i = j
             worst["min_quad_distance"] = torch.minimum(worst["min_quad_distance"], dist.flatten(1).amin(-1))
         door_q = (p[..., None, :2] - self._door).norm(dim=-1).flatten(1).amin(-1) - DOOR_RADIUS - QUAD_RADIUS
@@ -824,9 +820,9 @@ class QuadrotorSwarm(System):
         horizon = self.horizon if horizon is None else int(horizon)
         if horizon < 1 or n < 1:
             raise ConfigError(f"need horizon >= 1 and n >= 1; got horizon={horizon}, n={n}.")
-        if self._n < 2:
+        if self.n_nodes < 2:
             raise ConfigError(
-                f"the doorway scenario needs n_quads >= 2 (one quad cannot lift the load); got {self._n}."
+                f"the doorway scenario needs n_quads >= 2 (one quad cannot lift the load); got {self.n_nodes}."
             )
         self._ticks_per_sample(dt)
         generator = torch.Generator().manual_seed(int(seed))

@@ -239,8 +239,7 @@ class Trainer:
         for k, start in enumerate(range(0, len(data), self.batch_size)):
             idx = order[start : start + self.batch_size]
             batch = data.subset(idx.to(data.x.device))
-            pred = model.rollout(batch.x[:, 0], t, batch.edge_index, batch.u)
-            loss = loss_fn(model.normalise(pred), model.normalise(batch.x), self.huber_delta)
+            loss, pred = model.training_loss(batch, t, loss_fn, self.huber_delta)
             if not torch.isfinite(loss):
                 raise DivergenceError(_divergence_message(pred, data.t, epoch, k, idx))
             opt.zero_grad(set_to_none=True)
@@ -253,6 +252,7 @@ class Trainer:
                     f"{_ids(idx)}). Lower trainer.lr or trainer.clip_norm."
                 )
             opt.step()
+            model.after_step()
             total += float(loss.detach()) * len(idx)
             count += len(idx)
             norms.append(float(gnorm))
