@@ -166,3 +166,10 @@ def test_bad_inputs_end_with_one_clear_message(lorenz_ws, tmp_path):
     assert run_cli(["frobnicate"], ws).returncode == 2
     typo = run_cli(["train", "trainer.lrr=1"], ws)
     assert typo.returncode != 0 and "trainer.lrr" in typo.stderr
+
+
+def test_bench_writes_table_and_plot(tmp_path):
+    run_cli(["bench", "bench.nodes=[2,4]", "bench.batches=[1,2]", "bench.steps=3", "bench.repeats=1"], tmp_path,
+            check=True)
+    (run,) = sorted(p.parent for p in (tmp_path / "outputs" / "bench").rglob("bench.md"))
+    assert "fwd_bwd_s" in (run / "bench.md").read_text() and (run / "plots" / "mpnode_scaling.png").is_file()

@@ -30,6 +30,7 @@ commands:
   eval       evaluate a checkpoint on a system or data file: mpsim eval init=<ckpt> system=<name>
   simulate   export ground-truth (and model) trajectories: mpsim simulate system=<name> format=npz|csv
   report     tabulate run and sweep directories: mpsim report runs='[outputs/multirun]'
+  bench      performance ratios measured side by side: mpsim bench bench=mpnode
 
 examples:
   mpsim train                                      # default job: MP-NODE on two coupled pendulums
@@ -93,7 +94,15 @@ def _report() -> None:
     )()
 
 
-COMMANDS: dict[str, Callable[[], None]] = {"train": _train, "eval": _eval, "simulate": _simulate, "report": _report}
+def _bench() -> None:
+    from mpsim.commands.bench import run_bench
+
+    hydra.main(version_base="1.3", config_path="conf", config_name="bench")(
+        lambda cfg: _guard("bench", run_bench, cfg)
+    )()
+
+
+COMMANDS: dict[str, Callable[[], None]] = {"train": _train, "eval": _eval, "simulate": _simulate, "report": _report, "bench": _bench}
 
 
 def find_resumable(args: list[str], command: str = "train") -> Path | None:

@@ -130,12 +130,21 @@ class ReportConf:
     columns: list[str] = field(default_factory=list)  # metrics to show (default: all)
 
 
+@dataclass
+class BenchConf:
+    task: str = "bench"
+    bench: Any = MISSING
+    paths: PathsConf = field(default_factory=PathsConf)
+    threads: int | None = 1
+
+
 def register_schemas() -> None:
     cs = ConfigStore.instance()
     cs.store(name="_train_schema", node=TrainConf)
     cs.store(name="_eval_schema", node=EvalCmdConf)
     cs.store(name="_simulate_schema", node=SimulateConf)
     cs.store(name="_report_schema", node=ReportConf)
+    cs.store(name="_bench_schema", node=BenchConf)
 
 
 # ---- _target_ nodes ----------------------------------------------------------------------------------------

@@ -36,3 +36,14 @@ def test_rollout_metrics_units_horizons_and_divergence():
     assert m["rmse_raw"] == pytest.approx(math.sqrt(2.0))
     assert set(m["horizons"]) == {"2", "4"} and m["horizons"]["2"]["t"] == 2.0
     assert m["per_step_rmse"][0] == 0.0
+
+
+def test_periodic_features_are_compared_on_the_circle():
+    t = torch.arange(3.0)
+    true = torch.zeros(1, 3, 1, 2)
+    pred = true.clone()
+    pred[:, 1:, 0, 0] = 2 * math.pi - 0.1  # a phase that wrapped once: true error 0.1
+    pred[:, 1:, 0, 1] = 0.1
+    m = rollout_metrics(pred, true, torch.ones(2), t, periods=[2 * math.pi, None])
+    assert m["rmse"] == pytest.approx(0.1, rel=1e-5)
+    assert rollout_metrics(pred, true, torch.ones(2), t)["rmse"] > 4  # without the period it is a huge error

@@ -41,7 +41,7 @@ def evaluate_model(
     pred, aux = predict(model, test, aux=True)
     true = test.x.to(pred.dtype)
     std = model.state_std.detach().cpu().to(pred.dtype)
-    metrics = rollout_metrics(pred, true, std, test.t, horizons)
+    metrics = rollout_metrics(pred, true, std, test.t, horizons, periods=test.meta.get("periods"))
     if system is not None and system.energy(test.x[:1, :1]) is not None:
         metrics.update(relative_energy_error(system.energy, pred, true))
     if plots:

@@ -83,6 +83,8 @@ class Model(nn.Module):
         t: torch.Tensor,  # [T] times, t[0] is the time of x0
         edge_index: torch.Tensor,  # [2, E] shared or [B, 2, E] per-trajectory graph (padded with -1)
         u: torch.Tensor | None = None,  # [B, T, N, C] controls
+        node_features: torch.Tensor | None = None,  # [N, F] or [B, N, F] static node features (mass, charge)
+        meta: dict[str, Any] | None = None,  # the data's metadata (e.g. box_size of a periodic domain)
     ) -> torch.Tensor:
         """[B, T, N, D] predicted states (raw units), the first equal to x0."""
         raise NotImplementedError
@@ -97,7 +99,7 @@ class Model(nn.Module):
         """(loss, [B, T, N, D] prediction) for one batch. Default: MPNODE.jl's single shooting — a free
         rollout of the whole trajectory from its first state, loss on the normalised states. Models trained
         differently (one-step targets, windows) override this."""
-        pred = self.rollout(batch.x[:, 0], t, batch.edge_index, batch.u)
+        pred = self.rollout(batch.x[:, 0], t, batch.edge_index, batch.u, batch.node_features, batch.meta)
         return loss_fn(self.normalise(pred), self.normalise(batch.x), delta), pred
 
     def after_step(self) -> None:
@@ -109,9 +111,11 @@ class Model(nn.Module):
         t: torch.Tensor,  # [T] times
         edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
         u: torch.Tensor | None = None,  # [B, T, N, C] controls
+        node_features: torch.Tensor | None = None,  # [N, F] or [B, N, F]
+        meta: dict[str, Any] | None = None,
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """Prediction plus internal signals worth plotting (e.g. MP-NODE messages); default: none."""
-        return self.rollout(x0, t, edge_index, u), {}
+        return self.rollout(x0, t, edge_index, u, node_features, meta), {}
 
     def describe(self) -> dict[str, Any]:
         """Plain facts for summaries: class, parameter count."""

@@ -14,6 +14,8 @@ not depend on the number of nodes, a checkpoint trained on one graph runs on any
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from torch import nn
 
@@ -117,6 +119,8 @@ class MPNODE(Model):
         t: torch.Tensor,  # [T] times
         edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
         u: torch.Tensor | None = None,  # [B, T, N, C] controls
+        node_features: torch.Tensor | None = None,  # unused: nodes are identical
+        meta: dict[str, Any] | None = None,  # unused
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         b, n, d = x0.shape
         graph = batch_graph(edge_index.to(x0.device), b, n, self_loops=self.self_loops, dtype=x0.dtype)
@@ -131,5 +135,7 @@ class MPNODE(Model):
         t: torch.Tensor,  # [T] times
         edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
         u: torch.Tensor | None = None,  # [B, T, N, C] controls
+        node_features: torch.Tensor | None = None,  # unused: nodes are identical
+        meta: dict[str, Any] | None = None,  # unused
     ) -> torch.Tensor:
         return self.rollout_aux(x0, t, edge_index, u)[0]

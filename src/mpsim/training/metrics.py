@@ -37,13 +37,29 @@ def mse_loss(
 LOSSES: dict[str, Callable[..., torch.Tensor]] = {"huber": huber_loss, "mse": mse_loss}
 
 
+def state_difference(
+    pred: torch.Tensor,  # [..., D] predicted states
+    target: torch.Tensor,  # [..., D] true states
+    periods: Sequence[float | None] | None = None,  # per feature: period of a periodic coordinate, or None
+) -> torch.Tensor:
+    """[..., D] pred − target, wrapped into [−p/2, p/2) for periodic features (phases on the circle,
+    positions in a periodic box), so that wrapping never counts as an error."""
+    diff = pred - target
+    if not periods or all(p is None for p in periods):
+        return diff
+    period = torch.tensor([p if p else math.inf for p in periods], dtype=diff.dtype, device=diff.device)
+    wrapped = torch.remainder(diff + period / 2, period) - period / 2
+    return torch.where(torch.isfinite(period), wrapped, diff)
+
+
 def squared_errors(
     pred: torch.Tensor,  # [B, T, N, D] predicted states, raw units
     target: torch.Tensor,  # [B, T, N, D] true states, raw units
     std: torch.Tensor,  # [D] per-feature scale
+    periods: Sequence[float | None] | None = None,  # per feature: period, or None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """([B, T] mean squared error in normalised units, [B, T] in raw units), averaged over nodes and features."""
-    diff = pred - target
+    diff = state_difference(pred, target, periods)
     return (diff / std).pow(2).mean(dim=(2, 3)), diff.pow(2).mean(dim=(2, 3))
 
 
@@ -53,6 +69,7 @@ def rollout_metrics(
     std: torch.Tensor,  # [D] per-feature scale (training std)
     t: torch.Tensor,  # [T] times
     horizons: Sequence[int] = (),
+    periods: Sequence[float | None] | None = None,  # per feature: period of a periodic coordinate, or None
 ) -> dict:
     """Rollout RMSE over the whole horizon and at named horizons (steps), raw and normalised units.
 
@@ -64,7 +81,7 @@ def rollout_metrics(
     if finite.sum() == 0:
         nan = math.nan
         return {"rmse": nan, "rmse_raw": nan, "per_step_rmse": [], "horizons": {}, "n_diverged": n_div}
-    se_n, se_r = squared_errors(pred[finite], target[finite], std)  # [B', T]
+    se_n, se_r = squared_errors(pred[finite], target[finite], std, periods)  # [B', T]
     per_step = se_n.mean(0).sqrt()  # [T]
     out = {
         "rmse": float(se_n[:, 1:].mean().sqrt()),

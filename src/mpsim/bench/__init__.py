@@ -1,0 +1,1 @@
+"""`mpsim bench` suites, one file per model family, and their measuring tools."""

@@ -1,0 +1,94 @@
+"""MP-NODE rollout cost: forward and forward+backward time of one batch against graph size and batch size.
+
+Shows that a rollout is batched over trajectories and nodes (time per node-trajectory falls as the batch
+grows; no Python loop over nodes or edges) and how the cost grows with N on a complete graph (E = N(N−1)).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from mpsim.bench.common import Suite, scaling_exponent, timeit
+from mpsim.graphs.topology import chain, complete
+from mpsim.models.mpnode import MPNODE
+from mpsim.solvers.odeint import ODESolver
+
+
+class MPNODEBench(Suite):
+    """Args:
+    nodes: graph sizes N.
+    batches: trajectories per batch B.
+    graph: complete or chain.
+    steps: output steps T − 1 of the rollout (fixed-step rk4, one step per output, so every case does the
+        same number of vector-field evaluations and times compare like for like).
+    repeats: timing repeats per case.
+    """
+
+    name = "mpnode"
+
+    def __init__(
+        self,
+        nodes: Sequence[int] = (2, 10, 30, 100),
+        batches: Sequence[int] = (1, 32, 128),
+        graph: str = "chain",
+        steps: int = 50,
+        repeats: int = 3,
+    ) -> None:
+        self.nodes, self.batches, self.graph, self.steps, self.repeats = list(nodes), list(batches), graph, steps, repeats
+
+    def run(self) -> list[dict[str, Any]]:
+        torch.manual_seed(0)
+        model = MPNODE(3, solver=ODESolver("rk4"))
+        t = torch.linspace(0, 0.05 * self.steps, self.steps + 1)
+        rows = []
+        for n in self.nodes:
+            edges = complete(n) if self.graph == "complete" else chain(n)
+            for b in self.batches:
+                x0 = torch.randn(b, n, 3)
+
+                def forward(x0=x0, edges=edges):
+                    with torch.no_grad():
+                        model.rollout(x0, t, edges)
+
+                def backward(x0=x0, edges=edges):
+                    model.zero_grad()
+                    model.rollout(x0, t, edges).pow(2).mean().backward()
+
+                fwd, bwd = timeit(forward, self.repeats), timeit(backward, self.repeats)
+                rows.append({
+                    "graph": self.graph, "N": n, "E": int(edges.shape[1]), "B": b, "steps": self.steps,
+                    "forward_s": fwd["median_s"], "fwd_bwd_s": bwd["median_s"],
+                    "us_per_node_traj_step": 1e6 * bwd["median_s"] / (n * b * self.steps),
+                })
+        return rows
+
+    def summarise(self, rows: list[dict[str, Any]]) -> list[str]:
+        lines = []
+        for b in self.batches:
+            sub = [r for r in rows if r["B"] == b]
+            k = scaling_exponent([r["N"] for r in sub], [r["fwd_bwd_s"] for r in sub])
+            lines.append(f"- B={b}: forward+backward time ∝ N^{k:.2f} over N = {sub[0]['N']}…{sub[-1]['N']}")
+        small, large = min(self.batches), max(self.batches)
+        for n in self.nodes:
+            a = next(r for r in rows if r["N"] == n and r["B"] == small)
+            c = next(r for r in rows if r["N"] == n and r["B"] == large)
+            ratio = a["us_per_node_traj_step"] / c["us_per_node_traj_step"]
+            lines.append(f"- N={n}: batching {large} trajectories is {ratio:.1f}× cheaper per node-trajectory than {small}")
+        return lines
+
+    def plot(self, rows: list[dict[str, Any]], out_dir: Path) -> list[str]:
+        import matplotlib.pyplot as plt
+
+        from mpsim.plotting import _save
+
+        fig, ax = plt.subplots(figsize=(5, 3.6))
+        for b in self.batches:
+            sub = [r for r in rows if r["B"] == b]
+            ax.loglog([r["N"] for r in sub], [r["fwd_bwd_s"] for r in sub], "o-", label=f"B={b}")
+        ax.set(xlabel="nodes N", ylabel="forward+backward time (s)", title=f"MP-NODE rollout, {self.graph} graph")
+        ax.legend()
+        return [str(_save(fig, Path(out_dir) / "mpnode_scaling.png"))]

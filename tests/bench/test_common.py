@@ -1,0 +1,39 @@
+import functools
+import math
+
+import pytest
+import torch
+
+from mpsim.bench.common import peak_memory_mb, scaling_exponent, timeit
+from mpsim.bench.mpnode import MPNODEBench
+
+
+def test_scaling_exponent_recovers_powers():
+    n = [10, 100, 1000]
+    assert scaling_exponent(n, [3 * v for v in n]) == pytest.approx(1.0)
+    assert scaling_exponent(n, [v**2 for v in n]) == pytest.approx(2.0)
+    assert math.isnan(scaling_exponent([10], [1.0]))
+
+
+def _allocate(mb):
+    x = torch.ones(int(mb * 2**20 / 8), dtype=torch.float64)
+    return float(x.sum())
+
+
+def test_peak_memory_sees_an_allocation():
+    small = peak_memory_mb(functools.partial(_allocate, 1))
+    big = peak_memory_mb(functools.partial(_allocate, 200))
+    assert 150 < big - small < 260
+
+
+def test_timeit_counts_runs():
+    calls = []
+    out = timeit(lambda: calls.append(1), repeats=3, warmup=2)
+    assert out["runs"] == 3 and len(calls) == 5 and out["min_s"] <= out["median_s"]
+
+
+def test_mpnode_suite_rows_and_summary():
+    suite = MPNODEBench(nodes=[2, 4], batches=[1, 4], steps=3, repeats=1)
+    rows = suite.run()
+    assert len(rows) == 4 and {"N", "B", "fwd_bwd_s"} <= set(rows[0])
+    assert any("cheaper per node-trajectory" in line for line in suite.summarise(rows))
