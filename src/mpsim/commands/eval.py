@@ -41,9 +41,12 @@ def evaluate_model(
     pred, aux = predict(model, test, aux=True)
     true = test.x.to(pred.dtype)
     std = model.state_std.detach().cpu().to(pred.dtype)
-    metrics = rollout_metrics(pred, true, std, test.t, horizons, periods=test.meta.get("periods"))
-    if system is not None and system.energy(test.x[:1, :1]) is not None:
-        metrics.update(relative_energy_error(system.energy, pred, true))
+    metrics = rollout_metrics(pred, true, std, test.t, horizons, periods=test.meta.get("periods"),
+                              first=model.context_steps)
+    features = test.node_features  # [N, F] or [B, N, F]
+    probe = None if features is None else (features[:1] if features.dim() == 3 else features)
+    if system is not None and system.energy(test.x[:1, :1], probe) is not None:
+        metrics.update(relative_energy_error(lambda x: system.energy(x, features), pred, true))
     if plots:
         plot_dir = output_dir / "plots"
         plotting.trajectories(test.t, true, pred, plot_dir / "trajectories.png", test.state_names,
@@ -85,7 +88,7 @@ def evaluate_checkpoint(cfg: DictConfig, rt: Runtime, task: str) -> dict:
         "init": ckpt["path"],
         "trained_on": ckpt["system"].get("system"),
         "system": {"name": test.system_name, "n_nodes": test.n_nodes, "state_names": test.state_names},
-        "model": {**model.describe(), "config": model_cfg},
+        "model": {**model.describe(), "config": model_cfg, **model.report()},
         "data": {"n_test": len(test), "n_times": test.n_times, "dt": test.meta.get("dt"),
                  "source": cfg.data.path or "simulated"},
         "test": metrics,
@@ -101,6 +104,7 @@ def evaluate_checkpoint(cfg: DictConfig, rt: Runtime, task: str) -> dict:
         ("model", f"{summary['model']['model']} ({summary['model']['n_params']:,} params)"),
         ("test RMSE", f"{fmt(metrics['rmse'])} normalised, {fmt(metrics['rmse_raw'])} raw units"),
         *horizon_rows(metrics),
+        *model.report_lines(),
     ]
     if "energy_error" in metrics:
         rows.append(("energy error", f"{fmt(metrics['energy_error'])} (data's own drift "

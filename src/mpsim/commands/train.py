@@ -94,7 +94,7 @@ def run_train(cfg: DictConfig, output_dir: str | Path | None = None, overrides: 
         "init": init_path,
         "system": {"name": train.system_name, "n_nodes": train.n_nodes, "state_names": train.state_names,
                    "params": {k: v for k, v in train.meta.get("params", {}).items() if k != "H"}},
-        "model": {**model.describe(), "config": model_cfg},
+        "model": {**model.describe(), "config": model_cfg, **model.report()},
         "data": {**splits.sizes(), "n_times": train.n_times, "dt": train.meta.get("dt"),
                  "source": cfg.data.path or "simulated", "seed": cfg.data.seed, "noise_std": cfg.data.noise_std},
         "seed": cfg.seed,
@@ -112,7 +112,7 @@ def run_train(cfg: DictConfig, output_dir: str | Path | None = None, overrides: 
         "exported": None if exported is None else str(exported),
     }
     write_json(rt.output_dir / "summary.json", summary)
-    _print(summary, train)
+    _print(summary, train, model.report_lines())
     return summary
 
 
@@ -143,7 +143,7 @@ def _export(best: Path, cfg: DictConfig, rt: Runtime, name: str) -> Path | None:
     return dest
 
 
-def _print(s: dict[str, Any], train) -> None:
+def _print(s: dict[str, Any], train, model_lines: list[tuple[str, str]]) -> None:
     title = f"mpsim train: {s['system']['name']} ({s['mode']})"
     rows = [
         ("model", f"{s['model']['model']} ({s['model']['n_params']:,} params)"
@@ -157,6 +157,7 @@ def _print(s: dict[str, Any], train) -> None:
         ("final val/test error", f"{fmt(s['final']['val_error'])} / {fmt(s['final']['test_error'])}"),
         ("best model test RMSE", f"{fmt(s['test']['rmse'])} normalised, {fmt(s['test']['rmse_raw'])} raw"),
         *horizon_rows(s["test"]),
+        *model_lines,
     ]
     if "energy_error" in s["test"]:
         rows.append(("energy error", f"{fmt(s['test']['energy_error'])} (data's own drift "

@@ -30,6 +30,9 @@ class Model(nn.Module):
 
     #: whether a trained model can run on a graph with a different number of nodes
     transfers_across_graphs: bool = True
+    #: observed states a rollout starts from: 1 = x0 [B, N, D]; K > 1 = the first K states [B, K, N, D]
+    #: (forecasters that read a window); errors are then measured from step K on
+    context_steps: int = 1
 
     def __init__(self, state_dim: int, control_dim: int = 0) -> None:
         super().__init__()
@@ -99,8 +102,20 @@ class Model(nn.Module):
         """(loss, [B, T, N, D] prediction) for one batch. Default: MPNODE.jl's single shooting — a free
         rollout of the whole trajectory from its first state, loss on the normalised states. Models trained
         differently (one-step targets, windows) override this."""
-        pred = self.rollout(batch.x[:, 0], t, batch.edge_index, batch.u, batch.node_features, batch.meta)
+        pred = self.rollout(self.initial(batch.x), t, batch.edge_index, batch.u, batch.node_features, batch.meta)
         return loss_fn(self.normalise(pred), self.normalise(batch.x), delta), pred
+
+    def initial(self, x: torch.Tensor) -> torch.Tensor:  # x: [B, T, N, D] observed trajectories
+        """What a rollout starts from: [B, N, D] first states, or [B, K, N, D] with `context_steps` = K > 1."""
+        return x[:, 0] if self.context_steps == 1 else x[:, : self.context_steps]
+
+    def report(self) -> dict[str, Any]:
+        """Model-specific results for summary.json (e.g. discovered equations); default: none."""
+        return {}
+
+    def report_lines(self) -> list[tuple[str, str]]:
+        """(label, text) rows for the end-of-run summary on screen; default: none."""
+        return []
 
     def after_step(self) -> None:
         """Called after every optimiser step (e.g. sparsity thresholding); default: nothing."""

@@ -96,7 +96,11 @@ class System:
             dx = dx + effect(t, x, self)
         return dx
 
-    def energy(self, x: torch.Tensor) -> torch.Tensor | None:  # x: [..., N, D]
+    def energy(
+        self,
+        x: torch.Tensor,  # [..., N, D] states
+        node_features: torch.Tensor | None = None,  # [..., N, F] or [N, F] static node features
+    ) -> torch.Tensor | None:
         """[...] total energy where the system has one (None otherwise)."""
         return None
 

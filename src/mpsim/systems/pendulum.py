@@ -105,7 +105,11 @@ class CoupledPendulums(System):
         accel = -(self.gravity / self.length) * s - (self.spring / self.mass) * torch.cos(theta) * self._spring_sum(s)
         return torch.stack([omega, accel], dim=-1)
 
-    def energy(self, x: torch.Tensor) -> torch.Tensor:  # x: [..., N, 2]
+    def energy(
+        self,
+        x: torch.Tensor,  # [..., N, 2] (θ, θ̇)
+        node_features: torch.Tensor | None = None,  # unused: identical pendulums
+    ) -> torch.Tensor:
         theta, omega = x[..., 0], x[..., 1]
         m, l, k, g = self.mass, self.length, self.spring, self.gravity
         kinetic = 0.5 * m * l**2 * omega.pow(2).sum(-1)

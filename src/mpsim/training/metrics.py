@@ -70,8 +70,10 @@ def rollout_metrics(
     t: torch.Tensor,  # [T] times
     horizons: Sequence[int] = (),
     periods: Sequence[float | None] | None = None,  # per feature: period of a periodic coordinate, or None
+    first: int = 1,
 ) -> dict:
-    """Rollout RMSE over the whole horizon and at named horizons (steps), raw and normalised units.
+    """Rollout RMSE over steps `first`..T−1 (the steps before `first` were given to the model) and at named
+    horizons (steps), in raw and normalised units.
 
     Trajectories whose prediction is not finite count as diverged: they are excluded from the RMSEs and
     counted in ``n_diverged`` (a NaN is a result to report, not a crash).
@@ -84,20 +86,20 @@ def rollout_metrics(
     se_n, se_r = squared_errors(pred[finite], target[finite], std, periods)  # [B', T]
     per_step = se_n.mean(0).sqrt()  # [T]
     out = {
-        "rmse": float(se_n[:, 1:].mean().sqrt()),
-        "rmse_raw": float(se_r[:, 1:].mean().sqrt()),
+        "rmse": float(se_n[:, first:].mean().sqrt()),
+        "rmse_raw": float(se_r[:, first:].mean().sqrt()),
         "per_step_rmse": [float(v) for v in per_step],
         "horizons": {},
         "n_diverged": n_div,
     }
     for h in horizons:
         k = min(int(h), pred.shape[1] - 1)
-        if k < 1:
+        if k < first:
             continue
         out["horizons"][f"{k}"] = {
             "t": float(t[k] - t[0]),
-            "rmse": float(se_n[:, 1 : k + 1].mean().sqrt()),
-            "rmse_raw": float(se_r[:, 1 : k + 1].mean().sqrt()),
+            "rmse": float(se_n[:, first : k + 1].mean().sqrt()),
+            "rmse_raw": float(se_r[:, first : k + 1].mean().sqrt()),
         }
     return out
 

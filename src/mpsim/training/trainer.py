@@ -54,7 +54,7 @@ def predict(
         for start in range(0, len(data), batch_size):
             part = data.subset(slice(start, start + batch_size)).to(device, model.state_mean.dtype)
             try:
-                args = (part.x[:, 0], t.to(part.x.dtype), part.edge_index, part.u, part.node_features, part.meta)
+                args = (model.initial(part.x), t.to(part.x.dtype), part.edge_index, part.u, part.node_features, part.meta)
                 p, a = model.rollout_aux(*args) if aux else (model.rollout(*args), {})
             except DivergenceError:
                 p, a = torch.full_like(part.x, math.nan), {}
@@ -68,7 +68,8 @@ def rollout_error(model: Model, data: Trajectories, batch_size: int = 512) -> fl
     """Normalised rollout RMSE of `model` on `data` over steps 1..T−1 (NaN if every trajectory diverged)."""
     pred, _ = predict(model, data, batch_size)
     std = model.state_std.cpu().to(pred.dtype)
-    return rollout_metrics(pred, data.x.to(pred.dtype), std, data.t, periods=data.meta.get("periods"))["rmse"]
+    periods = data.meta.get("periods")
+    return rollout_metrics(pred, data.x.to(pred.dtype), std, data.t, periods=periods, first=model.context_steps)["rmse"]
 
 
 class Trainer:
