@@ -35,7 +35,7 @@ def test_every_model_builds(cfg_factory, name):
     assert isinstance(instantiate(cfg.model, state_dim=2, control_dim=0, solver=solver), Model)
 
 
-@pytest.mark.parametrize("group", ["solver", "trainer", "mode"])
+@pytest.mark.parametrize("group", ["solver", "trainer", "mode", "experiment"])
 def test_every_option_of_the_other_groups_composes(cfg_factory, group):
     for name in _options(group):
         cfg = cfg_factory("train", f"{group}={name}")
