@@ -39,7 +39,7 @@ def test_every_model_builds(cfg_factory, name):
 def test_every_option_of_the_other_groups_composes(cfg_factory, group):
     for name in _options(group):
         cfg = cfg_factory("train", f"{group}={name}")
-        if "_target_" in cfg[group]:
+        if group in cfg and "_target_" in cfg[group]:
             instantiate(cfg[group])
 
 
