@@ -289,6 +289,7 @@ def build_model_for(
         check_checkpoint_system(ckpt, shape.state_dim, shape.control_dim, shape.state_names)
     model_cfg = model_config(cfg, ckpt, rt.overrides)
     model = build_model(model_cfg, shape.state_dim, shape.control_dim, build_solver(cfg), rt)
+    model.bind_effects(shape.state_names)
     trained_nodes = None if ckpt is None else ckpt["system"].get("n_nodes")
     model.check_compatible(shape.state_dim, shape.control_dim, shape.n_nodes, trained_nodes)
     if ckpt is not None:

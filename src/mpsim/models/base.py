@@ -8,13 +8,15 @@ without any outside bookkeeping. Training losses are computed in normalised unit
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import nn
 
+from mpsim.effects import Effect, min_delay
 from mpsim.errors import IncompatibleError
+from mpsim.solvers.dde import rk4_delay
 
 if TYPE_CHECKING:
     from mpsim.data.trajectories import Trajectories
@@ -26,6 +28,8 @@ class Model(nn.Module):
     Args:
         state_dim: D, state variables per node.
         control_dim: C, control inputs per node (0 without controls).
+        effects: named physical terms (`mpsim.effects`) with learnable coefficients that the model adds to
+            its vector field (e.g. what `mpsim diagnose fix=true` found missing).
     """
 
     #: whether a trained model can run on a graph with a different number of nodes
@@ -34,13 +38,35 @@ class Model(nn.Module):
     #: (forecasters that read a window); errors are then measured from step K on
     context_steps: int = 1
 
-    def __init__(self, state_dim: int, control_dim: int = 0) -> None:
+    def __init__(self, state_dim: int, control_dim: int = 0, effects: Sequence[Effect] = ()) -> None:
         super().__init__()
         if state_dim < 1:
             raise IncompatibleError(f"a model needs state_dim >= 1; got {state_dim}.")
         self.state_dim, self.control_dim = int(state_dim), int(control_dim)
+        self.effects = nn.ModuleList(effects)
         self.register_buffer("state_mean", torch.zeros(state_dim))
         self.register_buffer("state_std", torch.ones(state_dim))
+
+    # ---- effects -------------------------------------------------------------------------------------
+    def bind_effects(self, state_names: Sequence[str]) -> None:
+        """Resolve the effects' target/source names against the data's state names."""
+        for effect in self.effects:
+            effect.bind(state_names)
+
+    def integrate(
+        self,
+        field: nn.Module,  # forward(t, y, history=None) -> dy/dt
+        y0: torch.Tensor,  # [B, ...] initial state
+        t: torch.Tensor,  # [T] output times
+        solver: Any,
+    ) -> torch.Tensor:
+        """[B, T, ...] the field integrated by `solver`, or by fixed-step RK4 with history when an effect is
+        delayed (an ODE solver cannot read past states)."""
+        delay = min_delay(self.effects)
+        if delay > 0:
+            step = float(t[1] - t[0]) / 4 if t.numel() > 1 else delay
+            return rk4_delay(lambda tt, yy, hist: field(tt, yy, hist), y0, t, step=step, min_delay=delay)
+        return solver(field, y0, t)
 
     # ---- normalisation -------------------------------------------------------------------------------
     def set_normalisation(

@@ -14,11 +14,13 @@ not depend on the number of nodes, a checkpoint trained on one graph runs on any
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import torch
 from torch import nn
 
+from mpsim.effects import Effect, EffectContext, total
 from mpsim.graphs.batch import BatchedGraph, batch_graph, mean_aggregate
 from mpsim.models.base import Model
 from mpsim.solvers.odeint import ODESolver
@@ -49,11 +51,14 @@ class _MessagePassingField(nn.Module):
         state_dim: int,
         zero_messages: bool,
         t_grid: torch.Tensor | None = None,  # [T] sample times of u
-        u: torch.Tensor | None = None,  # [B, T, N, C] normalised-scale controls
+        u: torch.Tensor | None = None,  # [B, T, N, C] controls
+        model: MPNODE | None = None,  # for its effects and normalisation
+        effect_graph: BatchedGraph | None = None,  # the data's coupling graph (no self-loops) for effects
     ) -> None:
         super().__init__()
         self.net, self.graph, self.state_dim, self.zero_messages = net, graph, state_dim, zero_messages
         self.t_grid, self.u = t_grid, u
+        self.model, self.effect_graph = model, effect_graph
 
     def controls_at(self, t: torch.Tensor) -> torch.Tensor | None:  # t: [] time
         """[B, N, C] zero-order-hold controls: the sample at or before `t`."""
@@ -62,12 +67,20 @@ class _MessagePassingField(nn.Module):
         k = torch.searchsorted(self.t_grid, t.reshape(1), right=True).clamp(1, self.t_grid.numel()) - 1
         return self.u[:, int(k)]
 
-    def forward(self, t: torch.Tensor, y: torch.Tensor) -> torch.Tensor:  # t: [], y: [B, N, D+M]
+    def forward(self, t: torch.Tensor, y: torch.Tensor, history=None) -> torch.Tensor:  # t: [], y: [B, N, D+M]
         x, m = y[..., : self.state_dim], y[..., self.state_dim :]
         incoming = torch.zeros_like(m) if self.zero_messages else mean_aggregate(m, self.graph)
         u = self.controls_at(t)
         inputs = [x, incoming] if u is None else [x, u, incoming]
-        return self.net(torch.cat(inputs, dim=-1))
+        dy = self.net(torch.cat(inputs, dim=-1))
+        model = self.model
+        if model is None or not len(model.effects):
+            return dy
+        # effects act on raw states; the network works in z-scored ones: dz/dt = (dx/dt) / std
+        d = self.state_dim
+        raw_history = None if history is None else (lambda s: model.denormalise(history(s)[..., :d]))
+        extra = total(model.effects, t, model.denormalise(x), EffectContext(self.effect_graph, raw_history))
+        return dy + torch.cat([extra / model.state_std, torch.zeros_like(m)], dim=-1)
 
 
 class MPNODE(Model):
@@ -83,6 +96,7 @@ class MPNODE(Model):
         zero_messages: replace incoming messages by zeros (the paper's "messages off" ablation; can be
             switched on a trained model to see what the messages carry).
         self_loops: include each node's own message in its mean.
+        effects: named physical terms with learnable coefficients added to the node dynamics.
         solver: how the vector field is integrated (default: dopri5, rtol = atol = 1e-4).
     """
 
@@ -96,9 +110,10 @@ class MPNODE(Model):
         activation: str = "tanh",
         zero_messages: bool = False,
         self_loops: bool = False,
+        effects: Sequence[Effect] = (),
         solver: ODESolver | None = None,
     ) -> None:
-        super().__init__(state_dim, control_dim)
+        super().__init__(state_dim, control_dim, effects)
         if message_size < 0 or hidden < 1 or n_hidden_layers < 1:
             raise ValueError(
                 f"model.message_size must be >= 0, model.hidden and model.n_hidden_layers >= 1; got "
@@ -125,8 +140,9 @@ class MPNODE(Model):
         b, n, d = x0.shape
         graph = batch_graph(edge_index.to(x0.device), b, n, self_loops=self.self_loops, dtype=x0.dtype)
         y0 = torch.cat([self.normalise(x0), x0.new_zeros(b, n, self.message_size)], dim=-1)
-        field = _MessagePassingField(self.net, graph, d, self.zero_messages, t.to(x0), u)
-        ys = self.solver(field, y0, t)  # [B, T, N, D+M]
+        effect_graph = batch_graph(edge_index.to(x0.device), b, n, dtype=x0.dtype) if len(self.effects) else None
+        field = _MessagePassingField(self.net, graph, d, self.zero_messages, t.to(x0), u, self, effect_graph)
+        ys = self.integrate(field, y0, t, self.solver)  # [B, T, N, D+M]
         return self.denormalise(ys[..., :d]), {"messages": ys[..., d:]}
 
     def rollout(

@@ -8,14 +8,16 @@ ground truth is not a plain ODE (a symplectic N-body integrator, a closed-loop c
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
 from torchdiffeq import odeint
 
 from mpsim.data.trajectories import Trajectories, grid_step
+from mpsim.effects import EffectContext, min_delay, total
 from mpsim.errors import ConfigError
+from mpsim.solvers.dde import rk4_delay
 
 
 class System:
@@ -45,7 +47,8 @@ class System:
         self.name = name
         self.n_nodes = int(n_nodes)
         self.edge_index = edge_index
-        self.effects = list(effects)
+        self.effects = [e.bind(self.state_names) for e in effects]
+        self._contexts: dict[tuple, EffectContext] = {}
 
     # ---- facts ---------------------------------------------------------------------------------------
 
@@ -71,8 +74,7 @@ class System:
             "dt": dt,
             "n_nodes": self.n_nodes,
             "params": self.params(),
-            "effects": [repr(e) for e in self.effects],
-        }
+        }  # effects are deliberately absent: data must not tell a model what it lacks
 
     # ---- dynamics ------------------------------------------------------------------------------------
     def dynamics(
@@ -89,12 +91,19 @@ class System:
         t: torch.Tensor,  # [] time
         x: torch.Tensor,  # [B, N, D] node states
         u: torch.Tensor | None = None,  # [B, N, C] controls
+        history: Callable[[torch.Tensor], torch.Tensor] | None = None,  # state at an earlier time (delays)
     ) -> torch.Tensor:
         """[B, N, D] dx/dt: the declared dynamics plus every effect's term."""
         dx = self.dynamics(t, x, u)
-        for effect in self.effects:
-            dx = dx + effect(t, x, self)
+        if self.effects:
+            dx = dx + total(self.effects, t, x, self._context(x, history))
         return dx
+
+    def _context(self, x: torch.Tensor, history=None) -> EffectContext:  # x: [B, N, D]
+        key = (x.shape[0], x.device, x.dtype)
+        if key not in self._contexts:
+            self._contexts[key] = EffectContext.for_batch(self.edge_index, x)
+        return EffectContext(self._contexts[key].graph, history)
 
     def energy(
         self,
@@ -120,10 +129,12 @@ class System:
         """Integrate the true dynamics in float64 from `x0` and return the sampled trajectories."""
         x0 = x0.to(torch.float64)
         t = t.to(torch.float64)
-        sol = odeint(lambda tt, xx: self.rhs(tt, xx), x0, t, rtol=rtol, atol=atol, method=method)  # [T, B, N, D]
-        return Trajectories(
-            t=t, x=sol.transpose(0, 1).contiguous(), edge_index=self.edge_index, meta=self.meta(grid_step(t))
-        )
+        delay = min_delay(self.effects)
+        if delay > 0:  # a delayed term needs the history: fixed-step RK4 with interpolated history
+            x = rk4_delay(lambda tt, xx, hist: self.rhs(tt, xx, history=hist), x0, t, step=1e-3, min_delay=delay)
+        else:
+            x = odeint(lambda tt, xx: self.rhs(tt, xx), x0, t, rtol=rtol, atol=atol, method=method).transpose(0, 1)
+        return Trajectories(t=t, x=x.contiguous(), edge_index=self.edge_index, meta=self.meta(grid_step(t)))
 
     def generate(
         self,

@@ -65,7 +65,13 @@ class CoupledLorenz(System):
         self.coupling, self.coupling_seed = float(coupling), int(coupling_seed)
         self.sigma, self.rho, self.beta = float(sigma), float(rho), float(beta)
         self.ic_range = tuple(float(v) for v in ic_range)
-        self.H = lorenz_coupling(n_nodes, self.coupling, self.coupling_seed)  # [3N, 3N]
+        # unit-norm pattern; the strength multiplies it in `dynamics` so that it can be a learnable parameter
+        self.H_unit = lorenz_coupling(n_nodes, 1.0, self.coupling_seed)  # [3N, 3N]
+
+    @property
+    def H(self) -> torch.Tensor:
+        """[3N, 3N] the coupling matrix, Frobenius norm `coupling`."""
+        return self.coupling * self.H_unit
 
 
     def params(self) -> dict[str, Any]:
@@ -88,10 +94,10 @@ class CoupledLorenz(System):
     ) -> torch.Tensor:
         a, b, c = x[..., 0], x[..., 1], x[..., 2]
         own = torch.stack([self.sigma * (b - a), a * (self.rho - c) - b, a * b - self.beta * c], dim=-1)
-        if self.n_nodes == 1 or self.coupling == 0.0:
+        if self.n_nodes == 1:
             return own
         flat = x.reshape(*x.shape[:-2], 3 * self.n_nodes)
-        return own + (flat @ self.H.to(x).T).reshape(x.shape)
+        return own + self.coupling * (flat @ self.H_unit.to(x).T).reshape(x.shape)
 
     def sample_initial_states(self, n: int, generator: torch.Generator) -> torch.Tensor:
         lo, hi = self.ic_range
