@@ -29,6 +29,7 @@ commands:
   train      train a model (mode=scratch), finetune it (init=<ckpt>) or evaluate it zero-shot (mode=zeroshot)
   eval       evaluate a checkpoint on a system or data file: mpsim eval init=<ckpt> system=<name>
   simulate   export ground-truth (and model) trajectories: mpsim simulate system=<name> format=npz|csv
+  diagnose   find the effect a model lacks in data, add it, compare: mpsim diagnose init=<ckpt> fix=true
   report     tabulate run and sweep directories: mpsim report runs='[outputs/multirun]'
   bench      performance ratios measured side by side: mpsim bench bench=mpnode
 
@@ -94,6 +95,14 @@ def _report() -> None:
     )()
 
 
+def _diagnose() -> None:
+    from mpsim.commands.diagnose import run_diagnose
+
+    hydra.main(version_base="1.3", config_path="conf", config_name="diagnose")(
+        lambda cfg: _guard("diagnose", run_diagnose, cfg)
+    )()
+
+
 def _bench() -> None:
     from mpsim.commands.bench import run_bench
 
@@ -102,7 +111,7 @@ def _bench() -> None:
     )()
 
 
-COMMANDS: dict[str, Callable[[], None]] = {"train": _train, "eval": _eval, "simulate": _simulate, "report": _report, "bench": _bench}
+COMMANDS: dict[str, Callable[[], None]] = {"train": _train, "eval": _eval, "simulate": _simulate, "report": _report, "bench": _bench, "diagnose": _diagnose}
 
 
 def find_resumable(args: list[str], command: str = "train") -> Path | None:

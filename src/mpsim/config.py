@@ -131,6 +131,26 @@ class ReportConf:
 
 
 @dataclass
+class DiagnoseParams:
+    kinds: list[str] = field(default_factory=lambda: ["Bias", "LinearDamping", "QuadraticDrag", "CubicStiffness",
+                                                      "DiffusiveCoupling", "SineCoupling", "PeriodicForcing",
+                                                      "DelayedFeedback"])
+    delays: list[float] | None = None
+    n_boot: int = 100
+    min_gain: float = 0.05
+    null_factor: float = 3.0
+    min_inclusion: float = 0.8
+    vpt_threshold: float = 0.3
+
+
+@dataclass
+class DiagnoseConf(CommonConf):
+    trainer: TrainerConf = field(default_factory=TrainerConf)
+    fix: bool = False
+    diagnose: DiagnoseParams = field(default_factory=DiagnoseParams)
+
+
+@dataclass
 class BenchConf:
     task: str = "bench"
     bench: Any = MISSING
@@ -145,6 +165,7 @@ def register_schemas() -> None:
     cs.store(name="_simulate_schema", node=SimulateConf)
     cs.store(name="_report_schema", node=ReportConf)
     cs.store(name="_bench_schema", node=BenchConf)
+    cs.store(name="_diagnose_schema", node=DiagnoseConf)
 
 
 # ---- _target_ nodes ----------------------------------------------------------------------------------------

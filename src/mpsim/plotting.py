@@ -95,3 +95,69 @@ def error_growth(t: torch.Tensor, per_step: Sequence[float], path: str | Path, t
 
 def _finite(v: Any) -> bool:
     return isinstance(v, int | float) and math.isfinite(v)
+
+
+def residuals(
+    t_mid: torch.Tensor,  # [T−1] step midpoints
+    r: torch.Tensor,  # [B, T−1, N, D] one-step residuals
+    state_names: Sequence[str],
+    path: str | Path,
+    n_traj: int = 4,
+) -> Path:
+    """Residual against time per state variable: a few trajectories (node 0) and the RMS over all."""
+    d = r.shape[-1]
+    fig, axes = plt.subplots(1, d, figsize=(3.6 * d, 3.2), squeeze=False)
+    tt = t_mid.cpu().numpy()
+    for k in range(d):
+        ax = axes[0, k]
+        for i in range(min(n_traj, r.shape[0])):
+            ax.plot(tt, r[i, :, 0, k].cpu().numpy(), lw=0.8, alpha=0.7)
+        rms = r[..., k].pow(2).nanmean(dim=(0, 2)).sqrt()
+        ax.plot(tt, rms.cpu().numpy(), color="black", lw=1.6, label="RMS")
+        ax.set(title=f"d{state_names[k]}/dt residual", xlabel="t")
+    axes[0, 0].legend(fontsize=7)
+    return _save(fig, Path(path))
+
+
+def periodograms(
+    spectra: dict[int, tuple[torch.Tensor, torch.Tensor]],  # state index -> ([F] rad/s, [F] power)
+    state_names: Sequence[str],
+    path: str | Path,
+) -> Path:
+    """Power of the trajectory-averaged residual against angular frequency, per state variable."""
+    fig, ax = plt.subplots(figsize=(5.5, 3.4))
+    for k, (freqs, power) in spectra.items():
+        ax.semilogy(freqs.cpu().numpy(), power.clamp(min=1e-30).cpu().numpy(), label=state_names[k], lw=1)
+    ax.set(xlabel="ω (rad per unit time)", ylabel="power", title="residual periodogram")
+    ax.legend()
+    return _save(fig, Path(path))
+
+
+def explained_variance(
+    explained: dict[str, list[float]],  # candidate label -> share explained alone, per state variable
+    state_names: Sequence[str],
+    path: str | Path,
+    top: int = 8,
+) -> Path:
+    """Share of the residual each candidate explains on its own (the top few per state variable)."""
+    d = len(state_names)
+    fig, axes = plt.subplots(1, d, figsize=(4.2 * d, 3.4), squeeze=False)
+    for k in range(d):
+        items = sorted(((v[k], name) for name, v in explained.items()), reverse=True)[:top]
+        ax = axes[0, k]
+        ax.barh([n for _, n in items][::-1], [v for v, _ in items][::-1], color="tab:purple")
+        ax.set(xlim=(0, 1), title=f"d{state_names[k]}/dt", xlabel="residual explained alone")
+        ax.tick_params(axis="y", labelsize=7)
+    return _save(fig, Path(path))
+
+
+def error_curves(t: torch.Tensor, curves: dict[str, Sequence[float]], path: str | Path) -> Path:
+    """Held-out rollout RMSE against time for several models (e.g. before and after a fix)."""
+    fig, ax = plt.subplots(figsize=(5, 3.4))
+    for name, values in curves.items():
+        if values:
+            ax.plot(t[: len(values)].cpu().numpy(), values, label=name)
+    ax.set(xlabel="t", ylabel="rollout RMSE (normalised)", title="held-out rollout error")
+    ax.set_yscale("symlog", linthresh=1e-3)
+    ax.legend()
+    return _save(fig, Path(path))

@@ -219,7 +219,9 @@ def load_weights(model: Model, ckpt: dict[str, Any], model_cfg: dict[str, Any]) 
     state = ckpt["model"]["state_dict"]
     own = model.state_dict()
     mismatched = [k for k in state if k in own and state[k].shape != own[k].shape]
-    missing = [k for k in own if k not in state]
+    # effects added on top of a checkpoint (e.g. by `mpsim diagnose fix=true`) start from their configured
+    # coefficients; any other missing tensor means the architecture differs
+    missing = [k for k in own if k not in state and not k.startswith("effects.")]
     if mismatched or missing:
         saved_cfg = ckpt["model"]["config"]
         differ = [f"model.{k}: checkpoint {saved_cfg[k]!r}, config {model_cfg[k]!r}"
@@ -229,7 +231,7 @@ def load_weights(model: Model, ckpt: dict[str, Any], model_cfg: dict[str, Any]) 
             f"{ckpt['path']} does not fit this model ({detail}). Drop the override(s) to use the checkpoint's "
             "architecture, or train from scratch without init=."
         )
-    model.load_state_dict({k: v.to(own[k]) for k, v in state.items() if k in own})
+    model.load_state_dict({k: v.to(own[k]) for k, v in state.items() if k in own}, strict=False)
 
 
 def check_checkpoint_system(ckpt: dict[str, Any], state_dim: int, control_dim: int, state_names: list[str]) -> None:

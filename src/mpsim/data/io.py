@@ -31,15 +31,15 @@ INDEX_COLUMNS = ("traj", "t", "node")
 def save_npz(traj: Trajectories, path: str | Path) -> Path:
     """Write `traj` to `path` atomically (float64 states, JSON metadata)."""
     arrays: dict[str, Any] = {
-        "t": traj.t.double().cpu().numpy(),
-        "x": traj.x.double().cpu().numpy(),
+        "t": traj.t.detach().double().cpu().numpy(),
+        "x": traj.x.detach().double().cpu().numpy(),
         "edge_index": traj.edge_index.long().cpu().numpy(),
         "meta": np.array(json.dumps(traj.meta, default=json_default)),
     }
     if traj.u is not None:
-        arrays["u"] = traj.u.double().cpu().numpy()
+        arrays["u"] = traj.u.detach().double().cpu().numpy()
     if traj.node_features is not None:
-        arrays["node_features"] = traj.node_features.double().cpu().numpy()
+        arrays["node_features"] = traj.node_features.detach().double().cpu().numpy()
     return atomic_write(path, lambda f: np.savez(f, **arrays))
 
 
@@ -97,7 +97,7 @@ def save_csv(traj: Trajectories, path: str | Path) -> tuple[Path, Path]:
     b, t_len, n, d = traj.x.shape
     grid = {
         "traj": np.repeat(np.arange(b), t_len * n),
-        "t": np.tile(np.repeat(traj.t.double().cpu().numpy(), n), b),
+        "t": np.tile(np.repeat(traj.t.detach().double().cpu().numpy(), n), b),
         "node": np.tile(np.arange(n), b * t_len),
     }
     for k, name in enumerate(traj.state_names):

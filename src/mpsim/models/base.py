@@ -143,6 +143,17 @@ class Model(nn.Module):
         """(label, text) rows for the end-of-run summary on screen; default: none."""
         return []
 
+    def sensitivities(
+        self,
+        t: torch.Tensor,  # [M, 1] or [] times
+        x: torch.Tensor,  # [M, N, D] states (raw units)
+        edge_index: torch.Tensor,  # [2, E] graph
+    ) -> torch.Tensor | None:
+        """[M, N, D, P] derivatives of the model's vector field with respect to its P interpretable
+        parameters (white-box models), or None. The residual loop refits these alongside its candidates so
+        that a parameter that absorbed part of a missing effect is not mistaken for another effect."""
+        return None
+
     def after_step(self) -> None:
         """Called after every optimiser step (e.g. sparsity thresholding); default: nothing."""
 

@@ -113,6 +113,26 @@ class PhysicsModel(Model):
             for name in self.raw:
                 setattr(self.system, name, self.declared[name])
 
+    def sensitivities(self, t, x, edge_index):
+        """[M, N, D, P] ∂f/∂p of the declared equations at the given states, one forward-mode derivative per
+        learnable parameter (P is a handful)."""
+        values = {n: v.detach().to(x) for n, v in self.parameters_now().items()}
+        columns = []
+        try:
+            for name in values:  # a loop over the few physical parameters
+
+                def field(v, name=name):
+                    for other, val in values.items():
+                        setattr(self.system, other, v if other == name else val)
+                    return self.system.dynamics(t, x)
+
+                _, tangent = torch.func.jvp(field, (values[name],), (torch.ones_like(values[name]),))
+                columns.append(tangent)
+        finally:
+            for name in self.raw:
+                setattr(self.system, name, self.declared[name])
+        return torch.stack(columns, dim=-1)
+
     def report(self) -> dict[str, Any]:
         values = {n: float(v.detach()) for n, v in self.parameters_now().items()}
         return {"physical_parameters": values, "effects": [e.describe() for e in self.effects]}

@@ -31,7 +31,7 @@ def rk4_delay(
         min_delay: the smallest delay in the right-hand side.
     """
     dt_out = float(t[1] - t[0]) if t.numel() > 1 else step
-    if t.numel() > 1 and not torch.allclose(t[1:] - t[:-1], torch.full_like(t[1:], dt_out), rtol=1e-6, atol=1e-9):
+    if t.numel() > 1 and not torch.allclose(t[1:] - t[:-1], torch.full_like(t[1:], dt_out), rtol=1e-4, atol=1e-6):
         raise ConfigError("delay effects need a uniform time grid.")
     h_max = min(step, min_delay) if min_delay > 0 else step
     sub = max(1, math.ceil(dt_out / h_max - 1e-9))

@@ -27,7 +27,16 @@ from mpsim.solvers.smnn import (
 
 
 class DenseSizeError(SolverError):
-    """The dense matrix would not fit in `max_bytes`; raised before anything large is allocated."""
+    """The dense matrix would not fit in `max_bytes`; raised before anything large is allocated.
+
+    Attributes:
+        need_bytes: the estimated memory of the dense solve.
+        limit_bytes: the budget it exceeded.
+    """
+
+    def __init__(self, message: str, need_bytes: int = 0, limit_bytes: int = 0) -> None:
+        super().__init__(message)
+        self.need_bytes, self.limit_bytes = need_bytes, limit_bytes
 
 
 def _memory_budget(device: torch.device) -> int:
@@ -52,7 +61,7 @@ def _guard_size(n_mats: int, rows: int, n: int, cols: int, dtype: torch.dtype, m
         raise DenseSizeError(
             f"{what} needs about {need / 2**30:.2f} GiB ({n_mats} dense {n}x{n} systems, memory O(T²)) but "
             f"max_bytes is {limit / 2**30:.2f} GiB. Use smnn_solve(method='banded' or 'cyclic'), which is "
-            "linear in T, or shorten the sequence / batch.")
+            "linear in T, or shorten the sequence / batch.", need, limit)
 
 
 def _dense_cholesky_solve(mat: torch.Tensor, rhs: torch.Tensor, what: str) -> torch.Tensor:

@@ -129,6 +129,10 @@ class System:
         """Integrate the true dynamics in float64 from `x0` and return the sampled trajectories."""
         x0 = x0.to(torch.float64)
         t = t.to(torch.float64)
+        with torch.no_grad():  # ground truth: effect coefficients are constants here
+            return self._simulate(x0, t, rtol, atol, method)
+
+    def _simulate(self, x0, t, rtol, atol, method) -> Trajectories:
         delay = min_delay(self.effects)
         if delay > 0:  # a delayed term needs the history: fixed-step RK4 with interpolated history
             x = rk4_delay(lambda tt, xx, hist: self.rhs(tt, xx, history=hist), x0, t, step=1e-3, min_delay=delay)

@@ -1,0 +1,1 @@
+"""The residual loop: residuals, the candidate effect library, selection and the before/after report."""

@@ -1,0 +1,148 @@
+"""Sparse selection of candidate terms: forward stepwise least squares with the Bayesian information
+criterion, explained variance per candidate, and a bootstrap over trajectories.
+
+Each candidate is a group of columns (a forcing has two: sin and cos) that enters or leaves as a whole.
+Rows are (trajectory, step, node) samples of one state variable's residual. Optional `base` columns are
+always in the fit and never named: for a white-box model they are the sensitivities of its own equations to
+its fitted parameters, so that a parameter that partly absorbed a missing effect during training is refit
+alongside the candidates instead of being mistaken for one. Shares of "the residual" are then shares of what
+is left after the base fit.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+
+def _lstsq(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, float]:  # x: [n, p], y: [n]
+    """(coefficients [p], residual sum of squares) of y on the columns of x plus an intercept-free fit."""
+    if x.shape[1] == 0:
+        return x.new_zeros(0), float(y.pow(2).sum())
+    scale = x.norm(dim=0).clamp(min=1e-300)  # column scaling for conditioning
+    sol = torch.linalg.lstsq(x / scale, y[:, None]).solution[:, 0] / scale
+    return sol, float((y - x @ sol).pow(2).sum())
+
+
+@dataclass
+class Selection:
+    """Result of a stepwise selection.
+
+    Attributes:
+        groups: indices of the selected groups, in the order they entered.
+        coef: {group index: fitted coefficients} of the final joint fit.
+        gains: {group index: share of the residual sum of squares removed when the group entered}.
+        r2: share of the residual sum of squares explained by the final model.
+        bic_path: BIC after each entry (the first value is the empty model's).
+        total: residual sum of squares after the base fit (what the shares are shares of).
+    """
+
+    groups: list[int]
+    coef: dict[int, list[float]]
+    gains: dict[int, float]
+    r2: float
+    bic_path: list[float]
+    total: float = 0.0
+
+
+def _base_cols(base: torch.Tensor | None, y: torch.Tensor) -> torch.Tensor:
+    return y.new_zeros(y.numel(), 0) if base is None else base
+
+
+def stepwise_bic(
+    y: torch.Tensor,  # [n] residual samples
+    groups: list[torch.Tensor],  # each [n, k_g] basis columns of one candidate
+    max_terms: int = 6,
+    base: torch.Tensor | None = None,  # [n, q] columns always in the fit (never selected or named)
+) -> Selection:
+    """Forward stepwise selection: add the group that lowers the residual sum of squares most while the
+    BIC = n·log(RSS/n) + p·log(n) keeps decreasing."""
+    n = y.numel()
+    base = _base_cols(base, y)
+    _, total = _lstsq(base, y)
+    if total <= 0 or n == 0:
+        return Selection([], {}, {}, 0.0, [], max(total, 0.0))
+    chosen: list[int] = []
+    rss = total
+    bic = n * math.log(rss / n) + base.shape[1] * math.log(n)
+    path, gains = [bic], {}
+    while len(chosen) < max_terms:
+        best = None
+        for g in range(len(groups)):
+            if g in chosen:
+                continue
+            x = torch.cat([base, *[groups[i] for i in [*chosen, g]]], dim=1)
+            _, r = _lstsq(x, y)
+            if best is None or r < best[1]:
+                best = (g, r)
+        if best is None:
+            break
+        g, r = best
+        p = base.shape[1] + sum(groups[i].shape[1] for i in [*chosen, g])
+        new_bic = n * math.log(max(r, 1e-300) / n) + p * math.log(n)
+        if new_bic >= bic:
+            break
+        gains[g] = (rss - r) / total
+        chosen.append(g)
+        rss, bic = r, new_bic
+        path.append(bic)
+    coef: dict[int, list[float]] = {}
+    if chosen:
+        sol, rss = _lstsq(torch.cat([base, *[groups[i] for i in chosen]], dim=1), y)
+        at = base.shape[1]
+        for g in chosen:
+            k = groups[g].shape[1]
+            coef[g] = [float(v) for v in sol[at : at + k]]
+            at += k
+    return Selection(chosen, coef, gains, 1 - rss / total, path, total)
+
+
+def explained_alone(y: torch.Tensor, groups: list[torch.Tensor], base: torch.Tensor | None = None) -> list[float]:
+    """Share of the residual sum of squares (after the base fit) each group explains on its own."""
+    base = _base_cols(base, y)
+    _, total = _lstsq(base, y)
+    return [1 - _lstsq(torch.cat([base, x], dim=1), y)[1] / total if total > 0 else 0.0 for x in groups]
+
+
+def bootstrap(
+    y: torch.Tensor,  # [B, m] residual samples grouped by trajectory
+    groups: list[torch.Tensor],  # each [B, m, k_g]
+    selected: list[int],
+    n_boot: int = 100,
+    seed: int = 0,
+    max_terms: int = 6,
+    base: torch.Tensor | None = None,  # [B, m, q] columns always in the fit
+) -> tuple[dict[int, float], dict[int, list[tuple[float, float]]]]:
+    """Resample trajectories with replacement; rerun the selection and refit the selected groups.
+
+    Returns:
+        ({group: inclusion frequency}, {selected group: [(2.5 %, 97.5 %) interval per coefficient]}).
+    """
+    b = y.shape[0]
+    gen = torch.Generator().manual_seed(seed)
+    counts = [0] * len(groups)
+    draws: dict[int, list[list[float]]] = {g: [] for g in selected}
+    for _ in range(n_boot):  # resamples, not a loop over data elements
+        idx = torch.randint(0, b, (b,), generator=gen)
+        yb = y[idx].reshape(-1)
+        gb = [g[idx].reshape(yb.numel(), -1) for g in groups]
+        bb = None if base is None else base[idx].reshape(yb.numel(), -1)
+        for g in stepwise_bic(yb, gb, max_terms, bb).groups:
+            counts[g] += 1
+        if selected:
+            sol, _ = _lstsq(torch.cat([_base_cols(bb, yb), *[gb[g] for g in selected]], dim=1), yb)
+            at = 0 if bb is None else bb.shape[1]
+            for g in selected:
+                k = groups[g].shape[-1]
+                draws[g].append([float(v) for v in sol[at : at + k]])
+                at += k
+    freq = {g: counts[g] / n_boot for g in range(len(groups))}
+    intervals = {}
+    for g, rows in draws.items():
+        values = torch.tensor(rows, dtype=torch.float64)
+        lo = torch.quantile(values, 0.025, dim=0)
+        hi = torch.quantile(values, 0.975, dim=0)
+        intervals[g] = [(float(a), float(c)) for a, c in zip(lo, hi, strict=True)]
+    return freq, intervals
