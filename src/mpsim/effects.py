@@ -266,7 +266,7 @@ class PeriodicForcing(Effect):
 
     @property
     def omega(self) -> float:
-        return float(self.log_omega.exp())
+        return float(self.log_omega.detach().exp())
 
     def amplitude_phase(self) -> tuple[float, float]:
         a, b = (float(c) for c in self.coef.detach())

@@ -1,0 +1,63 @@
+import pandas as pd
+import pytest
+import torch
+
+from mpsim.data.io import load_trajectories
+from mpsim.diagnose.loop import find_effects, noise_level, valid_prediction_time
+from mpsim.effects import LinearDamping
+from mpsim.models.physics import PhysicsModel
+from mpsim.solvers import ODESolver
+from mpsim.systems import CoupledPendulums
+
+
+def _declared_model(train):
+    # the scientist's model: the declared (undamped) pendulum equations, g and k learnable
+    model = PhysicsModel(2, system=CoupledPendulums(), learnable=["gravity", "spring"],
+                         solver=ODESolver("dopri5", rtol=1e-7, atol=1e-7)).double()
+    model.set_normalisation(train.x.reshape(-1, 2).mean(0), train.x.reshape(-1, 2).std(0))
+    return model
+
+
+def test_names_hidden_damping_with_its_coefficient():
+    data = CoupledPendulums(effects=[LinearDamping(0.2, target="omega")]).generate(24, seed=0)
+    diag = find_effects(_declared_model(data), data, n_boot=30)
+    (found,) = diag.accepted
+    assert found.kind == "LinearDamping" and found.label == "domega/dt: LinearDamping(omega)"
+    assert found.coef[0] == pytest.approx(0.2, rel=0.1)
+    assert found.effect == {"_target_": "mpsim.effects.LinearDamping", "target": "omega", "coef": found.coef[0],
+                            "source": "omega"}
+
+
+def test_no_effect_in_clean_data():
+    data = CoupledPendulums().generate(24, seed=1)
+    diag = find_effects(_declared_model(data), data, n_boot=30)
+    assert diag.accepted == []
+
+
+def test_works_from_a_hand_written_csv(tmp_path):
+    # the data file carries no record of the effect: only states, times, nodes and an edge list
+    data = CoupledPendulums(effects=[LinearDamping(0.2, target="omega")]).generate(16, seed=2)
+    b, t, n, _ = data.x.shape
+    rows = [
+        {"traj": f"run{i}", "t": round(float(data.t[k]), 10), "node": j, "angle": float(data.x[i, k, j, 0]),
+         "rate": float(data.x[i, k, j, 1])}
+        for i in range(b) for k in range(t) for j in range(n)
+    ]
+    pd.DataFrame(rows).to_csv(tmp_path / "lab.csv", index=False)
+    pd.DataFrame({"src": [0, 1], "dst": [1, 0]}).to_csv(tmp_path / "lab_edges.csv", index=False)
+    loaded = load_trajectories(tmp_path / "lab.csv")
+    assert loaded.meta.get("effects") is None and loaded.state_names == ["angle", "rate"]
+    diag = find_effects(_declared_model(loaded), loaded, n_boot=30)
+    (found,) = diag.accepted
+    assert found.label == "drate/dt: LinearDamping(rate)" and found.coef[0] == pytest.approx(0.2, rel=0.1)
+
+
+def test_noise_estimate_and_valid_prediction_time():
+    g = torch.Generator().manual_seed(0)
+    t = torch.linspace(0, 10, 201, dtype=torch.float64)
+    clean = torch.sin(t)[None, :, None, None].expand(8, -1, 3, 1)
+    noisy = clean + 0.01 * torch.randn(clean.shape, generator=g, dtype=torch.float64)
+    assert noise_level(noisy)[0] == pytest.approx(0.01, rel=0.15)
+    assert noise_level(clean)[0] < 1e-4
+    pred = clean + 0.1 * t[None, :, None, None]  # normalised error 0.1·t crosses 0.3 at t = 3
+    assert valid_prediction_time(pred, clean, torch.ones(1, dtype=torch.float64), t, 0.3) == pytest.approx(3.05, abs=0.06)
