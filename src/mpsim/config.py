@@ -141,6 +141,7 @@ class DiagnoseParams:
     null_factor: float = 3.0
     min_inclusion: float = 0.8
     vpt_threshold: float = 0.3
+    fix_lr_factor: float = 0.1
 
 
 @dataclass

@@ -134,7 +134,9 @@ def _fix(cfg, rt, ckpt, model_cfg, model, splits, diag: Diagnosis, horizons):
     fixed_ckpt = {**ckpt, "model": {**ckpt["model"], "config": fixed_cfg}}
     fixed, _ = build_model_for(cfg, rt, Shape.of(splits.train), fixed_ckpt)
     fixed.set_normalisation(model.state_mean, model.state_std)
-    trainer = build(cfg.trainer, "trainer")
+    fixed.shift_parameters(diag.parameter_shifts)  # the joint refit of the model's own parameters
+    # the finetune starts near the optimum (fitted coefficients, trained weights): smaller steps
+    trainer = build(cfg.trainer, "trainer", lr=cfg.trainer.lr * cfg.diagnose.fix_lr_factor)
     base = checkpoint_base(fixed_cfg, fixed, splits.train.meta, {"mode": "finetune", "init": ckpt["path"]})
     trainer.fit(fixed, splits.train, splits.val, splits.test, run_dir=rt.output_dir / "fix", seed=cfg.seed,
                 checkpoint_base=base)

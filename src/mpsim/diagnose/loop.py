@@ -60,6 +60,7 @@ class Diagnosis:
     noise_std: list[float]  # estimated measurement noise per state variable
     residual: Residual | None = None
     periodograms: dict[int, tuple[torch.Tensor, torch.Tensor]] = field(default_factory=dict)
+    parameter_shifts: dict[str, float] = field(default_factory=dict)  # refit of the model's own parameters
 
     @property
     def accepted(self) -> list[Finding]:
@@ -76,6 +77,7 @@ class Diagnosis:
             "explained_alone": self.explained,
             "forcing_omegas": {self.state_names[k]: v for k, v in self.omegas.items()},
             "noise_std_estimate": self.noise_std,
+            "parameter_shifts": self.parameter_shifts,
         }
 
 
@@ -210,8 +212,42 @@ def find_effects(
                 reason="; ".join(failed) if failed else "selected, above the null level, stable under bootstrap",
                 effect=c.effect_config(sel.coef[g], d, names),
             ))
-    return Diagnosis(findings, list(names), residual_rms, null_rms, null_level, explained, omegas,
+    diag = Diagnosis(findings, list(names), residual_rms, null_rms, null_level, explained, omegas,
                      [float(v) for v in noise_level(data.x)], res, spectra)
+    if diag.accepted:
+        _joint_refit(diag, library, res, keep, base, model)
+    return diag
+
+
+def _joint_refit(diag: Diagnosis, library: list[Candidate], res: Residual, keep: torch.Tensor,
+                 base: torch.Tensor | None, model: Model) -> None:
+    """One least-squares fit over all state variables of the accepted effects together with the model's own
+    parameter sensitivities (shared across state variables): consistent coefficients and parameter shifts
+    to start the finetune from."""
+    labels = {c.label(diag.state_names): i for i, c in enumerate(library)}
+    d_total = res.r.shape[-1]
+    y = res.r[keep].reshape(-1, d_total)  # [n, D]
+    n = y.shape[0]
+    blocks = []
+    for f in diag.accepted:  # each effect acts on one state variable: its columns are zero elsewhere
+        cols = library[labels[f.label.split(": ", 1)[1]]].features[keep].reshape(n, -1)
+        block = torch.zeros(n, d_total, cols.shape[1], dtype=torch.float64)
+        block[:, f.target] = cols
+        blocks.append(block)
+    if base is not None:
+        blocks.append(base[keep].reshape(n, d_total, -1))  # [n, D, P]
+    x = torch.cat(blocks, dim=-1).reshape(n * d_total, -1)
+    sol, _ = _lstsq(x, y.reshape(-1))
+    at = 0
+    for f in diag.accepted:
+        k = len(f.coef)
+        f.coef = [float(v) for v in sol[at : at + k]]
+        c = library[labels[f.label.split(": ", 1)[1]]]
+        f.effect = c.effect_config(f.coef, f.target, diag.state_names)
+        at += k
+    names = model.sensitivity_names()
+    if base is not None and names:
+        diag.parameter_shifts = {name: float(v) for name, v in zip(names, sol[at:], strict=True)}
 
 
 def _null_check(model, data, omegas, delays, kinds, seed) -> tuple[list[float], list[float]]:

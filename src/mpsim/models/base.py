@@ -154,6 +154,13 @@ class Model(nn.Module):
         that a parameter that absorbed part of a missing effect is not mistaken for another effect."""
         return None
 
+    def sensitivity_names(self) -> list[str]:
+        """Names of the P parameters of `sensitivities` (empty for black-box models)."""
+        return []
+
+    def shift_parameters(self, shifts: dict[str, float]) -> None:
+        """Add `shifts` to the named interpretable parameters (see `sensitivities`); default: nothing."""
+
     def after_step(self) -> None:
         """Called after every optimiser step (e.g. sparsity thresholding); default: nothing."""
 

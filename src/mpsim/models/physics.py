@@ -133,6 +133,17 @@ class PhysicsModel(Model):
                 setattr(self.system, name, self.declared[name])
         return torch.stack(columns, dim=-1)
 
+    def sensitivity_names(self) -> list[str]:
+        return list(self.raw)
+
+    def shift_parameters(self, shifts: dict[str, float]) -> None:
+        with torch.no_grad():
+            for name, delta in shifts.items():
+                value = float(self.parameters_now()[name]) + delta
+                if name in self.positive and value <= 0:
+                    continue  # a shift that would flip the sign of a positive constant is not applied
+                self.raw[name].fill_(math.log(value) if name in self.positive else value)
+
     def report(self) -> dict[str, Any]:
         values = {n: float(v.detach()) for n, v in self.parameters_now().items()}
         return {"physical_parameters": values, "effects": [e.describe() for e in self.effects]}
