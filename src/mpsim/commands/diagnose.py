@@ -171,7 +171,16 @@ def _markdown(result: dict[str, Any], diag: Diagnosis) -> str:
     for d, n in enumerate(names):
         lines.append(f"| {n} | {diag.residual_rms[d]:.4g} | {diag.null_rms[d]:.4g} | {diag.null_level[d]:.3g} | "
                      f"{diag.noise_std[d]:.3g} |")
+    if diag.represented:
+        lines += ["", f"Effect kinds the model can express itself ({', '.join(diag.represented)}) and polynomials of a "
+                      "node's state were refit as nuisance directions, not named: the model's residual along them is "
+                      "training error, not missing physics."]
+    if diag.parameter_shifts:
+        lines += ["", "Refit of the model's own parameters alongside the named effects: "
+                  + ", ".join(f"{k} {v:+.4g}" for k, v in diag.parameter_shifts.items()) + "."]
     lines += ["", "## Candidates selected by BIC", "",
+              "Coefficients of named effects are refit jointly with the other named effects; intervals come from "
+              "the bootstrap of the selection fit.", "",
               "| target: effect | coefficients | 95% interval | residual explained | RMS explained | bootstrap | "
               "named | why |", "|---|---|---|---|---|---|---|---|"]
     for f in diag.findings:

@@ -61,6 +61,7 @@ class Diagnosis:
     residual: Residual | None = None
     periodograms: dict[int, tuple[torch.Tensor, torch.Tensor]] = field(default_factory=dict)
     parameter_shifts: dict[str, float] = field(default_factory=dict)  # refit of the model's own parameters
+    represented: list[str] = field(default_factory=list)  # effect kinds the model can express itself
 
     @property
     def accepted(self) -> list[Finding]:
@@ -78,27 +79,42 @@ class Diagnosis:
             "forcing_omegas": {self.state_names[k]: v for k, v in self.omegas.items()},
             "noise_std_estimate": self.noise_std,
             "parameter_shifts": self.parameter_shifts,
+            "represented_by_model": self.represented,
         }
 
 
-def noise_level(x: torch.Tensor) -> torch.Tensor:  # x: [B, T, N, D]
-    """[D] measurement-noise standard deviation estimated from k-th differences along time (k = 2, 4, 6).
+def noise_level(x: torch.Tensor, residual_steps: torch.Tensor | None = None) -> torch.Tensor:
+    """[D] measurement-noise standard deviation, the smallest of several upper bounds.
 
-    For white noise of std σ the k-th difference has variance C(2k, k)·σ²; a smooth signal adds O(Δ^k), so
-    each order gives an upper bound and the smallest is kept. On clean data the result is a small upper bound,
-    which only makes the null check more conservative.
+    Args:
+        x: [B, T, N, D] observed states. For white noise of std σ the k-th difference along time has variance
+            C(2k, k)·σ²; the smooth signal adds O((ωΔ)^k), so each even order k ≤ 6 bounds σ from above.
+        residual_steps: [B, T−1, N, D] one-step residuals times the step, x_{k+1} − Φ(x_k). Noise enters them as
+            ε_{k+1} − Φ'ε_k ≈ ε_{k+1} − ε_k, so their k-th differences have variance C(2k+2, k+1)·σ², while the
+            model's error is smooth in time and far smaller than the signal: a much tighter bound.
+
+    On clean data the result is a small upper bound, which only makes the null check more conservative.
     """
-    x = x.double()
+    bounds = [_difference_bound(x.double(), shift=0)]
+    if residual_steps is not None:
+        bounds.append(_difference_bound(residual_steps.double(), shift=1))
+    best = torch.stack(bounds).min(dim=0).values
+    return torch.where(torch.isfinite(best), best, torch.zeros_like(best))
+
+
+def _difference_bound(x: torch.Tensor, shift: int) -> torch.Tensor:  # x: [B, T, N, D]
+    finite = torch.isfinite(x).flatten(1).all(dim=1)
+    x = x[finite]
     best = torch.full((x.shape[-1],), math.inf, dtype=torch.float64)
     diff = x
     for k in range(1, 7):
         diff = diff[:, 1:] - diff[:, :-1]
-        if diff.shape[1] < 2:
+        if diff.shape[1] < 2 or diff.shape[0] == 0:
             break
         if k % 2 == 0:
-            est = diff.reshape(-1, x.shape[-1]).std(0) / math.sqrt(math.comb(2 * k, k))
+            est = diff.reshape(-1, x.shape[-1]).std(0) / math.sqrt(math.comb(2 * (k + shift), k + shift))
             best = torch.minimum(best, est)
-    return torch.where(torch.isfinite(best), best, torch.zeros_like(best))
+    return best
 
 
 def _forcing_omegas(res: Residual, data: Trajectories) -> tuple[dict[int, float], dict[int, tuple]]:
@@ -149,6 +165,36 @@ def model_sensitivities(model: Model, data: Trajectories) -> torch.Tensor | None
     return 0.5 * (sens[:, 1:] + sens[:, :-1])
 
 
+def nuisance_columns(model: Model, data: Trajectories, represented: tuple[str, ...]) -> torch.Tensor | None:
+    """[B, T−1, N, D, P] columns refit but never named: the model's sensitivities to its own parameters
+    (white-box models) and the basis of every effect kind the model can already express (a neural ODE of the
+    node state can learn any state-dependent term, so its residual along those directions is training error,
+    not missing physics)."""
+    parts = []
+    sens = model_sensitivities(model, data)
+    if sens is not None:
+        parts.append(sens)
+    if represented:
+        cols = torch.cat([c.features for c in build_library(data, {}, [], represented)], dim=-1)  # [B, T-1, N, K]
+        parts.append(cols.unsqueeze(-2).expand(-1, -1, -1, data.state_dim, -1))
+    if model.represents_polynomials:
+        cols = state_polynomials(data.x.double(), model.represents_polynomials)  # [B, T, N, K]
+        cols = 0.5 * (cols[:, 1:] + cols[:, :-1])
+        parts.append(cols.unsqueeze(-2).expand(-1, -1, -1, data.state_dim, -1))
+    return torch.cat(parts, dim=-1) if parts else None
+
+
+def state_polynomials(x: torch.Tensor, degree: int) -> torch.Tensor:  # x: [B, T, N, D]
+    """[B, T, N, K] every monomial of a node's state variables of degree 1..`degree` (products within a node)."""
+    d = x.shape[-1]
+    cols = [x]
+    current = [(i,) for i in range(d)]
+    for _ in range(degree - 1):
+        current = [m + (j,) for m in current for j in range(m[-1], d)]
+        cols.append(torch.stack([x[..., list(m)].prod(-1) for m in current], dim=-1))
+    return torch.cat(cols, dim=-1)
+
+
 def find_effects(
     model: Model,
     data: Trajectories,
@@ -179,9 +225,12 @@ def find_effects(
     res = one_step_residual(model, data)
     keep = torch.isfinite(res.r).flatten(1).all(dim=1)
     omegas, spectra = _forcing_omegas(res, data) if "PeriodicForcing" in kinds else ({}, {})
+    represented = tuple(k for k in kinds if k in model.represents)
+    kinds = tuple(k for k in kinds if k not in represented)
     library = build_library(data, omegas, delays, kinds)
-    base = model_sensitivities(model, data)
-    null_rms, null_level = _null_check(model, data, omegas, delays, kinds, seed)
+    base = nuisance_columns(model, data, represented)
+    noise = noise_level(data.x, res.r * res.dt[None, :, None, None])
+    null_rms, null_level = _null_check(model, data, omegas, delays, kinds, represented, noise, seed)
     names = data.state_names
     findings: list[Finding] = []
     explained: dict[str, list[float]] = {c.label(names): [0.0] * data.state_dim for c in library}
@@ -213,7 +262,7 @@ def find_effects(
                 effect=c.effect_config(sel.coef[g], d, names),
             ))
     diag = Diagnosis(findings, list(names), residual_rms, null_rms, null_level, explained, omegas,
-                     [float(v) for v in noise_level(data.x)], res, spectra)
+                     [float(v) for v in noise], res, spectra, represented=list(represented))
     if diag.accepted:
         _joint_refit(diag, library, res, keep, base, model)
     return diag
@@ -250,14 +299,13 @@ def _joint_refit(diag: Diagnosis, library: list[Candidate], res: Residual, keep:
         diag.parameter_shifts = {name: float(v) for name, v in zip(names, sol[at:], strict=True)}
 
 
-def _null_check(model, data, omegas, delays, kinds, seed) -> tuple[list[float], list[float]]:
+def _null_check(model, data, omegas, delays, kinds, represented, sigma, seed) -> tuple[list[float], list[float]]:
     """Run the pipeline on data simulated from the model itself plus the estimated measurement noise.
 
     Returns:
         ([D] residual RMS on the null data (after the base fit), [D] the largest RMS any candidate explains there).
     """
     pred, _ = predict(model, data)
-    sigma = noise_level(data.x)
     gen = torch.Generator().manual_seed(seed + 1)
     noise = torch.randn(pred.shape, generator=gen, dtype=torch.float64) * sigma
     null = Trajectories(t=data.t, x=(pred.double() + noise).nan_to_num(), edge_index=data.edge_index, u=data.u,
@@ -265,7 +313,7 @@ def _null_check(model, data, omegas, delays, kinds, seed) -> tuple[list[float], 
     res = one_step_residual(model, null)
     keep = torch.isfinite(res.r).flatten(1).all(dim=1)
     library = build_library(null, omegas, delays, kinds)
-    base = model_sensitivities(model, null)
+    base = nuisance_columns(model, null, represented)
     rms, level = [], []
     for d in range(data.state_dim):
         y, groups, base_d = _rows(library, res, d, keep, base)

@@ -37,7 +37,8 @@ def one_step_residual(model: Model, data: Trajectories, batch_size: int = 1024) 
     """Residual of `model` over every step of every trajectory of `data` (float64, no gradients).
 
     Each step is a batched one-step rollout of all trajectories from the observed state at its absolute
-    time, so time-dependent terms (periodic forcing) are evaluated at the right phase.
+    time, so time-dependent terms (periodic forcing) are evaluated at the right phase; a model's latent state
+    (MP-NODE messages) is carried along the observed trajectory (see `Model.one_step`).
     """
     if model.context_steps != 1:
         raise ConfigError(f"{type(model).__name__} reads a window of {model.context_steps} states; the one-step "
@@ -45,25 +46,20 @@ def one_step_residual(model: Model, data: Trajectories, batch_size: int = 1024) 
     device, dtype = model.state_mean.device, model.state_mean.dtype
     x = data.x.to(device=device, dtype=dtype)
     t = data.t.to(device=device, dtype=dtype)
-    b, n_t = x.shape[:2]
-    preds = []
+    parts = []
     with torch.no_grad():
-        for k in range(n_t - 1):  # sequential in time only: each step batches all trajectories
-            parts = []
-            for start in range(0, b, batch_size):
-                sl = slice(start, start + batch_size)
-                ei = data.edge_index if data.shared_graph else data.edge_index[sl]
-                u = None if data.u is None else data.u[sl, k : k + 2].to(x)
-                nf = data.node_features
-                if nf is not None and nf.dim() == 3:
-                    nf = nf[sl]
-                try:
-                    step = model.rollout(x[sl, k], t[k : k + 2], ei.to(device), u, nf, data.meta)[:, 1]
-                except DivergenceError:
-                    step = torch.full_like(x[sl, k], float("nan"))
-                parts.append(step)
-            preds.append(torch.cat(parts))
-    pred = torch.stack(preds, dim=1).double().cpu()  # [B, T-1, N, D]
+        for start in range(0, x.shape[0], batch_size):
+            sl = slice(start, start + batch_size)
+            ei = data.edge_index if data.shared_graph else data.edge_index[sl]
+            u = None if data.u is None else data.u[sl].to(x)
+            nf = data.node_features
+            if nf is not None and nf.dim() == 3:
+                nf = nf[sl]
+            try:
+                parts.append(model.one_step(x[sl], t, ei.to(device), u, nf, data.meta))
+            except DivergenceError:
+                parts.append(torch.full_like(x[sl, 1:], float("nan")))
+    pred = torch.cat(parts).double().cpu()  # [B, T-1, N, D]
     dt = (data.t[1:] - data.t[:-1]).double()
     r = (data.x[:, 1:].double() - pred) / dt[None, :, None, None]
     return Residual(r=r, pred=pred, t_mid=0.5 * (data.t[1:] + data.t[:-1]).double(), dt=dt)

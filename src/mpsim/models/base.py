@@ -34,6 +34,11 @@ class Model(nn.Module):
 
     #: whether a trained model can run on a graph with a different number of nodes
     transfers_across_graphs: bool = True
+    #: effect kinds (class names in `mpsim.effects`) the model can express by itself; the residual loop refits
+    #: them as nuisance directions instead of naming them
+    represents: tuple[str, ...] = ()
+    #: degree of the polynomials of a node's own state the model can express (0: none); refit as nuisance
+    represents_polynomials: int = 0
     #: observed states a rollout starts from: 1 = x0 [B, N, D]; K > 1 = the first K states [B, K, N, D]
     #: (forecasters that read a window); errors are then measured from step K on
     context_steps: int = 1
@@ -142,6 +147,24 @@ class Model(nn.Module):
     def report_lines(self) -> list[tuple[str, str]]:
         """(label, text) rows for the end-of-run summary on screen; default: none."""
         return []
+
+    def one_step(
+        self,
+        x: torch.Tensor,  # [B, T, N, D] observed states (raw units)
+        t: torch.Tensor,  # [T] times
+        edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
+        u: torch.Tensor | None = None,  # [B, T, N, C] controls
+        node_features: torch.Tensor | None = None,  # [N, F] or [B, N, F]
+        meta: dict[str, Any] | None = None,
+    ) -> torch.Tensor:
+        """[B, T−1, N, D] the model's prediction of each x_{k+1} from the observed x_k (one step each, at its
+        absolute time). Models with latent state (MP-NODE messages) carry it along the observed trajectory
+        instead of resetting it every step."""
+        steps = []
+        for k in range(x.shape[1] - 1):  # sequential in time only; each step batches every trajectory
+            uk = None if u is None else u[:, k : k + 2]
+            steps.append(self.rollout(x[:, k], t[k : k + 2], edge_index, uk, node_features, meta)[:, 1])
+        return torch.stack(steps, dim=1)
 
     def sensitivities(
         self,

@@ -86,6 +86,10 @@ class _MessagePassingField(nn.Module):
 class MPNODE(Model):
     """Message-passing neural ODE.
 
+    The node MLP can learn any smooth function of the node's state and, through messages, of its
+    neighbours', so the residual loop treats state-dependent effects as within its reach and looks for what
+    it cannot express: explicit time dependence (forcing) and history (delays).
+
     Args:
         state_dim: D, state variables per node (set from the data).
         control_dim: C, controls per node (set from the data).
@@ -99,6 +103,9 @@ class MPNODE(Model):
         effects: named physical terms with learnable coefficients added to the node dynamics.
         solver: how the vector field is integrated (default: dopri5, rtol = atol = 1e-4).
     """
+
+    represents = ("Bias", "LinearDamping", "QuadraticDrag", "CubicStiffness", "DiffusiveCoupling", "SineCoupling")
+    represents_polynomials = 2
 
     def __init__(
         self,
@@ -144,6 +151,22 @@ class MPNODE(Model):
         field = _MessagePassingField(self.net, graph, d, self.zero_messages, t.to(x0), u, self, effect_graph)
         ys = self.integrate(field, y0, t, self.solver)  # [B, T, N, D+M]
         return self.denormalise(ys[..., :d]), {"messages": ys[..., d:]}
+
+    def one_step(self, x, t, edge_index, u=None, node_features=None, meta=None):
+        """One-step predictions along an observed trajectory with the messages carried from step to step
+        (starting at zero at t0, as in a rollout), so each step sees the latent state a rollout would."""
+        b, n_t, n, d = x.shape
+        graph = batch_graph(edge_index.to(x.device), b, n, self_loops=self.self_loops, dtype=x.dtype)
+        effect_graph = batch_graph(edge_index.to(x.device), b, n, dtype=x.dtype) if len(self.effects) else None
+        field = _MessagePassingField(self.net, graph, d, self.zero_messages, t.to(x), u, self, effect_graph)
+        messages = x.new_zeros(b, n, self.message_size)
+        preds = []
+        for k in range(n_t - 1):  # sequential in time: the messages carry over
+            y0 = torch.cat([self.normalise(x[:, k]), messages], dim=-1)
+            y1 = self.integrate(field, y0, t[k : k + 2].to(x), self.solver)[:, 1]
+            preds.append(self.denormalise(y1[..., :d]))
+            messages = y1[..., d:]
+        return torch.stack(preds, dim=1)
 
     def rollout(
         self,
