@@ -61,6 +61,8 @@ class TrainerConf:
     early_stop_patience: int = 30
     eval_batch_size: int = 512
     progress: bool = True
+    window: int | None = None
+    eval_window: int | None = None
 
 
 @dataclass
@@ -128,6 +130,7 @@ class ReportConf:
     title: str = "mpsim report"
     target: Any = None  # test error for `epochs_to_target`: a number, or max_min (the level every run reached)
     columns: list[str] = field(default_factory=list)  # metrics to show (default: all)
+    layout: str | None = None  # table2 | table1 | curves | message_size: a built-in MP-NODE paper layout
 
 
 @dataclass

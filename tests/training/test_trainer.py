@@ -87,3 +87,20 @@ def test_early_stopping(tmp_path):
     trainer = Trainer(max_epochs=50, batch_size=8, lr=1e-9, early_stop_patience=2, progress=False)
     trainer.fit(model, train, val, test, run_dir=tmp_path)
     assert trainer.status_ == "early_stopped" and len(trainer.history_) < 10
+
+
+def test_window_training_sees_only_short_windows(tmp_path):
+    train, val, test = _data()
+    seen = []
+
+    class Spy(MPNODE):
+        def training_loss(self, batch, t, loss_fn, delta=1.0):
+            seen.append((batch.n_times, float(t[0])))
+            return super().training_loss(batch, t, loss_fn, delta)
+
+    torch.manual_seed(0)
+    model = Spy(2, solver=ODESolver("rk4"))
+    model.set_normalisation(*fit_normalisation(train))
+    Trainer(max_epochs=3, batch_size=8, window=3, progress=False).fit(model, train, val, test, run_dir=tmp_path)
+    assert {n for n, _ in seen} == {4}  # window of 3 steps = 4 time points
+    assert len({start for _, start in seen}) > 1  # starts vary between batches

@@ -175,6 +175,9 @@ def _markdown(result: dict[str, Any], diag: Diagnosis) -> str:
         lines += ["", f"Effect kinds the model can express itself ({', '.join(diag.represented)}) and polynomials of a "
                       "node's state were refit as nuisance directions, not named: the model's residual along them is "
                       "training error, not missing physics."]
+    if diag.not_considered:
+        lines += ["", f"Not considered: {', '.join(diag.not_considered)} — against this model such a term cannot be "
+                      "told apart from its own error (see the model class's `indistinguishable`)."]
     if diag.parameter_shifts:
         lines += ["", "Refit of the model's own parameters alongside the named effects: "
                   + ", ".join(f"{k} {v:+.4g}" for k, v in diag.parameter_shifts.items()) + "."]

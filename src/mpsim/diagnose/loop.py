@@ -62,6 +62,7 @@ class Diagnosis:
     periodograms: dict[int, tuple[torch.Tensor, torch.Tensor]] = field(default_factory=dict)
     parameter_shifts: dict[str, float] = field(default_factory=dict)  # refit of the model's own parameters
     represented: list[str] = field(default_factory=list)  # effect kinds the model can express itself
+    not_considered: list[str] = field(default_factory=list)  # kinds that cannot be told apart from model error
 
     @property
     def accepted(self) -> list[Finding]:
@@ -80,6 +81,7 @@ class Diagnosis:
             "noise_std_estimate": self.noise_std,
             "parameter_shifts": self.parameter_shifts,
             "represented_by_model": self.represented,
+            "not_considered": self.not_considered,
         }
 
 
@@ -226,7 +228,8 @@ def find_effects(
     keep = torch.isfinite(res.r).flatten(1).all(dim=1)
     omegas, spectra = _forcing_omegas(res, data) if "PeriodicForcing" in kinds else ({}, {})
     represented = tuple(k for k in kinds if k in model.represents)
-    kinds = tuple(k for k in kinds if k not in represented)
+    undecidable = tuple(k for k in kinds if k in model.indistinguishable)
+    kinds = tuple(k for k in kinds if k not in represented and k not in undecidable)
     library = build_library(data, omegas, delays, kinds)
     base = nuisance_columns(model, data, represented)
     noise = noise_level(data.x, res.r * res.dt[None, :, None, None])
@@ -262,17 +265,22 @@ def find_effects(
                 effect=c.effect_config(sel.coef[g], d, names),
             ))
     diag = Diagnosis(findings, list(names), residual_rms, null_rms, null_level, explained, omegas,
-                     [float(v) for v in noise], res, spectra, represented=list(represented))
-    if diag.accepted:
-        _joint_refit(diag, library, res, keep, base, model)
+                     [float(v) for v in noise], res, spectra, represented=list(represented),
+                     not_considered=list(undecidable))
+    while diag.accepted and not _joint_refit(diag, library, res, keep, base, model):
+        pass  # an effect whose coefficient was not stable was dropped: refit the others
     return diag
 
 
 def _joint_refit(diag: Diagnosis, library: list[Candidate], res: Residual, keep: torch.Tensor,
-                 base: torch.Tensor | None, model: Model) -> None:
+                 base: torch.Tensor | None, model: Model) -> bool:
     """One least-squares fit over all state variables of the accepted effects together with the model's own
     parameter sensitivities (shared across state variables): consistent coefficients and parameter shifts
-    to start the finetune from."""
+    to start the finetune from.
+
+    An effect whose coefficient leaves its bootstrap interval by more than the interval's width when refit
+    with only the named effects owed its fit to terms that were not named (collinearity): it is dropped and
+    False is returned, so that the caller refits the rest."""
     labels = {c.label(diag.state_names): i for i, c in enumerate(library)}
     d_total = res.r.shape[-1]
     y = res.r[keep].reshape(-1, d_total)  # [n, D]
@@ -287,16 +295,27 @@ def _joint_refit(diag: Diagnosis, library: list[Candidate], res: Residual, keep:
         blocks.append(base[keep].reshape(n, d_total, -1))  # [n, D, P]
     x = torch.cat(blocks, dim=-1).reshape(n * d_total, -1)
     sol, _ = _lstsq(x, y.reshape(-1))
-    at = 0
+    at, refits = 0, []
     for f in diag.accepted:
         k = len(f.coef)
-        f.coef = [float(v) for v in sol[at : at + k]]
-        c = library[labels[f.label.split(": ", 1)[1]]]
-        f.effect = c.effect_config(f.coef, f.target, diag.state_names)
+        refits.append((f, [float(v) for v in sol[at : at + k]]))
         at += k
+    for f, coef in refits:
+        unstable = [(a, lo, hi) for a, (lo, hi) in zip(coef, f.interval, strict=True)
+                    if a < lo - (hi - lo) or a > hi + (hi - lo)]
+        if unstable:
+            a, lo, hi = unstable[0]
+            f.accepted = False
+            f.reason = (f"unstable: refit with the other named effects its coefficient moves to {a:.4g}, far outside "
+                        f"its bootstrap interval [{lo:.4g}, {hi:.4g}] (it was explaining what other terms explain)")
+            return False
+    for f, coef in refits:
+        f.coef = coef
+        f.effect = library[labels[f.label.split(": ", 1)[1]]].effect_config(coef, f.target, diag.state_names)
     names = model.sensitivity_names()
     if base is not None and names:
         diag.parameter_shifts = {name: float(v) for name, v in zip(names, sol[at:], strict=True)}
+    return True
 
 
 def _null_check(model, data, omegas, delays, kinds, represented, sigma, seed) -> tuple[list[float], list[float]]:

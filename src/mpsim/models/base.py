@@ -37,6 +37,8 @@ class Model(nn.Module):
     #: effect kinds (class names in `mpsim.effects`) the model can express by itself; the residual loop refits
     #: them as nuisance directions instead of naming them
     represents: tuple[str, ...] = ()
+    #: effect kinds that cannot be told apart from this model's own error and are left out of the library
+    indistinguishable: tuple[str, ...] = ()
     #: degree of the polynomials of a node's own state the model can express (0: none); refit as nuisance
     represents_polynomials: int = 0
     #: observed states a rollout starts from: 1 = x0 [B, N, D]; K > 1 = the first K states [B, K, N, D]

@@ -23,6 +23,7 @@ from torch import nn
 from mpsim.effects import Effect, EffectContext, total
 from mpsim.graphs.batch import BatchedGraph, batch_graph, mean_aggregate
 from mpsim.models.base import Model
+from mpsim.models.controls import ControlNormalisation, integrate_held, zero_order_hold
 from mpsim.solvers.odeint import ODESolver
 
 
@@ -51,21 +52,19 @@ class _MessagePassingField(nn.Module):
         state_dim: int,
         zero_messages: bool,
         t_grid: torch.Tensor | None = None,  # [T] sample times of u
-        u: torch.Tensor | None = None,  # [B, T, N, C] controls
+        u: torch.Tensor | None = None,  # [B, T, N, C] controls (z-scored by the model)
         model: MPNODE | None = None,  # for its effects and normalisation
         effect_graph: BatchedGraph | None = None,  # the data's coupling graph (no self-loops) for effects
     ) -> None:
         super().__init__()
         self.net, self.graph, self.state_dim, self.zero_messages = net, graph, state_dim, zero_messages
         self.t_grid, self.u = t_grid, u
+        self.held: int | None = None  # control sample fixed by an interval-by-interval solve
         self.model, self.effect_graph = model, effect_graph
 
     def controls_at(self, t: torch.Tensor) -> torch.Tensor | None:  # t: [] time
         """[B, N, C] zero-order-hold controls: the sample at or before `t`."""
-        if self.u is None:
-            return None
-        k = torch.searchsorted(self.t_grid, t.reshape(1), right=True).clamp(1, self.t_grid.numel()) - 1
-        return self.u[:, int(k)]
+        return zero_order_hold(self.t_grid, self.u, t, self.held)
 
     def forward(self, t: torch.Tensor, y: torch.Tensor, history=None) -> torch.Tensor:  # t: [], y: [B, N, D+M]
         x, m = y[..., : self.state_dim], y[..., self.state_dim :]
@@ -106,6 +105,9 @@ class MPNODE(Model):
 
     represents = ("Bias", "LinearDamping", "QuadraticDrag", "CubicStiffness", "DiffusiveCoupling", "SineCoupling")
     represents_polynomials = 2
+    # along a deterministic trajectory a delayed state x(t − τ) is a (complicated) function of the current
+    # state, which a neural ODE can learn: against it a delay is indistinguishable from training error
+    indistinguishable = ("DelayedFeedback",)
 
     def __init__(
         self,
@@ -134,6 +136,14 @@ class MPNODE(Model):
         self.solver = solver or ODESolver()
         width = state_dim + control_dim + message_size
         self.net = mlp(width, hidden, state_dim + message_size, n_hidden_layers, activation)
+        # controls enter the node MLP z-scored (raw rotor thrusts are 3.3 ± 0.2 N: nearly constant inputs);
+        # no buffers without controls, so control-free checkpoints are unchanged
+        self.controls = ControlNormalisation(control_dim)
+
+    def training_loss(self, batch, t, loss_fn, delta=1.0):
+        """Single shooting (the base class's), after fitting the control scale on the first training batch."""
+        self.controls.fit_once(batch.u)
+        return super().training_loss(batch, t, loss_fn, delta)
 
     def rollout_aux(
         self,
@@ -148,8 +158,10 @@ class MPNODE(Model):
         graph = batch_graph(edge_index.to(x0.device), b, n, self_loops=self.self_loops, dtype=x0.dtype)
         y0 = torch.cat([self.normalise(x0), x0.new_zeros(b, n, self.message_size)], dim=-1)
         effect_graph = batch_graph(edge_index.to(x0.device), b, n, dtype=x0.dtype) if len(self.effects) else None
-        field = _MessagePassingField(self.net, graph, d, self.zero_messages, t.to(x0), u, self, effect_graph)
-        ys = self.integrate(field, y0, t, self.solver)  # [B, T, N, D+M]
+        field = _MessagePassingField(self.net, graph, d, self.zero_messages, t.to(x0), self.controls(u), self,
+                                     effect_graph)
+        # with controls, one solve per sample interval with the input held (see mpsim.models.controls)
+        ys = integrate_held(lambda f, y, tt: self.integrate(f, y, tt, self.solver), field, y0, t)  # [B, T, N, D+M]
         return self.denormalise(ys[..., :d]), {"messages": ys[..., d:]}
 
     def one_step(self, x, t, edge_index, u=None, node_features=None, meta=None):
@@ -158,11 +170,13 @@ class MPNODE(Model):
         b, n_t, n, d = x.shape
         graph = batch_graph(edge_index.to(x.device), b, n, self_loops=self.self_loops, dtype=x.dtype)
         effect_graph = batch_graph(edge_index.to(x.device), b, n, dtype=x.dtype) if len(self.effects) else None
-        field = _MessagePassingField(self.net, graph, d, self.zero_messages, t.to(x), u, self, effect_graph)
+        field = _MessagePassingField(self.net, graph, d, self.zero_messages, t.to(x), self.controls(u), self,
+                                     effect_graph)
         messages = x.new_zeros(b, n, self.message_size)
         preds = []
         for k in range(n_t - 1):  # sequential in time: the messages carry over
             y0 = torch.cat([self.normalise(x[:, k]), messages], dim=-1)
+            field.held = None if u is None else k  # the input of this interval is its first sample
             y1 = self.integrate(field, y0, t[k : k + 2].to(x), self.solver)[:, 1]
             preds.append(self.denormalise(y1[..., :d]))
             messages = y1[..., d:]

@@ -88,6 +88,11 @@ class Trainer:
         plateau_factor: learning-rate factor on a plateau (reference: 0.5).
         min_lr: the learning rate is never reduced below this.
         early_stop_patience: stop after this many epochs without validation improvement (0: never).
+        window: train on windows of this many steps instead of whole trajectories (null: whole). Each batch
+            takes one random window start (so a batch shares its clock); validation and test still roll out
+            whole trajectories. Long chaotic records train better this way (multiple shooting).
+        eval_window: measure the per-epoch validation/test errors over the first this-many steps only
+            (null: whole trajectories) — for chaotic systems, whose long rollouts decorrelate from any model.
         eval_batch_size: trajectories per batch when evaluating.
         progress: show a progress bar.
     """
@@ -107,6 +112,8 @@ class Trainer:
         early_stop_patience: int = 100,
         eval_batch_size: int = 512,
         progress: bool = True,
+        window: int | None = None,
+        eval_window: int | None = None,
     ) -> None:
         if loss not in LOSSES:
             raise ConfigError(f"trainer.loss={loss!r} is unknown; choose one of {sorted(LOSSES)}.")
@@ -119,6 +126,9 @@ class Trainer:
         self.clip_norm, self.loss, self.huber_delta = clip_norm, loss, huber_delta
         self.plateau_patience, self.plateau_factor, self.min_lr = plateau_patience, plateau_factor, min_lr
         self.early_stop_patience, self.eval_batch_size, self.progress = early_stop_patience, eval_batch_size, progress
+        if window is not None and window < 1:
+            raise ConfigError(f"trainer.window must be >= 1 step or null; got {window}.")
+        self.window, self.eval_window = window, eval_window
 
     # ---- fitting -------------------------------------------------------------------------------------
     def fit(
@@ -239,9 +249,14 @@ class Trainer:
         for k, start in enumerate(range(0, len(data), self.batch_size)):
             idx = order[start : start + self.batch_size]
             batch = data.subset(idx.to(data.x.device))
-            loss, pred = model.training_loss(batch, t, loss_fn, self.huber_delta)
+            bt = t
+            if self.window and data.n_times - 1 > self.window:
+                start = int(torch.randint(0, data.n_times - self.window, (1,), generator=shuffle))
+                batch = batch.time_slice(start, start + self.window + 1)
+                bt = t[start : start + self.window + 1]
+            loss, pred = model.training_loss(batch, bt, loss_fn, self.huber_delta)
             if not torch.isfinite(loss):
-                raise DivergenceError(_divergence_message(pred, data.t, epoch, k, idx))
+                raise DivergenceError(_divergence_message(pred, bt, epoch, k, idx))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             clip = self.clip_norm if self.clip_norm and self.clip_norm > 0 else math.inf
@@ -260,6 +275,9 @@ class Trainer:
 
     def _evaluate_row(self, model, val, test, epoch, train_loss, opt, grad_norm, epoch_time, wall) -> dict:
         model.eval()
+        if self.eval_window:
+            val = val.time_slice(0, self.eval_window + 1)
+            test = None if test is None else test.time_slice(0, self.eval_window + 1)
         val_err = rollout_error(model, val, self.eval_batch_size)
         test_err = rollout_error(model, test, self.eval_batch_size) if test is not None else math.nan
         return {
