@@ -38,6 +38,7 @@ class DataConf:
     split: list[float] = field(default_factory=lambda: [0.7, 0.15, 0.15])  # file data: train/val/test fractions
     dt: float | None = None  # sampling step; null = the system's default
     horizon: int | None = None  # steps per trajectory; null = the system's default
+    burn_in: int = 0  # steps simulated and discarded before each record (e.g. to start on an attractor)
     seed: int = 0  # dataset seed (initial states), separate from the training seed
     noise_std: float = 0.0  # Gaussian noise on training states, in units of each feature's std
     cache: bool = True

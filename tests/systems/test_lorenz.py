@@ -46,3 +46,12 @@ def test_data_range_and_metadata():
     assert traj.x[:, 0].abs().max() <= 1.0
     assert traj.meta["dt"] == pytest.approx(0.05)
     assert len(traj.meta["params"]["H"]) == 9  # the coupling matrix travels with the data
+
+
+def test_burn_in_discards_the_start_and_keeps_the_clock():
+    system = CoupledLorenz(n_nodes=2)
+    long = system.generate(3, seed=4, horizon=30)
+    late = system.generate(3, seed=4, horizon=10, burn_in=20)
+    assert late.x.shape == (3, 11, 2, 3)
+    assert torch.allclose(late.t, long.t[20:])
+    assert torch.allclose(late.x, long.x[:, 20:], atol=1e-6)

@@ -158,7 +158,7 @@ def load_splits(cfg: DictConfig, rt: Runtime, system: System | None) -> Splits:
         raise ConfigError("no data: pass system=<name> or data.path=<file>.")
     cache_dir = resolve_path(cfg.paths.cache_dir, rt.start_dir) if data.cache else None
     return simulate_splits(system, system_spec(cfg), data.n_train, data.n_val, data.n_test, data.seed, data.dt,
-                           data.horizon, data.gt_rtol, data.gt_atol, cache_dir)
+                           data.horizon, data.gt_rtol, data.gt_atol, cache_dir, data.burn_in)
 
 
 def noisy_train(splits: Splits, std: torch.Tensor, scale: float, seed: int) -> Splits:

@@ -46,6 +46,7 @@ def simulate_splits(
     rtol: float = 1e-8,
     atol: float = 1e-10,
     cache_dir: str | Path | None = None,
+    burn_in: int = 0,
 ) -> Splits:
     """Generate (or fetch from the cache) the three splits of a simulated dataset.
 
@@ -57,6 +58,7 @@ def simulate_splits(
         dt, horizon: sampling step and steps per trajectory (None: the system's defaults).
         rtol, atol: ground-truth solver tolerances.
         cache_dir: dataset cache (None: no cache).
+        burn_in: steps simulated and discarded before each record (systems' `generate`).
     """
     dt = system.dt if dt is None else float(dt)
     horizon = system.horizon if horizon is None else int(horizon)
@@ -68,11 +70,13 @@ def simulate_splits(
     for k, name in enumerate(SPLITS):
         split_seed = 3 * int(seed) + k
         spec = {"system": system_spec, "n": sizes[name], "seed": split_seed, "dt": dt, "horizon": horizon,
-                "rtol": rtol, "atol": atol}
+                "rtol": rtol, "atol": atol, **({"burn_in": burn_in} if burn_in else {})}
+        extra = {"burn_in": burn_in} if burn_in else {}  # only systems that support it are asked for it
         out[name] = cached(
             cache_dir,
             spec,
-            lambda n=sizes[name], s=split_seed: system.generate(n, s, dt=dt, horizon=horizon, rtol=rtol, atol=atol),
+            lambda n=sizes[name], s=split_seed: system.generate(n, s, dt=dt, horizon=horizon, rtol=rtol, atol=atol,
+                                                                **extra),
         )
     return Splits(**out)
 

@@ -19,7 +19,7 @@ import torch
 from mpsim.data.trajectories import Trajectories
 from mpsim.diagnose.library import DEFAULT_KINDS, Candidate, build_library, dominant_frequency, refine_frequency
 from mpsim.diagnose.residual import Residual, one_step_residual
-from mpsim.diagnose.select import _base_cols, _lstsq, bootstrap, explained_alone, stepwise_bic
+from mpsim.diagnose.select import _lstsq, bootstrap, explained_alone, project_out, stepwise_bic
 from mpsim.models.base import Model
 from mpsim.training.trainer import predict
 
@@ -132,15 +132,28 @@ def _forcing_omegas(res: Residual, data: Trajectories) -> tuple[dict[int, float]
     return omegas, spectra
 
 
+def _project(y: torch.Tensor, groups: list[torch.Tensor], base: torch.Tensor | None):
+    """Residual and candidate columns with the nuisance (base) directions projected out, in their shapes."""
+    if base is None:
+        return y, groups
+    n = y.numel()
+    flat = project_out(base.reshape(n, -1), y.reshape(n), *[g.reshape(n, -1) for g in groups])
+    return flat[0].reshape(y.shape), [f.reshape(g.shape) for f, g in zip(flat[1:], groups, strict=True)]
+
+
 def _fit_target(y: torch.Tensor, groups: list[torch.Tensor], base: torch.Tensor | None, n_boot: int, seed: int):
+    """Selection, explained shares and bootstrap on the residual left after the nuisance fit (the bootstrap
+    resamples trajectories of the projected data: the nuisance fit itself is not redone per resample)."""
+    y, groups = _project(y, groups, base)
     b = y.shape[0]
     flat_y = y.reshape(-1)
     flat_g = [g.reshape(flat_y.numel(), -1) for g in groups]
-    flat_b = None if base is None else base.reshape(flat_y.numel(), -1)
-    sel = stepwise_bic(flat_y, flat_g, base=flat_b)
-    alone = explained_alone(flat_y, flat_g, flat_b)
+    sel = stepwise_bic(flat_y, flat_g)
+    if base is not None:  # the nuisance columns count as parameters of every model in the BIC
+        sel.bic_path = [v + base.shape[-1] * math.log(flat_y.numel()) for v in sel.bic_path]
+    alone = explained_alone(flat_y, flat_g)
     freq, intervals = bootstrap(y.reshape(b, -1), [g.reshape(b, -1, g.shape[-1]) for g in groups], sel.groups,
-                                n_boot, seed, base=None if base is None else base.reshape(b, -1, base.shape[-1]))
+                                n_boot, seed)
     return sel, alone, freq, intervals
 
 
@@ -278,9 +291,9 @@ def _joint_refit(diag: Diagnosis, library: list[Candidate], res: Residual, keep:
     parameter sensitivities (shared across state variables): consistent coefficients and parameter shifts
     to start the finetune from.
 
-    An effect whose coefficient leaves its bootstrap interval by more than the interval's width when refit
-    with only the named effects owed its fit to terms that were not named (collinearity): it is dropped and
-    False is returned, so that the caller refits the rest."""
+    An effect whose coefficient, refit with only the named effects, moves from its interval's centre by more
+    than both the interval's width and half its size owed its fit to terms that were not named
+    (collinearity): it is dropped and False is returned, so that the caller refits the rest."""
     labels = {c.label(diag.state_names): i for i, c in enumerate(library)}
     d_total = res.r.shape[-1]
     y = res.r[keep].reshape(-1, d_total)  # [n, D]
@@ -291,8 +304,17 @@ def _joint_refit(diag: Diagnosis, library: list[Candidate], res: Residual, keep:
         block = torch.zeros(n, d_total, cols.shape[1], dtype=torch.float64)
         block[:, f.target] = cols
         blocks.append(block)
+    n_shared = len(model.sensitivity_names()) if base is not None else 0
     if base is not None:
-        blocks.append(base[keep].reshape(n, d_total, -1))  # [n, D, P]
+        nuisance = base[keep].reshape(n, d_total, -1)  # [n, D, P_shared + K]
+        if n_shared:  # parameters of the model's own equations: one coefficient across all state variables
+            blocks.append(nuisance[..., :n_shared])
+        state = nuisance[:, 0, n_shared:]  # [n, K] state-function columns: separate coefficients per variable
+        if state.shape[1]:
+            per = torch.zeros(n, d_total, d_total * state.shape[1], dtype=torch.float64)
+            for d in range(d_total):  # a handful of state variables
+                per[:, d, d * state.shape[1] : (d + 1) * state.shape[1]] = state
+            blocks.append(per)
     x = torch.cat(blocks, dim=-1).reshape(n * d_total, -1)
     sol, _ = _lstsq(x, y.reshape(-1))
     at, refits = 0, []
@@ -302,19 +324,19 @@ def _joint_refit(diag: Diagnosis, library: list[Candidate], res: Residual, keep:
         at += k
     for f, coef in refits:
         unstable = [(a, lo, hi) for a, (lo, hi) in zip(coef, f.interval, strict=True)
-                    if a < lo - (hi - lo) or a > hi + (hi - lo)]
+                    if abs(a - (lo + hi) / 2) > max(hi - lo, 0.25 * abs(lo + hi))]
         if unstable:
             a, lo, hi = unstable[0]
             f.accepted = False
-            f.reason = (f"unstable: refit with the other named effects its coefficient moves to {a:.4g}, far outside "
-                        f"its bootstrap interval [{lo:.4g}, {hi:.4g}] (it was explaining what other terms explain)")
+            f.reason = (f"unstable: refit with the other named effects its coefficient moves to {a:.4g}, far from its "
+                        f"bootstrap interval [{lo:.4g}, {hi:.4g}] (it was explaining what other terms explain)")
             return False
     for f, coef in refits:
         f.coef = coef
         f.effect = library[labels[f.label.split(": ", 1)[1]]].effect_config(coef, f.target, diag.state_names)
     names = model.sensitivity_names()
     if base is not None and names:
-        diag.parameter_shifts = {name: float(v) for name, v in zip(names, sol[at:], strict=True)}
+        diag.parameter_shifts = {name: float(v) for name, v in zip(names, sol[at : at + n_shared], strict=True)}
     return True
 
 
@@ -336,17 +358,13 @@ def _null_check(model, data, omegas, delays, kinds, represented, sigma, seed) ->
     rms, level = [], []
     for d in range(data.state_dim):
         y, groups, base_d = _rows(library, res, d, keep, base)
+        y, groups = _project(y, groups, base_d)
         flat = y.reshape(-1)
-        flat_b = None if base_d is None else base_d.reshape(flat.numel(), -1)
-        left = math.sqrt(_lstsq_rss(flat_b, flat) / max(flat.numel(), 1))
+        left = math.sqrt(float(flat.pow(2).sum()) / max(flat.numel(), 1))
         rms.append(left)
-        alone = explained_alone(flat, [g.reshape(flat.numel(), -1) for g in groups], flat_b)
+        alone = explained_alone(flat, [g.reshape(flat.numel(), -1) for g in groups])
         level.append(left * math.sqrt(max(max(alone, default=0.0), 0.0)))
     return rms, level
-
-
-def _lstsq_rss(base: torch.Tensor | None, y: torch.Tensor) -> float:
-    return _lstsq(_base_cols(base, y), y)[1]
 
 
 def valid_prediction_time(

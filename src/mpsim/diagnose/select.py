@@ -22,7 +22,8 @@ def _lstsq(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, float]:  # x
     if x.shape[1] == 0:
         return x.new_zeros(0), float(y.pow(2).sum())
     scale = x.norm(dim=0).clamp(min=1e-300)  # column scaling for conditioning
-    sol = torch.linalg.lstsq(x / scale, y[:, None]).solution[:, 0] / scale
+    # SVD-based driver: nuisance bases can be exactly collinear (e.g. −x and the monomial x)
+    sol = torch.linalg.lstsq(x / scale, y[:, None], driver="gelsd").solution[:, 0] / scale
     return sol, float((y - x @ sol).pow(2).sum())
 
 
@@ -45,6 +46,24 @@ class Selection:
     r2: float
     bic_path: list[float]
     total: float = 0.0
+
+
+def project_out(
+    base: torch.Tensor,  # [n, q] nuisance columns
+    *arrays: torch.Tensor,  # each [n] or [n, k]
+    rtol: float = 1e-9,
+) -> list[torch.Tensor]:
+    """Each array minus its least-squares fit on `base` (an orthonormal basis of the base's column space,
+    rank-revealing, so collinear nuisance columns are harmless). Fitting on projected data is the same as
+    fitting with the base columns always included."""
+    scale = base.norm(dim=0).clamp(min=1e-300)
+    u, s, _ = torch.linalg.svd(base / scale, full_matrices=False)
+    q = u[:, s > rtol * s.max()] if s.numel() else u[:, :0]
+    out = []
+    for a in arrays:
+        a2 = a[:, None] if a.dim() == 1 else a
+        out.append((a2 - q @ (q.T @ a2)).reshape(a.shape))
+    return out
 
 
 def _base_cols(base: torch.Tensor | None, y: torch.Tensor) -> torch.Tensor:

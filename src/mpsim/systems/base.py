@@ -148,16 +148,23 @@ class System:
         horizon: int | None = None,
         rtol: float = 1e-8,
         atol: float = 1e-10,
+        burn_in: int = 0,
     ) -> Trajectories:
-        """`n` trajectories of `horizon` steps of `dt` from initial states drawn with `seed`."""
+        """`n` trajectories of `horizon` steps of `dt` from initial states drawn with `seed`.
+
+        `burn_in` steps are simulated first and discarded (e.g. to start on a chaotic attractor); the recorded
+        times keep the clock running, so they start at burn_in·dt (time-dependent effects stay in phase).
+        """
         dt = self.dt if dt is None else dt
         horizon = self.horizon if horizon is None else horizon
-        if dt <= 0 or horizon < 1 or n < 1:
-            raise ConfigError(f"need dt > 0, horizon >= 1 and n >= 1; got dt={dt}, horizon={horizon}, n={n}.")
+        if dt <= 0 or horizon < 1 or n < 1 or burn_in < 0:
+            raise ConfigError(f"need dt > 0, horizon >= 1, n >= 1 and burn_in >= 0; got dt={dt}, horizon={horizon}, "
+                              f"n={n}, burn_in={burn_in}.")
         generator = torch.Generator().manual_seed(int(seed))
         x0 = self.sample_initial_states(n, generator)
-        t = torch.arange(horizon + 1, dtype=torch.float64) * dt
-        return self.simulate(x0, t, rtol=rtol, atol=atol)
+        t = torch.arange(burn_in + horizon + 1, dtype=torch.float64) * dt
+        out = self.simulate(x0, t, rtol=rtol, atol=atol)
+        return out.time_slice(burn_in, burn_in + horizon + 1) if burn_in else out
 
     def __repr__(self) -> str:
         args = ", ".join(f"{k}={v}" for k, v in self.params().items() if not isinstance(v, list | dict))
