@@ -2,7 +2,7 @@
 # Residual-loop evidence (README "Results: the residual loop"): data with an effect the model does not declare,
 # the effect found, added, and the held-out error before and after. About 30 minutes on 2 cores.
 #   case 1: two pendulums with hidden linear damping c = 0.2; white-box `physics` model without damping.
-#   case 2: Lorenz3 with a hidden drive dx/dt += 30 sin(7.854 t); MP-NODE (no time input).
+#   case 2: Lorenz3 with a hidden drive dx/dt += 10 sin(7.854 t); MP-NODE (no time input).
 #   case 4: the case-1 pendulums without any hidden effect, over several data seeds (false-positive rate).
 # (Case 5, the same as case 1 from a hand-written CSV, and the S-MNN case are tests: tests/diagnose/.)
 set -euo pipefail

@@ -9,8 +9,18 @@ import pytest
 import torch
 
 from mpsim.errors import MpsimError
+from mpsim.solvers import smnn_cyclic
 from mpsim.solvers.mnn_dense import dense_solve
-from mpsim.solvers.smnn import SolverError, choose_method, smnn_solve
+from mpsim.solvers.smnn import (
+    SolverError,
+    assemble_blocks,
+    banded_factor,
+    banded_solve,
+    choose_method,
+    prepare_problem,
+    smnn_solve,
+)
+from mpsim.solvers.smnn_cyclic import Chunked, chunk_length, cyclic_factor, cyclic_solve
 
 F64 = torch.float64
 METHODS = ("banded", "cyclic")
@@ -157,7 +167,7 @@ def test_table3_relative_mse(name):
 def test_table3_banded_cyclic_dense_agree(name):
     """1000 steps for banded vs cyclic; the dense solver (cubic) on the first 300 steps."""
     coef, rhs, init = _table3_inputs(name)
-    banded = smnn_solve(coef, rhs, init, 0.01, n_steps=1000)
+    banded = smnn_solve(coef, rhs, init, 0.01, n_steps=1000, method="banded")
     assert rel_err(smnn_solve(coef, rhs, init, 0.01, n_steps=1000, method="cyclic"), banded) < 1e-9
     short = smnn_solve(coef, rhs, init, 0.01, n_steps=300)
     assert rel_err(dense_solve(coef, rhs, init, 0.01, n_steps=300), short) < 1e-9
@@ -215,9 +225,49 @@ def test_auto_picks_cyclic_for_thin_steps_and_banded_for_many_rhs():
     cpu = torch.device("cpu")
     assert choose_method(3, 3, 512, cpu) == "banded"  # Lorenz discovery: 3 matrices, 512 right-hand sides
     assert choose_method(1, 9, 1, cpu) == "cyclic"  # one trajectory: per-step dispatch dominates
+    assert choose_method(1, 9, 1, cpu, n_steps=1000) == "cyclic"
+    assert choose_method(1, 9, 1, cpu, n_steps=100) == "banded"  # short: the sweep is cheaper
     coef, rhs, init, steps = random_problem(40, E=1, D=1, O=3, S=1, I=1, seed=4)
     banded = smnn_solve(coef, rhs, init, steps, method="banded")
     assert rel_err(smnn_solve(coef, rhs, init, steps), banded) < 1e-10
+
+
+# ---- chunked cyclic reduction ------------------------------------------------------------------------------
+@pytest.mark.parametrize(("T", "central", "lhs", "chunk"), [
+    (40, False, (), 3),  # 10 full chunks, no tail
+    (43, False, (2,), 2),  # two left-hand sides (step-major work buffer), a tail of one block
+    (100, True, (), 4),  # central rows: paired 2B blocks
+    (101, True, (3,), 5),  # odd T with central rows, tail
+    (37, False, (), 16),  # the default chunk: two chunks and a long tail
+])
+def test_chunked_cyclic_matches_banded(T, central, lhs, chunk):
+    coef, rhs, init, steps = random_problem(T, E=1, D=2, O=3, S=1, I=1, batch=(4, *lhs), lhs_batch=lhs or (1,),
+                                            seed=T)
+    prob = prepare_problem(coef, rhs, init, steps, n_steps=None, n_init_var_steps=None, weights=(1.0, 1.0, 1.0),
+                           central=central, step_dim_first=False, dtype=F64)
+    a0, a1, a2, beta = assemble_blocks(prob)
+    fac, bad = cyclic_factor(a0, a1, a2, chunk=chunk)
+    assert isinstance(fac.core, Chunked) and not bool(bad.any())
+    ref = banded_solve(banded_factor(a0, a1, a2)[0], beta.contiguous())
+    assert rel_err(cyclic_solve(fac, beta), ref) < 1e-11
+    assert rel_err(cyclic_solve(fac, beta, refine=0), ref) < 1e-9
+
+
+def test_chunk_length_keeps_a_cpu_sweep_step_in_cache():
+    cpu, gpu = torch.device("cpu"), torch.device("cuda")
+    assert chunk_length(5000, 24, cpu) == smnn_cyclic.CHUNK  # one thin trajectory: short chunks, depth O(log T)
+    lorenz = chunk_length(5000, 3 * 1536 * 8, cpu)  # 512 windows x 3 variables: 37 KB a step
+    assert lorenz > smnn_cyclic.CHUNK and -(-5000 // lorenz) * 3 * 1536 * 8 <= smnn_cyclic.SLAB_BYTES + 3 * 1536 * 8
+    assert chunk_length(5000, 3 * 1536 * 8, gpu) == smnn_cyclic.CHUNK
+
+
+@pytest.mark.parametrize("T", [12, 13])
+def test_gradients_through_the_chunked_path(monkeypatch, T):
+    monkeypatch.setattr(smnn_cyclic, "CHUNK", 2)
+    coef, rhs, init, steps = random_problem(T=T, E=1, D=1, O=3, S=1, I=1, batch=(2,), lhs_batch=(1,), seed=T)
+    args = [x.requires_grad_() for x in (coef, rhs, init, steps)]
+    fn = lambda c, r, i, s: smnn_solve(c, r, i, s, method="cyclic")  # noqa: E731
+    assert torch.autograd.gradcheck(fn, args, eps=1e-6, atol=1e-6, rtol=1e-5)
 
 
 # ---- gradients ---------------------------------------------------------------------------------------------

@@ -129,7 +129,7 @@ class NBodyBench(Suite):
                 if kind == "full" and n > self.full_max:
                     continue
                 edges = build(kind, x, nf, box, self.k)
-                t = timeit(lambda kind=kind: build(kind, x, nf, box, self.k), self.repeats, max_seconds=20)
+                t = timeit(functools.partial(build, kind, x, nf, box, self.k), self.repeats, max_seconds=20)
                 rows.append({"part": "graph", "kind": kind, "N": n, "time_ms": 1e3 * t["median_s"],
                              "edges_per_particle": edges / n,
                              "detail": f"depth {hierarchy_depth(n)}" if kind == "hierarchical" else ""})
@@ -145,10 +145,9 @@ class NBodyBench(Suite):
                 x, nf, box = uniform_state(n)
                 with torch.no_grad():
                     graph = model.build_graph(x[..., :2], nf, x[..., 2:], box)
-                    fwd = timeit(lambda g=graph, x=x, nf=nf, box=box: model.advance(x, nf, g, box, 0.01),
-                                 self.repeats, max_seconds=30)
-                    full_step = timeit(lambda x=x, nf=nf, box=box: model.step(x, nf, box, 0.01), self.repeats,
-                                       max_seconds=30)
+                    fwd = timeit(functools.partial(model.advance, x, nf, graph, box, 0.01), self.repeats,
+                                 max_seconds=30)
+                    full_step = timeit(functools.partial(model.step, x, nf, box, 0.01), self.repeats, max_seconds=30)
                 per = graph.edge_index.shape[1] / n + (1 if graph.hierarchy is not None else 0)
                 mem = (peak_memory_mb(functools.partial(forward_step, kind, n, self.model)) if self.memory
                        else math.nan)

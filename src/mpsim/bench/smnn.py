@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -72,14 +73,19 @@ class SMNNBench(Suite):
     dense_budget_gib: memory the dense solvers may use; beyond it a case is refused (and the row says why).
     repeats: timing repeats per case (fewer when a case is slow).
     memory: also measure the peak memory of each case in a fresh process (doubles the run time).
-    fit_from: smallest T (and batch) used in the fitted scaling exponents (tiny sizes measure overhead).
+    fit_from: smallest T (and batch) in the fitted time exponents (tiny sizes measure dispatch overhead).
+    fit_memory_from: smallest T in the fitted memory exponents. The peak is measured as resident-memory growth
+        of a forked process, which is only reliable when the tensors exceed glibc's mmap threshold (32 MB,
+        T ≳ 2000 at batch 512): smaller ones reuse heap pages the parent already holds and barely register.
+    per_sample_max_length: per-sample cases with a longer T are not run (the sequential per-step LAPACK
+        calls on batch x 3 tiny matrices take ~30 s at T = 5000 on a CPU); null runs them all.
     """
 
     name = "smnn"
 
     def __init__(
         self,
-        lengths: Sequence[int] = (5, 50, 500, 5000),
+        lengths: Sequence[int] = (5, 50, 500, 5000, 10000),
         batches: Sequence[int] = (64, 512, 4096),
         base_batch: int = 512,
         base_length: int = 50,
@@ -91,6 +97,8 @@ class SMNNBench(Suite):
         repeats: int = 3,
         memory: bool = True,
         fit_from: int = 50,
+        fit_memory_from: int = 5000,
+        per_sample_max_length: int | None = 500,
     ) -> None:
         bad = [m for m in methods if m not in SOLVERS] + [m for m in lhs_modes if m not in LHS_MODES]
         if bad:
@@ -101,6 +109,8 @@ class SMNNBench(Suite):
         self.methods, self.lhs_modes, self.n_orders = list(methods), list(lhs_modes), int(n_orders)
         self.max_bytes = int(dense_budget_gib * 2**30)
         self.repeats, self.memory, self.fit_from = int(repeats), bool(memory), int(fit_from)
+        self.fit_memory_from, self.per_sample_max_length = int(fit_memory_from), per_sample_max_length
+        self.load: tuple[float, float] | None = None
 
     def cases(self) -> list[tuple[int, int]]:
         """(batch, T) pairs: the T sweep at base_batch, then the batch sweep at base_length (paper Table 1)."""
@@ -110,11 +120,15 @@ class SMNNBench(Suite):
         return list(dict.fromkeys(pairs))
 
     def run(self) -> list[dict[str, Any]]:
+        before = os.getloadavg()[0]  # the machine is shared: say how busy it was
         rows = []
         for lhs in self.lhs_modes:
             for batch, length in self.cases():
+                if lhs == "per_sample" and self.per_sample_max_length and length > self.per_sample_max_length:
+                    continue
                 for method in self.methods:
                     rows.append(self._measure(method, batch, length, lhs))
+        self.load = (before, os.getloadavg()[0])
         return rows
 
     def _measure(self, method: str, batch: int, length: int, lhs: str) -> dict[str, Any]:
@@ -139,6 +153,9 @@ class SMNNBench(Suite):
 
     def summarise(self, rows: list[dict[str, Any]]) -> list[str]:
         lines = []
+        if self.load is not None:
+            lines.append(f"- 1-minute load average {self.load[0]:.1f} before and {self.load[1]:.1f} after the run "
+                         f"on {os.cpu_count()} CPU(s): absolute times scale with it, ratios much less")
         b0, t0 = self.base_batch, self.base_length
         for lhs in self.lhs_modes:
             fast = self._find(rows, lhs=lhs, method="banded", batch=b0, T=t0)
@@ -148,9 +165,10 @@ class SMNNBench(Suite):
                     lines.append(f"- {lhs} LHS, batch {b0}, T={t0}: banded is {slow['fwd_bwd_ms'] / fast['fwd_bwd_ms']:.1f}× "
                                  f"faster than {other} ({fast['fwd_bwd_ms']:.1f} vs {slow['fwd_bwd_ms']:.1f} ms)")
             for method in self.methods:
-                for key, unit in (("fwd_bwd_ms", "time"), ("peak_mib", "peak memory")):
+                for key, unit, start in (("fwd_bwd_ms", "time", self.fit_from),
+                                         ("peak_mib", "peak memory", self.fit_memory_from)):
                     sweep = sorted((r["T"], r[key]) for r in rows if r["lhs"] == lhs and r["method"] == method
-                                   and r["batch"] == b0 and r["status"] == "ok" and r["T"] >= self.fit_from)
+                                   and r["batch"] == b0 and r["status"] == "ok" and r["T"] >= start)
                     if len(sweep) >= 2:
                         k = scaling_exponent([s for s, _ in sweep], [v for _, v in sweep])
                         lines.append(f"- {lhs} LHS, {method}: {unit} ∝ T^{k:.2f} (batch {b0}, T = {sweep[0][0]}…"
@@ -161,15 +179,20 @@ class SMNNBench(Suite):
                     k = scaling_exponent([s for s, _ in sweep], [v for _, v in sweep])
                     lines.append(f"- {lhs} LHS, {method}: time ∝ batch^{k:.2f} (T={t0}, batch {sweep[0][0]}…"
                                  f"{sweep[-1][0]})")
+        fast = self._find(rows, lhs="shared", method="banded", batch=b0, T=t0)
+        slow = self._find(rows, lhs="per_sample", method="mnn", batch=b0, T=t0)
+        if fast and slow:  # paper Table 1: S-MNN with its frozen left-hand side vs mech-nn's dense MNN
+            lines.append(f"- paper's comparison (S-MNN shared LHS vs dense MNN per sample), batch {b0}, T={t0}: "
+                         f"{slow['fwd_bwd_ms'] / fast['fwd_bwd_ms']:.0f}× faster")
         for r in rows:
             if r["status"] != "ok":
                 lines.append(f"- {r['method']} ({r['lhs']} LHS) at batch {r['batch']}, T={r['T']}: {r['status']}")
-        longest = max(self.lengths)
-        for method in ("banded", "cyclic"):
-            r = self._find(rows, lhs="shared", method=method, batch=b0, T=longest)
-            if r:
-                lines.append(f"- T={longest}, batch {b0}, shared LHS: {method} {r['fwd_bwd_ms'] / 1e3:.2f} s "
-                             "forward + backward")
+        for length in sorted(n for n in self.lengths if n >= 5000):
+            for method in ("banded", "cyclic"):
+                r = self._find(rows, lhs="shared", method=method, batch=b0, T=length)
+                if r:
+                    lines.append(f"- T={length}, batch {b0}, shared LHS: {method} {r['fwd_bwd_ms'] / 1e3:.2f} s "
+                                 f"forward + backward, peak {r['peak_mib']:.0f} MiB")
         return lines
 
     def plot(self, rows: list[dict[str, Any]], out_dir: Path) -> list[str]:

@@ -3,6 +3,10 @@
 Each run directory holds `summary.json` and `.hydra/overrides.yaml`; the overrides become columns, so a
 sweep's table has one row per job and one column per swept key. Rows that differ only by `seed` are
 aggregated as mean ± std.
+
+`layout=table2|table1|curves|message_size` replaces the generic table by one of the MP-NODE paper's tables
+or figures (`mpsim.commands.report_layouts`), built from the same runs: report.md (with the settings the runs
+used as caption), report.csv (the layout's table, long format), runs.csv (every run) and PNG figures.
 """
 
 from __future__ import annotations
@@ -20,6 +24,8 @@ from omegaconf import DictConfig
 
 from mpsim.commands.common import locate, resolve_path
 from mpsim.commands.console import print_summary
+from mpsim.commands.report_layouts import DEFAULT_TITLES, LAYOUT_FUNCS, run_facts, settings_caption
+from mpsim.errors import ConfigError
 from mpsim.files import atomic_write
 from mpsim.training.metrics import first_epoch_below
 
@@ -31,14 +37,15 @@ NUMERIC = ("epochs_to_target", "min_test_error", "min_test_error_epoch", "epochs
            "epochs_run", "wall_time")
 
 
-def collect(roots: list[Path]) -> pd.DataFrame:
-    """One row per run found under `roots`: overrides as columns plus the summary's scalar metrics."""
+def collect(roots: list[Path], facts: bool = False) -> pd.DataFrame:
+    """One row per run found under `roots`: overrides as columns plus the summary's scalar metrics (and, with
+    `facts`, what the built-in layouts sort runs by: model class, message size, training-set size, ...)."""
     runs = sorted({p.parent for root in roots for p in ([root / "summary.json"] if (root / "summary.json").is_file()
                                                         else root.rglob("summary.json"))})
-    return pd.DataFrame([_row(run) for run in runs])
+    return pd.DataFrame([_row(run, facts) for run in runs])
 
 
-def _row(run: Path) -> dict[str, Any]:
+def _row(run: Path, facts: bool = False) -> dict[str, Any]:
     summary = json.loads((run / "summary.json").read_text())
     row: dict[str, Any] = {"run": str(run)}
     overrides_path = run / ".hydra" / "overrides.yaml"
@@ -56,6 +63,8 @@ def _row(run: Path) -> dict[str, Any]:
         row["test_error"] = summary["test"].get("rmse")
     if isinstance(summary.get("test"), dict):
         row["test_error"] = summary["test"].get("rmse", row.get("test_error"))
+    if facts:
+        row.update(run_facts(run, summary))
     return row
 
 
@@ -117,13 +126,18 @@ def _pm(m: float, s: float) -> str:
 
 def run_report(cfg: DictConfig, output_dir: str | Path | None = None, overrides: list[str] | None = None) -> dict:
     """Scan `runs` for summaries; write report.csv (every run) and report.md (grouped by what varies)."""
+    layout = cfg.get("layout")
+    if layout is not None and layout not in LAYOUT_FUNCS:
+        raise ConfigError(f"layout={layout!r} is unknown; choose one of {', '.join(LAYOUT_FUNCS)} (or null).")
     start_dir, out_dir = locate(output_dir)
     roots = [Path(m) for pattern in cfg.runs for m in sorted(glob.glob(str(resolve_path(pattern, start_dir))))]
-    frame = collect(roots)
+    frame = collect(roots, facts=layout is not None)
     if frame.empty:
         print_summary("mpsim report", [("runs", f"no summary.json found under {list(cfg.runs)}")])
         return {"n_runs": 0}
     frame = frame[~frame["run"].str.startswith(str(out_dir))].reset_index(drop=True)
+    if layout is not None:
+        return _run_layout(cfg, layout, frame, roots, out_dir)
     if cfg.target is not None:
         add_epochs_to_target(frame, cfg.target)
     fixed = {"run", "seed", "target_error", "status", *NUMERIC}
@@ -139,3 +153,18 @@ def run_report(cfg: DictConfig, output_dir: str | Path | None = None, overrides:
     atomic_write(out_dir / "report.md", lambda f: f.write(text), mode="w")
     print(text)
     return {"n_runs": len(frame), "report": str(out_dir / "report.md"), "table": table}
+
+
+def _run_layout(cfg: DictConfig, layout: str, frame: pd.DataFrame, roots: list[Path], out_dir: Path) -> dict:
+    """Write one built-in layout: report.md, report.csv (its table), runs.csv (every run) and its figures."""
+    result = LAYOUT_FUNCS[layout](frame, out_dir)
+    title = cfg.title if cfg.title != "mpsim report" else DEFAULT_TITLES[layout]
+    figures = "".join(f"\n\n![{p.stem}]({p.name})" for p in result.figures)
+    text = (f"# {title}\n\n{len(frame)} runs under {', '.join(map(str, roots))}. Settings of the runs:\n\n"
+            f"{settings_caption(frame)}\n\n{result.markdown}{figures}\n")
+    atomic_write(out_dir / "report.md", lambda f: f.write(text), mode="w")
+    atomic_write(out_dir / "report.csv", lambda f: result.table.to_csv(f, index=False), mode="w")
+    atomic_write(out_dir / "runs.csv", lambda f: frame.to_csv(f, index=False), mode="w")
+    print(text)
+    return {"n_runs": len(frame), "report": str(out_dir / "report.md"), "table": result.table,
+            "figures": [str(p) for p in result.figures]}

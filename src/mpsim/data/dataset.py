@@ -75,8 +75,8 @@ def simulate_splits(
         out[name] = cached(
             cache_dir,
             spec,
-            lambda n=sizes[name], s=split_seed: system.generate(n, s, dt=dt, horizon=horizon, rtol=rtol, atol=atol,
-                                                                **extra),
+            lambda n=sizes[name], s=split_seed, e=extra: system.generate(n, s, dt=dt, horizon=horizon, rtol=rtol,
+                                                                         atol=atol, **e),
         )
     return Splits(**out)
 

@@ -73,6 +73,13 @@ class Candidate:
             cfg["delay"] = self.params["delay"]
         return cfg
 
+    def make_effect(self, coef: list[float], target: int, state_names: list[str]) -> fx.Effect:
+        """The effect object with fitted coefficients, bound to the data's state names."""
+        cfg = self.effect_config(coef, target, state_names)
+        effect = getattr(fx, self.kind)(**{k: v for k, v in cfg.items() if k != "_target_"})
+        effect.bind(state_names)
+        return effect
+
 
 def _step_average(values: torch.Tensor) -> torch.Tensor:  # values: [B, T, N, K]
     """[B, T−1, N, K] trapezoid average over each step."""

@@ -10,6 +10,7 @@ that excludes zero. Otherwise the answer is "no effect found", with the numbers 
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -282,7 +283,44 @@ def find_effects(
                      not_considered=list(undecidable))
     while diag.accepted and not _joint_refit(diag, library, res, keep, base, model):
         pass  # an effect whose coefficient was not stable was dropped: refit the others
+    while len(diag.accepted) > 1 and not _confirm_by_integration(diag, library, model, data, base, min_gain):
+        while diag.accepted and not _joint_refit(diag, library, res, keep, base, model):
+            pass
     return diag
+
+
+def _confirm_by_integration(diag: Diagnosis, library: list[Candidate], model: Model, data: Trajectories,
+                            base: torch.Tensor | None, min_gain: float) -> bool:
+    """Add the named effects to the model one at a time, strongest first, and recompute the residual: an effect
+    on one variable shows up, through the step's integration, as a small residual in the variables it feeds
+    (damping of ω leaves a residual of order c·Δt/2 in θ). A term that no longer reaches its threshold once
+    the stronger effects are part of the model was such an echo: it is rejected and False is returned."""
+    labels = {c.label(diag.state_names): i for i, c in enumerate(library)}
+    order = sorted(diag.accepted, key=lambda f: f.explained_rms / max(f.threshold, 1e-300), reverse=True)
+    trial = copy.deepcopy(model)
+    dtype = model.state_mean.dtype
+    for i, strong in enumerate(order[:-1]):
+        cand = library[labels[strong.label.split(": ", 1)[1]]]
+        trial.effects.append(cand.make_effect(strong.coef, strong.target, diag.state_names).to(dtype))
+        res = one_step_residual(trial, data)
+        keep = torch.isfinite(res.r).flatten(1).all(dim=1)
+        for f in order[i + 1 :]:
+            y, groups, base_d = _rows([library[labels[f.label.split(": ", 1)[1]]]], res, f.target, keep, base)
+            y, (g,) = _project(y, groups, base_d)
+            flat_y, flat_g = y.reshape(-1), g.reshape(y.numel(), -1)
+            sol, _ = _lstsq(flat_g, flat_y)
+            fit = flat_g @ sol
+            total = float(flat_y.pow(2).sum())
+            gain = float(fit.pow(2).sum()) / max(total, 1e-300)
+            part = math.sqrt(float(fit.pow(2).sum()) / max(flat_y.numel(), 1))
+            before, after = math.hypot(*f.coef), float(sol.norm())
+            if part < f.threshold or gain < min_gain or after < 0.5 * before:
+                f.accepted = False
+                f.reason = (f"an echo of {strong.label} through the integration of a step: with that effect in the "
+                            f"model its coefficient falls from {before:.3g} to {after:.3g} and it accounts for an RMS "
+                            f"of {part:.3g} ({gain:.1%} of the residual; threshold {f.threshold:.3g})")
+                return False
+    return True
 
 
 def _joint_refit(diag: Diagnosis, library: list[Candidate], res: Residual, keep: torch.Tensor,

@@ -16,10 +16,10 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import nn
 
-from mpsim.errors import ConfigError, IncompatibleError
+from mpsim.errors import ConfigError
 from mpsim.graphs.knn import wrap_positions
 from mpsim.models.base import Model
-from mpsim.models.nbody_base import EnergyLog, particle_features
+from mpsim.models.nbody_base import EnergyLog, check_particle_data, particle_features
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -31,8 +31,8 @@ class ConstantVelocity(Model):
     """Ballistic particles: positions advance with the initial velocity, velocities stay constant.
 
     Args:
-        state_dim: must be 4 (x, y, vx, vy).
-        control_dim: must be 0.
+        state_dim: 4 (x, y, vx, vy); other data is refused by `check_compatible`.
+        control_dim: 0.
         energy_horizons: steps at which the paper's energy error is reported.
         energy_flag: see `nbody_base.EnergyLog`.
         solver: unused; accepted from the command layer.
@@ -47,15 +47,15 @@ class ConstantVelocity(Model):
         solver: Any = None,
     ) -> None:
         super().__init__(state_dim, control_dim)
-        if state_dim != 4 or control_dim != 0:
-            raise IncompatibleError(
-                f"ConstantVelocity moves particles with state (x, y, vx, vy); the data has {state_dim} states and "
-                f"{control_dim} controls per node. Use system=nbody*."
-            )
         # A frozen unit gain on the drift (q0 + gain · v0 t). It exists only so that the generic Trainer can
         # build its optimiser (Adam refuses an empty parameter list); it never changes.
         self.gain = nn.Parameter(torch.ones(()), requires_grad=False)
         self.energy = EnergyLog(energy_horizons, energy_flag)
+
+    def check_compatible(
+        self, state_dim: int, control_dim: int, n_nodes: int, trained_nodes: int | None = None
+    ) -> None:
+        check_particle_data("ConstantVelocity", state_dim, control_dim)
 
     def rollout(
         self,

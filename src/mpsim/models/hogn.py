@@ -24,7 +24,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from mpsim.models.gn_blocks import GLOBAL, InteractionBlock, MLP, ParticleEdges, sample_sums
+from mpsim.models.gn_blocks import GLOBAL, MLP, InteractionBlock, ParticleEdges, sample_sums
 from mpsim.models.nbody_base import ParticleModel, wrap_state
 
 

@@ -140,6 +140,15 @@ class MPNODE(Model):
         # no buffers without controls, so control-free checkpoints are unchanged
         self.controls = ControlNormalisation(control_dim)
 
+    def set_normalisation(
+        self,
+        mean: torch.Tensor,  # [D] per-feature mean of the training states
+        std: torch.Tensor,  # [D] per-feature standard deviation
+    ) -> None:
+        """Set the state statistics; the control statistics follow (refit on the next training batch)."""
+        super().set_normalisation(mean, std)
+        self.controls.refit()
+
     def training_loss(self, batch, t, loss_fn, delta=1.0):
         """Single shooting (the base class's), after fitting the control scale on the first training batch."""
         self.controls.fit_once(batch.u)

@@ -76,8 +76,8 @@ class ParticleModel(Model):
     """Base class of the N-body models: `step` advances [B, N, 4] states by one time step.
 
     Args:
-        state_dim: must be 4 (x, y, vx, vy).
-        control_dim: must be 0.
+        state_dim: 4 (x, y, vx, vy); other data is refused by `check_compatible`.
+        control_dim: 0.
         graph: ``full`` (all pairs, O(N²)), ``knn`` (periodic k nearest neighbours) or ``hierarchical``
             (the quadtree of Martinkus et al.; O(N)).
         k: neighbours per particle for ``graph=knn`` (paper: 15).
@@ -106,11 +106,6 @@ class ParticleModel(Model):
         solver: Any = None,
     ) -> None:
         super().__init__(state_dim, control_dim)
-        if state_dim != 4 or control_dim != 0:
-            raise IncompatibleError(
-                f"{type(self).__name__} simulates particles with state (x, y, vx, vy) and no controls; the data "
-                f"has {state_dim} states and {control_dim} controls per node. Use system=nbody*."
-            )
         if graph not in GRAPHS:
             raise ConfigError(f"model.graph={graph!r} is unknown; choose one of {', '.join(GRAPHS)}.")
         if k < 1 or pairs_per_trajectory < 1 or (depth is not None and depth < 2):
@@ -181,6 +176,12 @@ class ParticleModel(Model):
         return edges
 
     # ---- checks ----------------------------------------------------------------------------------------
+    def check_compatible(
+        self, state_dim: int, control_dim: int, n_nodes: int, trained_nodes: int | None = None
+    ) -> None:
+        """Particles only: state (x, y, vx, vy), no controls; any number of particles."""
+        check_particle_data(type(self).__name__, state_dim, control_dim)
+
     def _check_charges(self, nf: torch.Tensor) -> None:  # nf: [B, N, 2]
         if not self.charge and bool((nf[..., 1] != 0).any()):
             raise IncompatibleError(
@@ -282,6 +283,15 @@ class ParticleModel(Model):
             rows.append(("graph", f"{self.graph}, {sum(self._edge_counts) / len(self._edge_counts):.1f} "
                                   "incoming particle edges per particle (mean over the last rollout)"))
         return rows
+
+
+def check_particle_data(name: str, state_dim: int, control_dim: int) -> None:
+    """Raise `IncompatibleError` unless the data is N-body data: state (x, y, vx, vy), no controls."""
+    if state_dim != 4 or control_dim != 0:
+        raise IncompatibleError(
+            f"{name} simulates particles with state (x, y, vx, vy) and no controls; the data has {state_dim} "
+            f"states and {control_dim} controls per node. Use system=nbody* (or N-body data with 4 state columns)."
+        )
 
 
 class EnergyLog:

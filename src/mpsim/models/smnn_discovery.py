@@ -214,9 +214,9 @@ class SMNNDiscovery(Model):
         std = self.state_std.double()
         phi = self.library(windows.double() / std).reshape(-1, len(self.terms))  # monomials of x / std
         gram = phi.mT @ phi / phi.shape[0]
-        gram = gram + 1e-12 * gram.diagonal().mean() * torch.eye(len(self.terms), dtype=gram.dtype)
-        whiten = torch.linalg.solve_triangular(torch.linalg.cholesky(gram).mT,
-                                               torch.eye(len(self.terms), dtype=gram.dtype), upper=True)
+        eye = torch.eye(len(self.terms), dtype=gram.dtype, device=gram.device)
+        gram = gram + 1e-12 * gram.diagonal().mean() * eye  # a constant state would make it singular
+        whiten = torch.linalg.solve_triangular(torch.linalg.cholesky(gram).mT, eye, upper=True)
         term_scale = self.library(std)  # φ_j(x / std) = φ_j(x) / term_scale_j
         self.precond.copy_(whiten / term_scale[:, None])
         rate = (windows[:, 1:] - windows[:, :-1]).double().reshape(-1, self.state_dim) / dt
@@ -255,8 +255,9 @@ class SMNNDiscovery(Model):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Loss of the layer's solution on `window_batch` random windows of the batch (normalised units).
 
-        Returns (loss, [B, T, N, D] the batch with NaN where a window's solution was not finite): windows
-        do not map onto whole trajectories, so this stands in for the prediction in divergence messages.
+        Returns (loss, [B, T, N, D] the batch itself, with NaN where a window's solution was not finite):
+        windows do not map onto whole trajectories, so this stands in for the prediction in the trainer's
+        divergence message.
         """
         length = min(self.window, batch.n_times)
         gen = torch.Generator().manual_seed(self.seed * 1_000_003 + int(self.n_updates))
@@ -272,10 +273,11 @@ class SMNNDiscovery(Model):
         loss = loss_fn(self.normalise(pred), self.normalise(win), delta)
         if self.denoiser is not None:
             loss = loss + loss_fn(self.normalise(var), self.normalise(win), delta)
+        if bool(torch.isfinite(loss)):
+            return loss, batch.x
         marked = batch.x.detach().clone()
-        if not bool(torch.isfinite(loss)):
-            bad = ~torch.isfinite(pred.detach()).flatten(1).all(1)
-            marked[traj[bad], start[bad]] = torch.nan
+        bad = ~torch.isfinite(pred.detach()).flatten(1).all(1)
+        marked[traj[bad], start[bad]] = torch.nan
         return loss, marked
 
     @torch.no_grad()
@@ -302,12 +304,13 @@ class SMNNDiscovery(Model):
         return self.solver(field, x0, t.to(x0))
 
     def equations(self, digits: int = 3) -> dict[str, str]:
-        """Readable equations, e.g. {"x": "dx/dt = -10.000 x + 10.000 y"} (active terms only)."""
+        """Readable equations, e.g. {"x": "dx/dt = -10.000 x + 10.000 y"}: active terms that do not round to
+        zero at `digits` decimals (`report()["coefficients"]` holds every active term unrounded)."""
         xi, names = self.coefficients().detach().double().cpu(), self.state_names
         out = {}
         for i, name in enumerate(names):
             parts = [(float(xi[j, i]), monomial_name(term, names)) for j, term in enumerate(self.terms)
-                     if self.mask[j, i] > 0]
+                     if self.mask[j, i] > 0 and round(float(xi[j, i]), digits) != 0]
             text = ""
             for k, (c, term) in enumerate(parts):
                 sign = ("-" if c < 0 else "") if k == 0 else (" - " if c < 0 else " + ")

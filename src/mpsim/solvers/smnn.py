@@ -192,6 +192,7 @@ def assemble_blocks(prob: SMNNProblem) -> Blocks:
         v = prob.init.expand(S, *prob.init.shape[1:])
         v = torch.nn.functional.pad(v, (0, O - n_iv)).reshape(S, *v.shape[1:-2], B)  # orders ≥ I: no value
         v = w_i**2 * batch_to_columns(v, bl, prob.batch)
+        # out of place: an in-place add on the first S steps would cost the same full copy in the backward
         beta = torch.index_add(beta.expand(T, *beta.shape[1:]), 0, torch.arange(S, device=dev), v)
     return Blocks(a0, a1, a2, beta.expand(T, *beta.shape[1:]))
 
@@ -254,6 +255,53 @@ def check_determined(prob: SMNNProblem, tol: float = 1e-11) -> None:
 
 
 # ---- layout: independent left-hand sides L, right-hand-side columns R --------------------------------------
+def permuted_copy(
+    x: torch.Tensor,  # any dense tensor (a permutation of a contiguous one)
+    perm: list[int],
+) -> torch.Tensor:  # contiguous x.permute(perm)
+    """`x.permute(perm).contiguous()` done as the lowest-rank transpose that expresses it.
+
+    Moving a [T, 1, B, R] solution to [R, T, B] is a 2-D transpose of a [T·B, R] matrix, but a 4-D
+    `permute().contiguous()` does not see that and runs 3-4x slower than memory speed (T = 5000, R = 1536:
+    0.5 s against 0.14 s). Size-1 dims are dropped and dims that stay neighbours in memory are merged first.
+    """
+    out_shape = [x.shape[p] for p in perm]
+    phys = sorted((d for d in range(x.dim()) if x.shape[d] != 1), key=lambda d: -x.stride(d))  # memory order
+    stride = 1
+    for d in reversed(phys):
+        if x.stride(d) != stride:  # overlapping or gapped (e.g. broadcast): nothing to merge safely
+            return x.permute(perm).contiguous()
+        stride *= x.shape[d]
+    pos = {d: i for i, d in enumerate(phys)}
+    groups: list[list[int]] = []
+    for d in (p for p in perm if x.shape[p] != 1):  # output order; neighbours in memory merge
+        if groups and pos[d] == pos[groups[-1][-1]] + 1:
+            groups[-1].append(d)
+        else:
+            groups.append([d])
+    sizes = [math.prod(x.shape[d] for d in g) for g in groups]
+    in_memory = sorted(range(len(groups)), key=lambda g: pos[groups[g][0]])
+    phys_sizes = [sizes[g] for g in in_memory]
+    strides = [math.prod(phys_sizes[i + 1 :]) for i in range(len(phys_sizes))]
+    src = x.as_strided(phys_sizes, strides, x.storage_offset())
+    out = x.new_empty(sizes)
+    out.copy_(src.permute([in_memory.index(g) for g in range(len(groups))]))
+    return out.view(out_shape)
+
+
+class PermutedCopy(torch.autograd.Function):
+    """Differentiable `permuted_copy` (the gradient goes back through the inverse permutation, also fast)."""
+
+    @staticmethod
+    def forward(ctx, x, perm):  # x: any dense tensor, perm: list of dims
+        ctx.inverse = sorted(range(len(perm)), key=perm.__getitem__)
+        return permuted_copy(x, perm)
+
+    @staticmethod
+    def backward(ctx, grad):
+        return permuted_copy(grad, ctx.inverse), None
+
+
 def batch_to_columns(
     x: torch.Tensor,  # [T', *batch, X]
     batch_lhs: torch.Size,
@@ -265,7 +313,7 @@ def batch_to_columns(
     matmul per step instead of a batched matmul per right-hand side.
     """
     x = x.expand(x.shape[0], *batch, x.shape[-1])
-    return x.permute(_column_perm(batch_lhs)).reshape(x.shape[0], math.prod(batch_lhs), x.shape[-1], -1)
+    return PermutedCopy.apply(x, _column_perm(batch_lhs)).reshape(x.shape[0], math.prod(batch_lhs), x.shape[-1], -1)
 
 
 def columns_to_batch(
@@ -273,11 +321,24 @@ def columns_to_batch(
     batch_lhs: torch.Size,
     batch: torch.Size,
 ) -> torch.Tensor:  # [T', *batch, X]
-    """Inverse of `batch_to_columns`."""
+    """Inverse of `batch_to_columns` (a view)."""
     perm = _column_perm(batch_lhs)
     full = (x.shape[0], *batch, x.shape[2])
     x = x.reshape([full[p] for p in perm])
     return x.permute(sorted(range(len(perm)), key=perm.__getitem__))
+
+
+def columns_to_output(
+    x: torch.Tensor,  # [T, L, X, R]
+    batch_lhs: torch.Size,
+    batch: torch.Size,
+) -> torch.Tensor:  # [*batch, T, X], contiguous
+    """The solver's result in the caller's batch-first layout, in one fast copy (see `permuted_copy`)."""
+    perm = _column_perm(batch_lhs)  # dim k of the reshaped x holds axis perm[k] of (T, *batch, X)
+    full = (x.shape[0], *batch, x.shape[2])
+    x = x.reshape([full[p] for p in perm])
+    order = [*range(1, len(batch) + 1), 0, len(batch) + 1]  # (*batch, T, X)
+    return PermutedCopy.apply(x, [perm.index(a) for a in order])
 
 
 def _column_perm(batch_lhs: torch.Size) -> list[int]:
@@ -326,7 +387,7 @@ def banded_factor(
     chol_t = torch.stack(chol)
     # LDLᵀ moves every triangular solve out of the substitution loops: L̃_{t+1,t} = L_{t+1,t} L_t⁻¹, and the
     # diagonal solve becomes a matmul with D_t⁻¹ (cheaper than per-block LAPACK solves for small B)
-    ldl1 = tri(chol_t[:-1], torch.stack(low1), upper=False, left=False)
+    ldl1 = tri(chol_t[:-1], torch.stack(low1), upper=False, left=False) if T > 1 else a1.clone()
     ldl2 = None
     if a2 is not None:
         ldl2 = tri(chol_t[:-2], torch.stack(low2), upper=False, left=False) if T > 2 else a2.clone()
@@ -391,7 +452,8 @@ class BlockSPDSolve(torch.autograd.Function):
     def forward(ctx, a0, a1, a2, beta, method):  # shapes as in `Blocks`
         factor, solve = _BACKENDS[method]
         with _single_threaded(a0.device.type == "cpu"):
-            fac, bad = factor(a0, a1, a2)
+            # cyclic: the chunk length depends on how much data a time step carries (see `chunk_length`)
+            fac, bad = factor(a0, a1, a2, width=beta.shape[-1]) if method == "cyclic" else factor(a0, a1, a2)
         if bool(bad.any()):
             raise SolverError(
                 f"S-MNN normal matrix is not positive definite for {int(bad.sum())} of {bad.numel()} "
@@ -424,18 +486,20 @@ class BlockSPDSolve(torch.autograd.Function):
         return g0, g1, g2, lam, None
 
 
-def choose_method(n_lhs: int, block: int, n_rhs: int, device: torch.device) -> str:
+def choose_method(n_lhs: int, block: int, n_rhs: int, device: torch.device, n_steps: int | None = None) -> str:
     """The faster backend for a problem shape ("auto").
 
     On a CPU the sequential sweep pays ~10 µs of dispatch per operation and step (about 9 per step for a
-    forward + backward), while cyclic reduction does ~2-4x its memory traffic on the right-hand sides.
-    Measured on 2 CPU cores: cyclic wins 4-10x when a time step's slab L·B·(B+R) is a few hundred numbers
-    (one trajectory, T = 500-5000), banded wins ~2x for Lorenz discovery (L = 3, B = 3, R = 512 columns).
-    On a GPU the launch overhead dominates even more, so cyclic reduction is taken there (not benchmarked).
+    forward + backward), which chunked cyclic reduction avoids. Measured forward + backward on 2 busy CPU cores
+    (one trajectory, D = 3, O = 3, time-varying coefficients): cyclic 2.3x faster at T = 1000, 3.7x at T = 5000,
+    banded 1.3x faster at T = 100. When a time step carries a lot of data (Lorenz discovery: 1536 right-hand
+    sides) both are bound by memory traffic and within ~10 % of each other; banded is kept there. On a GPU the
+    launch overhead dominates even more, so cyclic reduction is taken there (not benchmarked).
     """
     if device.type != "cpu":
         return "cyclic"
-    return "cyclic" if n_lhs * block * (block + n_rhs) < 2048 else "banded"
+    thin = n_lhs * block * (block + n_rhs) < 2048
+    return "cyclic" if thin and (n_steps is None or n_steps >= 256) else "banded"
 
 
 def smnn_solve(
@@ -496,10 +560,10 @@ def smnn_solve(
         check_determined(prob)
     a0, a1, a2, beta = assemble_blocks(prob)
     if method == "auto":
-        method = choose_method(a0.shape[1], a0.shape[-1], beta.shape[-1], a0.device)
+        method = choose_method(a0.shape[1], a0.shape[-1], beta.shape[-1], a0.device, a0.shape[0])
     x = BlockSPDSolve.apply(a0, a1, a2, beta, method)
     if not bool(torch.isfinite(x.sum())):  # one reduction instead of an elementwise pass
         raise SolverError("S-MNN solution is not finite: check coefficients, rhs_equation, init_vars and "
                           "steps for NaN/inf.")
-    u = columns_to_batch(x, prob.batch_lhs, prob.batch).movedim(0, -2)  # [*batch, T, B]
-    return u.reshape(*prob.batch, prob.n_steps, *prob.dims[1:]).to(out_dtype)
+    u = columns_to_output(x, prob.batch_lhs, prob.batch)  # [*batch, T, B]
+    return u.view(*prob.batch, prob.n_steps, *prob.dims[1:]).to(out_dtype)

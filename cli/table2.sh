@@ -1,0 +1,84 @@
+#!/usr/bin/env bash
+# MP-NODE paper, Table 2 and Figure 5: epochs_x_min_error (epoch of the minimum test error × that error) of
+# MP-NODE finetuned vs trained from scratch, and L2S, end to end (data, pre-training, sweeps, report).
+#   Lorenz10 ds=50/100/500   finetune from Lorenz3          vs scratch
+#   Kuramoto ds=50/100/500   finetune from Kuramoto10 BA     vs scratch, on Kuramoto10 ER (the paper's Fig. 5c)
+#   Gene                     finetune from gene 4×4 BA       vs scratch, and L2S, on gene 8×8 BA
+#   Quadrotors               finetune from 3 quadrotors      vs scratch, and L2S, on 6 quadrotors
+# CPU-sized by default (about an hour on 2 free cores): EPOCHS=60 epochs per target run (paper: 4000 for
+# MP-NODE, 10000 for L2S), pre-training PRE_EPOCHS=150 epochs on 200 trajectories (paper: 700), quadrotor
+# trajectories cut to QH=60 steps (3 s, the align-and-morph phase), 2 seeds. Paper-sized: PAPER=1 cli/table2.sh.
+# Finetunes refit the normalisation on the new data, as MPNODE.jl does (REFIT=false keeps the checkpoint's).
+# Seeds vary the initial weights of scratch runs and the batch order of every run; datasets are fixed.
+# Any size can be overridden, e.g. EPOCHS=100 SEEDS=0,1,2 COLUMNS="gene quad" cli/table2.sh.
+# Tables: $OUT/table2.md (Table 2) and $OUT/figure5.md (learning curves), with PNGs beside them.
+set -euo pipefail
+OUT=${OUT:-outputs/table2}
+PAPER=${PAPER:-0}
+if [ "$PAPER" = 1 ]; then
+  EPOCHS=${EPOCHS:-4000}; L2S_EPOCHS=${L2S_EPOCHS:-10000}; PRE_EPOCHS=${PRE_EPOCHS:-4000}; PRE_N=${PRE_N:-700}
+  TRAINER=${TRAINER:-paper}; SEEDS=${SEEDS:-0,1,2}; QH=${QH:-50}; Q_DS=${Q_DS:-500}; G_DS=${G_DS:-700}
+  SIZE="paper-sized: MPNODE.jl trainer (batch 128, lr 1e-3), $EPOCHS epochs per run ($L2S_EPOCHS for L2S), pre-training on $PRE_N trajectories"
+else
+  EPOCHS=${EPOCHS:-60}; L2S_EPOCHS=${L2S_EPOCHS:-$EPOCHS}; PRE_EPOCHS=${PRE_EPOCHS:-150}; PRE_N=${PRE_N:-200}
+  TRAINER=${TRAINER:-default}; SEEDS=${SEEDS:-0,1}; QH=${QH:-60}; Q_DS=${Q_DS:-100}; G_DS=${G_DS:-100}
+  SIZE="CPU-sized: $EPOCHS epochs per run (paper: 4000; L2S 10000), pre-training $PRE_EPOCHS epochs on $PRE_N trajectories (paper: 4000 on 700), batch 32, lr 3e-3"
+fi
+DS=${DS:-50,100,500}        # Lorenz10 / Kuramoto finetuning dataset sizes
+REFIT=${REFIT:-true}        # finetunes refit the state (and control) normalisation on the target data
+MSG=${MSG:-13}              # quadrotor message size
+JOBS=${JOBS:-2}             # parallel jobs per sweep
+COLUMNS=${COLUMNS:-"lorenz kuramoto gene quad"}
+CKPT=$OUT/checkpoints
+common=(paths.output_root=$OUT paths.ckpt_dir=$CKPT trainer=$TRAINER trainer.progress=false
+        trainer.early_stop_patience=0 eval.plots=false)
+sweep=(-m hydra/launcher=joblib hydra.launcher.n_jobs=$JOBS)
+quad=(data.horizon=$QH data.n_val=30 data.n_test=30)
+
+pretrain() {  # name system [overrides...]: one scratch run that exports <system>.ckpt
+  local name=$1 system=$2; shift 2
+  rm -rf "$OUT/$name"
+  mpsim train system=$system data.n_train=$PRE_N trainer.max_epochs=$PRE_EPOCHS hydra.run.dir=$OUT/$name \
+    "${common[@]}" "$@"
+}
+target() {  # name system init [overrides...]: finetune (init) and scratch sweeps over seeds
+  local name=$1 system=$2 init=$3; shift 3
+  rm -rf "$OUT/$name"
+  mpsim train "${sweep[@]}" hydra.sweep.dir=$OUT/$name system=$system init=$init,null seed=$SEEDS \
+    mode.refit_normalisation=$REFIT trainer.max_epochs=$EPOCHS export=false "${common[@]}" "$@"
+}
+l2s() {  # name system [overrides...]: L2S from scratch over seeds
+  local name=$1 system=$2; shift 2
+  rm -rf "$OUT/$name"
+  mpsim train "${sweep[@]}" hydra.sweep.dir=$OUT/$name system=$system model=l2s seed=$SEEDS \
+    trainer.max_epochs=$L2S_EPOCHS export=false "${common[@]}" "$@"
+}
+
+for column in $COLUMNS; do
+  case $column in
+    lorenz)
+      pretrain lorenz3_pre lorenz3
+      target lorenz10 lorenz10 lorenz3.ckpt data.n_train=$DS ;;
+    kuramoto)
+      pretrain kuramoto_pre kuramoto10_ba
+      target kuramoto kuramoto10_er kuramoto10_ba.ckpt data.n_train=$DS ;;
+    gene)
+      pretrain gene_pre gene_ba_small
+      target gene gene_ba_large gene_ba_small.ckpt data.n_train=$G_DS
+      l2s gene_l2s gene_ba_large data.n_train=$G_DS ;;
+    quad)
+      pretrain quad_pre quad3 model.message_size=$MSG "${quad[@]}"
+      target quad quad6 quad3.ckpt model.message_size=$MSG data.n_train=$Q_DS "${quad[@]}"
+      l2s quad_l2s quad6 data.n_train=$Q_DS "${quad[@]}" ;;
+    *) echo "unknown column $column (lorenz, kuramoto, gene, quad)" >&2; exit 2 ;;
+  esac
+done
+
+runs=$(ls -d "$OUT"/*/ | grep -v -e /report -e /checkpoints | paste -sd, -)
+report=(hydra.run.dir=$OUT/report paths.output_root=$OUT "runs=[$runs]")
+mpsim report layout=table2 "title='Table 2 ($SIZE)'" "${report[@]}"
+cp "$OUT/report/report.md" "$OUT/table2.md"; cp "$OUT/report/report.csv" "$OUT/table2.csv"
+cp "$OUT/report/table2.png" "$OUT/table2.png"
+mpsim report layout=curves "title='Figure 5: finetuned vs from scratch ($SIZE)'" "${report[@]}"
+cp "$OUT/report/report.md" "$OUT/figure5.md"; cp "$OUT/report/curves.png" "$OUT/curves.png"
+echo "tables: $OUT/table2.md, $OUT/figure5.md"

@@ -1,0 +1,468 @@
+"""Built-in `mpsim report layout=...` tables and figures of the MP-NODE paper, from any set of run directories.
+
+Each layout reads only what every run records (summary.json, metrics.csv), so it works on any mix of run and
+sweep directories: runs are sorted into rows and columns by what they are (model class, mode, system,
+training-set size, message size), never by where they lie. Every layout returns Markdown, a long-format table
+(→ CSV) and writes its PNG figures.
+
+- ``table2``: the paper's Table 2. Rows MP-NODE finetuned / MP-NODE scratch / L2S (and any other model);
+  columns are the systems that some run was *finetuned* on (the targets: Lorenz10 ds=50/100/500, Kuramoto
+  ds=..., Gene, Quadrotors), so pre-training runs in the same directories stay out. Cell: epochs_x_min_error,
+  mean ± std over seeds. The paper's numbers and the orderings it claims are printed beside it.
+- ``table1``: the paper's Table 1 (gene 4×4 trained on BA, zero-shot on unseen ER and WS). Rows are model
+  classes; columns are validation and test error on the training system and test error of the zero-shot runs
+  on every other system.
+- ``curves``: Figure 5, test error per epoch of finetuned vs scratch runs (mean over seeds, min–max band), one
+  panel per target system and training-set size, and the epochs each curve needs to reach the best error that
+  every curve reaches.
+- ``message_size``: Figures 7 and 8, minimum test error against MP-NODE's message size per system, and the
+  train-loss / test-error curves per message size; L2S runs on the same system are drawn as a reference.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from mpsim.files import atomic_write  # noqa: E402
+
+LAYOUTS = ("table2", "table1", "curves", "message_size")
+
+#: the paper's Table 2 (epochs to the minimum test error × that error; N/A where the paper has none)
+PAPER_TABLE2 = {
+    "MP-NODE finetuned": {"Lorenz10 ds=50": 632.70, "Lorenz10 ds=100": 833.91, "Lorenz10 ds=500": 477.75,
+                          "Kuramoto ds=50": 1358.50, "Kuramoto ds=100": 1264.83, "Kuramoto ds=500": 874.80,
+                          "Gene": 12.53, "Quadrotors": 236.00},
+    "MP-NODE scratch": {"Lorenz10 ds=50": 12800, "Lorenz10 ds=100": 10454, "Lorenz10 ds=500": 5656,
+                        "Kuramoto ds=50": 5008, "Kuramoto ds=100": 5268, "Kuramoto ds=500": 3974, "Gene": 28},
+    "L2S": {"Gene": 46.64, "Quadrotors": 476.0},
+}
+#: the paper's Table 1 (gene 4×4, trained on BA with 5 adjacency matrices)
+PAPER_TABLE1 = {"MP-NODE": {"Validation BA": "0.0051 ± 0.0001", "Test BA": "0.0045 ± 0.0004",
+                            "Test ER (unseen)": "0.0026 ± 0.0008", "Test WS (unseen)": "0.0023 ± 0.0002"},
+                "L2S": {"Validation BA": "0.0106"}}
+FAMILIES = (("lorenz", None), ("kuramoto", "Kuramoto"), ("gene", "Gene"), ("quad", "Quadrotors"))
+MODEL_NAMES = {"MPNODE": "MP-NODE", "L2S": "L2S", "NODE": "NODE"}
+
+
+@dataclass
+class LayoutResult:
+    """What a layout produced: Markdown body, a long table for the CSV, and the figures it wrote."""
+
+    markdown: str
+    table: pd.DataFrame
+    figures: list[Path]
+
+
+# ---- the runs ----------------------------------------------------------------------------------------------
+def run_facts(run: Path, summary: dict[str, Any]) -> dict[str, Any]:
+    """The facts a layout sorts a run by, read from its summary.json."""
+    model = summary.get("model") if isinstance(summary.get("model"), dict) else {}
+    data = summary.get("data") if isinstance(summary.get("data"), dict) else {}
+    config = model.get("config") if isinstance(model.get("config"), dict) else {}
+    test = summary.get("test") if isinstance(summary.get("test"), dict) else {}
+    return {
+        "model_class": model.get("model"),
+        "message_size": config.get("message_size"),
+        "n_train": data.get("train"),
+        "n_times": data.get("n_times"),
+        "best_val_error": summary.get("best_val_error"),
+        "test_rmse": test.get("rmse", summary.get("test_error")),
+        "trained_on": summary.get("trained_on"),
+        "seed_": summary.get("seed"),
+    }
+
+
+def row_label(model_class: Any, mode: Any) -> str:
+    """Table 2 row of a run: "MP-NODE finetuned", "MP-NODE scratch", "L2S", ..."""
+    name = MODEL_NAMES.get(str(model_class), str(model_class))
+    if name == "MP-NODE":
+        return f"MP-NODE {'finetuned' if mode == 'finetune' else 'scratch'}"
+    return f"{name} finetuned" if mode == "finetune" else name
+
+
+def family(system: str) -> str:
+    """Column family of a system name: Lorenz10, Kuramoto, Gene, Quadrotors, or the name itself."""
+    low = system.lower()
+    for prefix, label in FAMILIES:
+        if low.startswith(prefix):
+            return label or system[:1].upper() + system[1:]
+    return system
+
+
+def graph_family(system: str) -> str:
+    """The random-graph family in a system name (gene_er_small → ER), or the name itself."""
+    parts = system.lower().split("_")
+    for short in ("ba", "er", "ws"):
+        if short in parts or any(p.endswith(short) and p[:-2].isdigit() for p in parts):
+            return short.upper()
+    return system
+
+
+def _stats(values: pd.Series) -> tuple[float, float, int]:
+    v = pd.to_numeric(values, errors="coerce").dropna()
+    return (float(v.mean()) if len(v) else math.nan, float(v.std()) if len(v) > 1 else math.nan, int(len(v)))
+
+
+def pm(mean: float, std: float, digits: int = 4) -> str:
+    """"mean ± std" (std omitted for a single value, "N/A" without a value)."""
+    if mean is None or (isinstance(mean, float) and math.isnan(mean)):
+        return "N/A"
+    text = f"{mean:.{digits}g}"
+    return text if std is None or math.isnan(std) else f"{text} ± {std:.2g}"
+
+
+def md_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    """A GitHub-flavoured Markdown table."""
+    lines = ["| " + " | ".join(map(str, header)) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(map(str, r)) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def settings_caption(frame: pd.DataFrame) -> str:
+    """One line per system: training-set sizes, steps per trajectory, epochs run, seeds."""
+    lines = []
+    for system, part in frame.groupby("system", sort=True):
+        trained = part[part["task"] == "train"] if "task" in part else part
+        sizes = sorted({int(v) for v in pd.to_numeric(trained.get("n_train"), errors="coerce").dropna()})
+        steps = sorted({int(v) - 1 for v in pd.to_numeric(part.get("n_times"), errors="coerce").dropna()})
+        epochs = pd.to_numeric(trained.get("epochs_run"), errors="coerce").dropna()
+        seeds = sorted({int(s) for s in pd.to_numeric(part["seed_"], errors="coerce").dropna()}) if "seed_" in part else []
+        bits = [f"{len(part)} run{'s' if len(part) > 1 else ''}"]
+        if sizes:
+            bits.append(f"{'/'.join(map(str, sizes))} training trajectories")
+        if steps:
+            bits.append(f"{'/'.join(map(str, steps))} steps")
+        if len(epochs):
+            bits.append(f"up to {int(epochs.max())} epochs")
+        if seeds:
+            bits.append(f"seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))}")
+        lines.append(f"- `{system}`: {', '.join(bits)}")
+    return "\n".join(lines)
+
+
+def _curve(run: str) -> pd.DataFrame | None:
+    path = Path(run) / "metrics.csv"
+    if not path.is_file():
+        return None
+    m = pd.read_csv(path)
+    return m if len(m) else None
+
+
+def _save(fig: plt.Figure, path: Path) -> Path:
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=110, bbox_inches="tight"))
+    plt.close(fig)
+    return path
+
+
+def _targets(train: pd.DataFrame) -> list[str]:
+    """Systems some run was finetuned on (all systems when none was)."""
+    fine = sorted(set(train.loc[train["mode"] == "finetune", "system"]))
+    return fine or sorted(set(train["system"]))
+
+
+def _column_key(system: str) -> tuple[int, str]:
+    order = {label or "Lorenz": k for k, (_, label) in enumerate(FAMILIES)}
+    fam = family(system)
+    return (order.get("Lorenz" if fam.lower().startswith("lorenz") else fam, len(order)), system)
+
+
+# ---- table 2 -----------------------------------------------------------------------------------------------
+def table2(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
+    """The paper's Table 2: epochs_x_min_error of finetuned vs scratch MP-NODE and L2S on the target systems."""
+    train = frame[(frame["task"] == "train") & frame["mode"].isin(["finetune", "scratch"])].copy()
+    if train.empty:
+        return LayoutResult("No training runs found.", pd.DataFrame(), [])
+    targets = sorted(_targets(train), key=_column_key)
+    train = train[train["system"].isin(targets)].copy()
+    labels = {s: family(s) for s in targets}
+    clash = {lab for lab in labels.values() if list(labels.values()).count(lab) > 1}
+    labels = {s: (s if lab in clash else lab) for s, lab in labels.items()}
+    sizes = train.groupby("system")["n_train"].nunique()
+    train["column"] = [labels[s] + (f" ds={int(n)}" if sizes[s] > 1 else "")
+                       for s, n in zip(train["system"], train["n_train"], strict=True)]
+    train["row"] = [row_label(c, m) for c, m in zip(train["model_class"], train["mode"], strict=True)]
+    records = []
+    for (row, column), part in train.groupby(["row", "column"], sort=False):
+        mean, std, n = _stats(part["epochs_x_min_error"])
+        err, err_sd, _ = _stats(part["min_test_error"])
+        ep, ep_sd, _ = _stats(part["min_test_error_epoch"])
+        records.append({"row": row, "column": column, "system": part["system"].iloc[0],
+                        "n_train": part["n_train"].iloc[0], "runs": n, "epochs_x_min_error": mean,
+                        "epochs_x_min_error_std": std, "min_test_error": err, "min_test_error_std": err_sd,
+                        "min_test_error_epoch": ep, "min_test_error_epoch_std": ep_sd,
+                        "paper": PAPER_TABLE2.get(row, {}).get(column, math.nan)})
+    table = pd.DataFrame(records)
+    columns = sorted(table["column"].unique(), key=lambda c: (_column_key(table.loc[table["column"] == c, "system"]
+                                                                              .iloc[0]), _ds(c)))
+    rows = sorted(table["row"].unique(), key=_row_order)
+    cell = {(r["row"], r["column"]): r for r in records}
+
+    def grid(fmt: Callable[[dict], str]) -> str:
+        return md_table(["model", *columns], [[r, *[fmt(cell[(r, c)]) if (r, c) in cell else "N/A"
+                                                     for c in columns]] for r in rows])
+
+    paper_rows = [[r, *[_num(PAPER_TABLE2[r].get(c)) for c in columns]] for r in PAPER_TABLE2]
+    text = "\n\n".join([
+        "**epochs_x_min_error** (epoch of the minimum test error × that error; lower is better), mean ± std over "
+        "seeds:",
+        grid(lambda r: pm(r["epochs_x_min_error"], r["epochs_x_min_error_std"])),
+        "Minimum test error (normalised rollout RMSE) and its epoch:",
+        grid(lambda r: f"{pm(r['min_test_error'], r['min_test_error_std'], 3)} @ "
+                       f"{pm(r['min_test_error_epoch'], r['min_test_error_epoch_std'], 3)}"),
+        "The paper's Table 2 (MPNODE.jl, 4000 epochs for MP-NODE, 10000 for L2S; its own error units):",
+        md_table(["model", *columns], paper_rows),
+        "Orderings the paper reports:\n" + "\n".join(_orderings(cell, columns)),
+    ])
+    return LayoutResult(text, table, [_bars(table, columns, rows, out_dir / "table2.png")])
+
+
+def _ds(column: str) -> int:
+    return int(column.split("ds=")[1]) if "ds=" in column else 0
+
+
+def _row_order(row: str) -> tuple[int, str]:
+    order = ["MP-NODE finetuned", "MP-NODE scratch", "L2S"]
+    return (order.index(row) if row in order else len(order), row)
+
+
+def _num(v: Any) -> str:
+    return "N/A" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:g}"
+
+
+def _orderings(cell: dict, columns: list[str]) -> list[str]:
+    """finetuned < scratch in every column; MP-NODE < L2S where both ran."""
+    lines = []
+    for c in columns:
+        fine, scratch = cell.get(("MP-NODE finetuned", c)), cell.get(("MP-NODE scratch", c))
+        if fine and scratch:
+            a, b = fine["epochs_x_min_error"], scratch["epochs_x_min_error"]
+            lines.append(f"- {c}: finetuned {'<' if a < b else '≥'} scratch ({a:.4g} vs {b:.4g}, "
+                         f"{b / a:.2g}×) — {'holds' if a < b else 'does NOT hold'}")
+        l2s = cell.get(("L2S", c))
+        best = min((r for r in (fine, scratch) if r), key=lambda r: r["epochs_x_min_error"], default=None)
+        if l2s and best:
+            a, b = best["epochs_x_min_error"], l2s["epochs_x_min_error"]
+            lines.append(f"- {c}: {best['row']} {'<' if a < b else '≥'} L2S ({a:.4g} vs {b:.4g}) — "
+                         f"{'holds' if a < b else 'does NOT hold'}")
+            ea, eb = best["min_test_error"], l2s["min_test_error"]
+            lines.append(f"  (minimum test error: {best['row']} {ea:.3g} vs L2S {eb:.3g})")
+    return lines or ["- no column has both a finetuned and a scratch run"]
+
+
+def _bars(table: pd.DataFrame, columns: list[str], rows: list[str], path: Path) -> Path:
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.3 * len(columns)), 3.8))
+    width = 0.8 / max(len(rows), 1)
+    for k, r in enumerate(rows):
+        part = table[table["row"] == r].set_index("column")
+        xs = [i + (k - (len(rows) - 1) / 2) * width for i, c in enumerate(columns) if c in part.index]
+        ys = [part.loc[c, "epochs_x_min_error"] for c in columns if c in part.index]
+        es = [0.0 if math.isnan(part.loc[c, "epochs_x_min_error_std"]) else part.loc[c, "epochs_x_min_error_std"]
+              for c in columns if c in part.index]
+        ax.bar(xs, ys, width, yerr=es, label=r, capsize=2)
+    ax.set_xticks(range(len(columns)), columns, rotation=20, ha="right")
+    ax.set(yscale="log", ylabel="epochs × min test error", title="Table 2: lower is better")
+    ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+# ---- table 1 -----------------------------------------------------------------------------------------------
+def table1(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
+    """The paper's Table 1: validation/test error on the training graphs and zero-shot error on unseen ones."""
+    train = frame[(frame["task"] == "train") & (frame["mode"] == "scratch")]
+    zero = frame[frame["mode"] == "zeroshot"]
+    if train.empty:
+        return LayoutResult("No training runs found.", pd.DataFrame(), [])
+    home = train["system"].mode().iloc[0] if train["system"].nunique() > 1 else train["system"].iloc[0]
+    if len(zero):  # the system the zero-shot checkpoints were trained on
+        home = zero["trained_on"].dropna().mode().iloc[0] if zero["trained_on"].notna().any() else home
+    fam = graph_family(home)
+    records = []
+    for cls, part in train[train["system"] == home].groupby("model_class"):
+        name = MODEL_NAMES.get(str(cls), str(cls))
+        for column, values in ((f"Validation {fam}", part["best_val_error"]), (f"Test {fam}", part["test_rmse"])):
+            records.append({"row": name, "column": column, "system": home, **_named_stats(values)})
+    unseen = zero[(zero["trained_on"] == home) & (zero["system"] != home)]
+    for (cls, system), part in unseen.groupby(["model_class", "system"]):
+        name = MODEL_NAMES.get(str(cls), str(cls))
+        records.append({"row": name, "column": f"Test {graph_family(system)} (unseen)", "system": system,
+                        **_named_stats(part["test_rmse"])})
+    table = pd.DataFrame(records)
+    columns = list(dict.fromkeys(table["column"]))
+    rows = sorted(table["row"].unique(), key=lambda r: (r != "MP-NODE", r))
+    cell = {(r["row"], r["column"]): r for r in records}
+    ours = md_table(["model", *columns], [[r, *[pm(cell[(r, c)]["mean"], cell[(r, c)]["std"], 3)
+                                                if (r, c) in cell else "N/A" for c in columns]] for r in rows])
+    paper_cols = ["Validation BA", "Test BA", "Test ER (unseen)", "Test WS (unseen)"]
+    paper = md_table(["model", *paper_cols], [[r, *[v.get(c, "N/A") for c in paper_cols]]
+                                              for r, v in PAPER_TABLE1.items()])
+    checks = []
+    base = cell.get(("MP-NODE", f"Test {fam}"))
+    for c in columns:
+        z = cell.get(("MP-NODE", c))
+        if base and z and "unseen" in c:
+            ratio = z["mean"] / base["mean"]
+            verdict = "same order" if 0.1 <= ratio <= 10 else "NOT the same order"
+            checks.append(f"- {c}: {ratio:.2g}× the error on {fam} test data — {verdict} of magnitude")
+    val_mp, val_l2s = cell.get(("MP-NODE", f"Validation {fam}")), cell.get(("L2S", f"Validation {fam}"))
+    if val_mp and val_l2s:
+        holds = val_mp["mean"] < val_l2s["mean"]
+        checks.append(f"- validation: MP-NODE {val_mp['mean']:.3g} {'<' if holds else '≥'} L2S {val_l2s['mean']:.3g} "
+                      f"— {'holds' if holds else 'does NOT hold'}")
+    text = "\n\n".join([
+        f"Trained on `{home}`; errors are normalised rollout RMSE over the full horizon (validation: the best "
+        "epoch's; test: the best checkpoint's), mean ± std over seeds:",
+        ours,
+        "The paper's Table 1 (its own error units, likely a squared error; compare orders and ratios, not values):",
+        paper,
+        "Checks:\n" + ("\n".join(checks) if checks else "- nothing to compare"),
+    ])
+    return LayoutResult(text, table, [_error_bars(table, columns, rows, out_dir / "table1.png")])
+
+
+def _named_stats(values: pd.Series) -> dict[str, float]:
+    mean, std, n = _stats(values)
+    return {"mean": mean, "std": std, "runs": n}
+
+
+def _error_bars(table: pd.DataFrame, columns: list[str], rows: list[str], path: Path) -> Path:
+    fig, ax = plt.subplots(figsize=(max(5.0, 1.4 * len(columns)), 3.6))
+    width = 0.8 / max(len(rows), 1)
+    for k, r in enumerate(rows):
+        part = table[table["row"] == r].set_index("column")
+        xs = [i + (k - (len(rows) - 1) / 2) * width for i, c in enumerate(columns) if c in part.index]
+        ys = [part.loc[c, "mean"] for c in columns if c in part.index]
+        es = [0.0 if math.isnan(part.loc[c, "std"]) else part.loc[c, "std"] for c in columns if c in part.index]
+        ax.bar(xs, ys, width, yerr=es, label=r, capsize=2)
+    ax.set_xticks(range(len(columns)), columns, rotation=15, ha="right")
+    ax.set(ylabel="rollout RMSE (normalised)", title="Table 1: zero-shot generalisation")
+    ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+# ---- curves (figure 5) -------------------------------------------------------------------------------------
+def curves(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
+    """Figure 5: test error per epoch, finetuned vs scratch, per target system and training-set size."""
+    train = frame[(frame["task"] == "train") & frame["mode"].isin(["finetune", "scratch"])].copy()
+    if train.empty:
+        return LayoutResult("No training runs found.", pd.DataFrame(), [])
+    train = train[train["system"].isin(_targets(train))].copy()
+    train["row"] = [row_label(c, m) for c, m in zip(train["model_class"], train["mode"], strict=True)]
+    panels = sorted(train.groupby(["system", "n_train"]).groups, key=lambda k: (_column_key(k[0]), k[1]))
+    n_col = min(3, len(panels))
+    n_row = math.ceil(len(panels) / n_col)
+    fig, axes = plt.subplots(n_row, n_col, figsize=(4.2 * n_col, 3.2 * n_row), squeeze=False, layout="constrained")
+    records, sections = [], []
+    for ax, (system, n_train) in zip(axes.flat, panels, strict=False):
+        part = train[(train["system"] == system) & (train["n_train"] == n_train)]
+        means = {}
+        for row, runs in sorted(part.groupby("row"), key=lambda kv: _row_order(kv[0])):
+            loaded = [c for c in (_curve(r) for r in runs["run"]) if c is not None]
+            if not loaded:
+                continue
+            wide = pd.concat([c.set_index("epoch")["test_error"] for c in loaded], axis=1)
+            mean = wide.mean(axis=1)
+            means[row] = mean
+            ax.plot(mean.index, mean.values, label=f"{row} ({len(loaded)})")
+            ax.fill_between(mean.index, wide.min(axis=1), wide.max(axis=1), alpha=0.2)
+            records += [{"system": system, "n_train": n_train, "row": row, "epoch": int(e), "test_error_mean": v,
+                         "test_error_std": wide.loc[e].std(), "runs": len(loaded)} for e, v in mean.items()]
+        ax.set(yscale="log", xlabel="epoch", ylabel="test rollout RMSE", title=f"{system}, ds={n_train}")
+        ax.legend(fontsize=7)
+        sections.append(_reach_table(system, n_train, means))
+    for ax in list(axes.flat)[len(panels):]:
+        ax.axis("off")
+    fig.suptitle("Finetuned vs from scratch (mean over seeds, band: min–max)")
+    figure = _save(fig, out_dir / "curves.png")
+    return LayoutResult("\n\n".join(sections), pd.DataFrame(records), [figure])
+
+
+def _reach_table(system: str, n_train: Any, means: dict[str, pd.Series]) -> str:
+    """Epochs each mean curve needs to reach the best error that every curve reaches."""
+    trained = {k: v[v.index >= 1] for k, v in means.items() if (v.index >= 1).any()}
+    if not trained:
+        return f"**{system}, ds={n_train}**: no curves."
+    level = max(float(v.min()) for v in trained.values())
+    rows = []
+    for k, v in trained.items():
+        reach = v[v <= level]
+        rows.append([k, f"{float(means[k].iloc[0]):.3g}", int(reach.index[0]) if len(reach) else "never",
+                     f"{float(v.min()):.3g} @ {int(v.idxmin())}"])
+    head = f"**{system}, ds={n_train}** — target: {level:.3g}, the best mean test error every curve reaches"
+    return head + "\n\n" + md_table(["run", "epoch-0 error", "epochs to target", "min mean error @ epoch"], rows)
+
+
+# ---- message size (figures 7, 8) ---------------------------------------------------------------------------
+def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
+    """Figures 7 and 8: MP-NODE's minimum test error and learning curves per message size, per system."""
+    train = frame[frame["task"] == "train"].copy()
+    mp = train[(train["model_class"] == "MPNODE") & train["message_size"].notna()]
+    if mp.empty:
+        return LayoutResult("No MP-NODE training runs found.", pd.DataFrame(), [])
+    records, sections = [], []
+    systems = sorted(mp["system"].unique(), key=_column_key)
+    fig, axes = plt.subplots(1, len(systems), figsize=(4.2 * len(systems), 3.4), squeeze=False, layout="constrained")
+    cfig, caxes = plt.subplots(2, len(systems), figsize=(4.2 * len(systems), 6.2), squeeze=False, layout="constrained")
+    for k, system in enumerate(systems):
+        part = mp[mp["system"] == system]
+        rows = []
+        for m, runs in sorted(part.groupby("message_size"), key=lambda kv: int(kv[0])):
+            err, err_sd, n = _stats(runs["min_test_error"])
+            exm, exm_sd, _ = _stats(runs["epochs_x_min_error"])
+            loaded = [c for c in (_curve(r) for r in runs["run"]) if c is not None]
+            final_loss = _stats(pd.Series([float(c["train_loss"].iloc[-1]) for c in loaded]))
+            records.append({"system": system, "message_size": int(m), "runs": n, "min_test_error": err,
+                            "min_test_error_std": err_sd, "epochs_x_min_error": exm, "epochs_x_min_error_std": exm_sd,
+                            "final_train_loss": final_loss[0], "final_train_loss_std": final_loss[1]})
+            rows.append([int(m), n, pm(err, err_sd, 3), pm(final_loss[0], final_loss[1], 3), pm(exm, exm_sd, 4)])
+            for key, ax in (("train_loss", caxes[0, k]), ("test_error", caxes[1, k])):
+                if loaded:
+                    mean = pd.concat([c.set_index("epoch")[key] for c in loaded], axis=1).mean(axis=1).dropna()
+                    ax.plot(mean.index, mean.values, label=f"m={int(m)}")
+        table = pd.DataFrame([r for r in records if r["system"] == system])
+        axes[0, k].errorbar(table["message_size"], table["min_test_error"],
+                            yerr=table["min_test_error_std"].fillna(0.0), marker="o", capsize=3, label="MP-NODE")
+        l2s = train[(train["system"] == system) & (train["model_class"] == "L2S")]
+        if len(l2s):
+            ref, ref_sd, n = _stats(l2s["min_test_error"])
+            axes[0, k].axhline(ref, color="tab:red", linestyle="--", label="L2S")
+            records.append({"system": system, "message_size": None, "model": "L2S", "runs": n, "min_test_error": ref,
+                            "min_test_error_std": ref_sd})
+            rows.append(["L2S", n, pm(ref, ref_sd, 3), "", ""])
+            for c in (c for c in (_curve(r) for r in l2s["run"]) if c is not None):
+                caxes[1, k].plot(c["epoch"], c["test_error"], color="tab:red", linestyle="--", linewidth=0.8)
+        axes[0, k].set(xlabel="message size", ylabel="min test rollout RMSE", title=system, yscale="log")
+        axes[0, k].legend(fontsize=8)
+        caxes[0, k].set(yscale="log", ylabel="train loss", title=system)
+        caxes[1, k].set(yscale="log", xlabel="epoch", ylabel="test rollout RMSE")
+        caxes[0, k].legend(fontsize=8)
+        sections.append(f"**{system}**\n\n" + md_table(
+            ["message size", "runs", "min test error", "final train loss", "epochs_x_min_error"], rows))
+    fig.suptitle("Effect of message size (Figure 8; Figure 7 for quadrotors)")
+    cfig.suptitle("Train loss and test error per message size (mean over seeds; L2S dashed)")
+    figures = [_save(fig, out_dir / "message_size.png"), _save(cfig, out_dir / "message_size_curves.png")]
+    return LayoutResult("\n\n".join(sections), pd.DataFrame(records), figures)
+
+
+LAYOUT_FUNCS: dict[str, Callable[[pd.DataFrame, Path], LayoutResult]] = {
+    "table2": table2, "table1": table1, "curves": curves, "message_size": message_size}
+DEFAULT_TITLES = {
+    "table2": "Table 2: MP-NODE finetuned vs from scratch vs L2S",
+    "table1": "Table 1: zero-shot generalisation of MP-NODE (gene 4×4, trained on BA)",
+    "curves": "Figure 5: finetuning vs training from scratch",
+    "message_size": "Figures 7 and 8: effect of the message size",
+}
+
+
+def load_summary(run: Path) -> dict[str, Any]:
+    return json.loads((run / "summary.json").read_text())

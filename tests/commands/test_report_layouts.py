@@ -1,0 +1,134 @@
+"""`mpsim report layout=...` on synthetic run directories: Table 2, Table 1, learning curves, message size."""
+
+import json
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import yaml
+
+from mpsim.commands.report import run_report
+from mpsim.errors import ConfigError
+
+
+def _run(root: Path, name: str, *, system: str, mode: str = "scratch", model: str = "MPNODE", seed: int = 0,
+         n_train: int = 100, errors: list[float] | None = None, message_size: int | None = 3,
+         trained_on: str | None = None, best_val: float | None = None, overrides: list[str] = ()) -> Path:
+    """A run directory as `mpsim train` (or a zero-shot run) leaves it: summary.json, metrics.csv, overrides."""
+    run = root / name
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump([f"seed={seed}", *overrides]))
+    config = {"_target_": f"mpsim.models.{model}"} | ({"message_size": message_size} if message_size else {})
+    summary = {"task": "train", "mode": mode, "status": "complete", "seed": seed,
+               "system": {"name": system, "n_nodes": 10}, "model": {"model": model, "config": config},
+               "data": {"train": n_train, "val": 20, "test": 20, "n_times": 51}}
+    if errors is not None:  # a training run: per-epoch curve, Table 2 metric from it
+        epochs = list(range(len(errors)))
+        pd.DataFrame({"epoch": epochs, "train_loss": [10 * e for e in errors], "val_error": errors,
+                      "test_error": errors}).to_csv(run / "metrics.csv", index=False)
+        best = min(range(1, len(errors)), key=lambda k: errors[k])
+        summary |= {"min_test_error": errors[best], "min_test_error_epoch": best,
+                    "epochs_x_min_error": best * errors[best], "initial_test_error": errors[0],
+                    "epochs_run": len(errors) - 1, "best_val_error": best_val or errors[best],
+                    "test": {"rmse": errors[best]}}
+    else:  # zero-shot evaluation
+        summary |= {"task": "train", "mode": "zeroshot", "trained_on": trained_on, "test": {"rmse": best_val},
+                    "test_error": best_val}
+    (run / "summary.json").write_text(json.dumps(summary))
+    return run
+
+
+def _report(cfg_factory, tmp_path, layout, runs, *extra):
+    cfg = cfg_factory("report", f"layout={layout}", f"runs=[{runs}]", *extra)
+    out = tmp_path / f"report_{layout}"
+    return run_report(cfg, output_dir=out), out
+
+
+@pytest.fixture
+def table2_runs(tmp_path):
+    root = tmp_path / "runs"
+    _run(root, "pre", system="lorenz3", errors=[2.0, 1.0, 0.8])  # pre-training: not a Table 2 column
+    for seed in (0, 1):
+        for ds in (50, 100):
+            _run(root, f"lf{seed}{ds}", system="lorenz10", mode="finetune", seed=seed, n_train=ds,
+                 errors=[1.0, 0.5, 0.4, 0.45, 0.5])  # min 0.4 at epoch 2 → 0.8
+            _run(root, f"ls{seed}{ds}", system="lorenz10", seed=seed, n_train=ds,
+                 errors=[2.0, 1.5, 1.0, 0.8, 0.6 + 0.1 * seed])  # min at epoch 4 → 2.4 / 2.8
+        _run(root, f"gf{seed}", system="gene_ba_large", mode="finetune", seed=seed, errors=[0.5, 0.2, 0.1])
+        _run(root, f"gs{seed}", system="gene_ba_large", seed=seed, errors=[3.0, 1.0, 0.5])
+        _run(root, f"gl{seed}", system="gene_ba_large", model="L2S", seed=seed, message_size=None,
+             errors=[3.0, 2.0, 0.9])
+    return root
+
+
+def test_table2_rows_columns_cells_and_orderings(cfg_factory, tmp_path, table2_runs):
+    result, out = _report(cfg_factory, tmp_path, "table2", table2_runs)
+    text = (out / "report.md").read_text()
+    assert "| model | Lorenz10 ds=50 | Lorenz10 ds=100 | Gene |" in text  # lorenz3 pre-training is left out
+    assert "| MP-NODE finetuned | 0.8 ± 0 | 0.8 ± 0 | 0.2 ± 0 |" in text
+    assert "| MP-NODE scratch | 2.6 ± 0.28 | 2.6 ± 0.28 | 1 ± 0 |" in text
+    assert "| L2S | N/A | N/A | 1.8 ± 0 |" in text
+    assert "Lorenz10 ds=50: finetuned < scratch" in text and "holds" in text
+    assert "MP-NODE finetuned < L2S" in text
+    assert "632.7" in text  # the paper's numbers are printed beside ours
+    assert "`lorenz10`: 8 runs, 50/100 training trajectories, 50 steps, up to 4 epochs, seeds 0, 1" in text
+    table = pd.read_csv(out / "report.csv")
+    assert set(table["row"]) == {"MP-NODE finetuned", "MP-NODE scratch", "L2S"} and (table["runs"] == 2).all()
+    assert (out / "table2.png").stat().st_size > 0 and (out / "runs.csv").is_file()
+    assert result["n_runs"] == 15
+
+
+def test_table1_validation_test_and_zero_shot_columns(cfg_factory, tmp_path):
+    root = tmp_path / "runs"
+    for seed in (0, 1):
+        _run(root, f"mp{seed}", system="gene_ba_small", seed=seed, errors=[1.0, 0.1, 0.05], best_val=0.06)
+        _run(root, f"er{seed}", system="gene_er_small", trained_on="gene_ba_small", best_val=0.07 + 0.02 * seed)
+        _run(root, f"ws{seed}", system="gene_ws_small", trained_on="gene_ba_small", best_val=0.9)
+    _run(root, "l2s", system="gene_ba_small", model="L2S", message_size=None, errors=[1.0, 0.3, 0.2], best_val=0.25)
+    _, out = _report(cfg_factory, tmp_path, "table1", root)
+    text = (out / "report.md").read_text()
+    assert "| model | Validation BA | Test BA | Test ER (unseen) | Test WS (unseen) |" in text
+    assert "| MP-NODE | 0.06 ± 0 | 0.05 ± 0 | 0.08 ± 0.014 | 0.9 ± 0 |" in text
+    assert "| L2S | 0.25 | 0.2 | N/A | N/A |" in text
+    assert "Test ER (unseen): 1.6× the error on BA test data — same order" in text
+    assert "Test WS (unseen): 18× the error on BA test data — NOT the same order" in text
+    assert "validation: MP-NODE 0.06 < L2S 0.25 — holds" in text
+    assert "0.0051 ± 0.0001" in text and (out / "table1.png").is_file()
+
+
+def test_curves_overlay_finetune_and_scratch(cfg_factory, tmp_path, table2_runs):
+    _, out = _report(cfg_factory, tmp_path, "curves", table2_runs)
+    text = (out / "report.md").read_text()
+    assert "**lorenz10, ds=50** — target: 0.65" in text  # scratch's mean minimum (0.6 and 0.7)
+    assert "| MP-NODE finetuned | 1 | 1 | 0.4 @ 2 |" in text  # reaches 0.65 at epoch 1 (0.5)
+    assert "| MP-NODE scratch | 2 | 4 | 0.65 @ 4 |" in text
+    curves = pd.read_csv(out / "report.csv")
+    assert {"system", "n_train", "row", "epoch", "test_error_mean"} <= set(curves.columns)
+    assert (out / "curves.png").stat().st_size > 0
+
+
+def test_message_size_layout(cfg_factory, tmp_path):
+    root = tmp_path / "runs"
+    for m, err in ((1, 0.9), (3, 0.5), (7, 0.3), (13, 0.29)):
+        for seed in (0, 1):
+            _run(root, f"k{m}_{seed}", system="kuramoto10_ba", seed=seed, message_size=m,
+                 errors=[2.0, 1.0, err + 0.01 * seed])
+    _run(root, "l2s", system="kuramoto10_ba", model="L2S", message_size=None, errors=[2.0, 1.0, 0.6])
+    _, out = _report(cfg_factory, tmp_path, "message_size", root)
+    text = (out / "report.md").read_text()
+    assert "| 7 | 2 | 0.305 ± 0.0071 |" in text and "| L2S | 1 | 0.6 |" in text
+    table = pd.read_csv(out / "report.csv")
+    assert list(table.dropna(subset=["message_size"])["message_size"].astype(int)) == [1, 3, 7, 13]
+    assert (out / "message_size.png").is_file() and (out / "message_size_curves.png").is_file()
+
+
+def test_unknown_layout_is_refused(cfg_factory, tmp_path, table2_runs):
+    with pytest.raises(ConfigError, match="layout='table3' is unknown; choose one of table2, table1"):
+        _report(cfg_factory, tmp_path, "table3", table2_runs)
+
+
+def test_generic_report_is_unchanged_without_a_layout(cfg_factory, tmp_path, table2_runs):
+    cfg = cfg_factory("report", f"runs=[{table2_runs}]")
+    result = run_report(cfg, output_dir=tmp_path / "plain")
+    assert "model_class" not in pd.read_csv(tmp_path / "plain" / "report.csv").columns
+    assert result["n_runs"] == 15
