@@ -8,6 +8,7 @@
 set -euo pipefail
 OUT=${OUT:-outputs/diagnose_cases}
 SEEDS=${SEEDS:-"0 1 2 3 4"}
+NOISES=${NOISES:-"0 0.01"}  # measurement noise on the training states, in units of each feature's std
 common=(paths.output_root=$OUT paths.ckpt_dir=$OUT/checkpoints trainer.progress=false)
 
 mpsim train experiment=pendulum_damped hydra.run.dir=$OUT/case1/train "${common[@]}"
@@ -20,10 +21,13 @@ mpsim diagnose experiment=lorenz3_forced init=lorenz3_forced.ckpt fix=true diagn
   trainer.max_epochs=100 hydra.run.dir=$OUT/case2/diagnose "${common[@]}"
 
 clean=(experiment=pendulum_damped "system.effects=[]" system.name=pendulum2_clean)
-for s in $SEEDS; do
-  mpsim train "${clean[@]}" data.seed=$s hydra.run.dir=$OUT/case4/seed$s/train "${common[@]}"
-  mpsim diagnose "${clean[@]}" data.seed=$s init=pendulum2_clean.ckpt hydra.run.dir=$OUT/case4/seed$s/diagnose \
-    "${common[@]}"
+for noise in $NOISES; do
+  for s in $SEEDS; do
+    run=$OUT/case4/noise$noise/seed$s
+    mpsim train "${clean[@]}" data.seed=$s data.noise_std=$noise hydra.run.dir=$run/train "${common[@]}"
+    mpsim diagnose "${clean[@]}" data.seed=$s data.noise_std=$noise init=pendulum2_clean.ckpt \
+      hydra.run.dir=$run/diagnose "${common[@]}"
+  done
 done
 
 python - "$OUT" <<'PY'
@@ -43,11 +47,12 @@ for case, horizon in (("case1", "50"), ("case2", "10")):
                  f"| {b['rollout_rmse']:.4g} → {a.get('rollout_rmse', float('nan')):.4g} | "
                  f"{hb.get('rmse', float('nan')):.4g} → {ha.get('rmse', float('nan')):.4g} ({horizon} steps, t={hb.get('t', 0):.3g}) "
                  f"| {b['valid_prediction_time']:.3g} → {a.get('valid_prediction_time', float('nan')):.3g} |")
-seeds = sorted((out / "case4").glob("seed*/diagnose/diagnosis.json"))
-verdicts = [json.loads(p.read_text())["verdict"] for p in seeds]
-false = sum(v != "no effect found" for v in verdicts)
-lines += ["", f"case 4 (no hidden effect): {false} of {len(verdicts)} data seeds named an effect "
-              f"(false-positive rate {false / max(len(verdicts), 1):.0%})."]
+lines.append("")
+for noise_dir in sorted((out / "case4").glob("noise*")):
+    verdicts = [json.loads(p.read_text())["verdict"] for p in sorted(noise_dir.glob("seed*/diagnose/diagnosis.json"))]
+    false = sum(v != "no effect found" for v in verdicts)
+    lines.append(f"case 4 (no hidden effect, measurement noise {noise_dir.name[5:]}·std): {false} of {len(verdicts)} "
+                 f"data seeds named an effect (false-positive rate {false / max(len(verdicts), 1):.0%}).")
 text = "\n".join(lines)
 (out / "diagnose_cases.md").write_text(text + "\n")
 print(text)

@@ -61,3 +61,20 @@ def test_noise_estimate_and_valid_prediction_time():
     assert noise_level(clean)[0] < 1e-4
     pred = clean + 0.1 * t[None, :, None, None]  # normalised error 0.1·t crosses 0.3 at t = 3
     assert valid_prediction_time(pred, clean, torch.ones(1, dtype=torch.float64), t, 0.3) == pytest.approx(3.05, abs=0.06)
+
+
+def test_names_a_hidden_drive_and_its_frequency():
+    # Lorenz3 driven on x by 20·sin(20 t); the model knows the autonomous equations only (σ, ρ, β learnable)
+    from mpsim.effects import PeriodicForcing
+    from mpsim.systems import CoupledLorenz
+
+    data = CoupledLorenz(n_nodes=3, effects=[PeriodicForcing(20.0, 20.0, 0.0, target="x")]).generate(
+        16, seed=0, horizon=100, burn_in=80)
+    model = PhysicsModel(3, system=CoupledLorenz(n_nodes=3), learnable=["sigma", "rho", "beta"],
+                         solver=ODESolver("dopri5", rtol=1e-7, atol=1e-7)).double()
+    model.set_normalisation(data.x.reshape(-1, 3).mean(0), data.x.reshape(-1, 3).std(0))
+    diag = find_effects(model, data, n_boot=30)
+    (found,) = diag.accepted
+    assert found.kind == "PeriodicForcing" and found.target == 0
+    assert found.effect["omega"] == pytest.approx(20.0, rel=0.05)
+    assert found.effect["amplitude"] == pytest.approx(20.0, rel=0.3)

@@ -104,3 +104,7 @@ def test_window_training_sees_only_short_windows(tmp_path):
     Trainer(max_epochs=3, batch_size=8, window=3, progress=False).fit(model, train, val, test, run_dir=tmp_path)
     assert {n for n, _ in seen} == {4}  # window of 3 steps = 4 time points
     assert len({start for _, start in seen}) > 1  # starts vary between batches
+    # an epoch tiles the record: every batch visits every window of the tiling once
+    n_batches = -(-len(train) // 8)
+    tiles = (train.n_times - 1) // 3 - 1  # at least this many whole windows fit after any offset
+    assert tiles >= 2 and len(seen) >= 3 * n_batches * tiles

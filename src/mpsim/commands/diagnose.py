@@ -219,7 +219,7 @@ def _print(result: dict[str, Any], diag: Diagnosis, out: Path) -> None:
     rows = [("verdict", result["verdict"])]
     for f in diag.accepted:
         ci = ", ".join(f"[{a:.3g}, {b:.3g}]" for a, b in f.interval)
-        rows.append(("effect", f"{f.label}: coef {', '.join(f'{c:.4g}' for c in f.coef)} (95% {ci}), explains "
+        rows.append(("effect", f"{f.label}: coef {', '.join(f'{c:.4g}' for c in f.coef)} (bootstrap 95% of its single-variable fit {ci}), explains "
                                f"{f.gain:.0%} of the residual"))
         if f.kind == "PeriodicForcing":
             rows.append(("", f"{f.effect['amplitude']:.4g}·sin({f.effect['omega']:.4g} t {f.effect['phase']:+.3f})"))

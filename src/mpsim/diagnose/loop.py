@@ -121,7 +121,10 @@ def _difference_bound(x: torch.Tensor, shift: int) -> torch.Tensor:  # x: [B, T,
 
 
 def _forcing_omegas(res: Residual, data: Trajectories) -> tuple[dict[int, float], dict[int, tuple]]:
-    omegas, spectra = {}, {}
+    """The dominant residual frequency of each state variable. Frequencies of different variables closer than
+    a quarter of the record's frequency bin are one drive seen twice (a drive on x leaks into y within a step):
+    they are merged into the one with the stronger peak, since two near-equal sinusoids are collinear."""
+    omegas, spectra, peaks = {}, {}, {}
     span = 2 * math.pi / float(data.t[-1] - data.t[0])  # one frequency bin of the record length
     finite = torch.isfinite(res.r).flatten(1).all(dim=1)
     for d in range(data.state_dim):
@@ -130,6 +133,14 @@ def _forcing_omegas(res: Residual, data: Trajectories) -> tuple[dict[int, float]
         signal = r.mean(dim=(0, 2))
         omegas[d] = refine_frequency(signal, res.t_mid, omega0, span)
         spectra[d] = (freqs, power)
+        peaks[d] = float(power.max()) if power.numel() else 0.0
+    kept: list[float] = []
+    for d in sorted(omegas, key=lambda k: peaks[k], reverse=True):
+        near = [w for w in kept if abs(w - omegas[d]) < 0.25 * span]
+        if near:
+            omegas[d] = near[0]
+        else:
+            kept.append(omegas[d])
     return omegas, spectra
 
 

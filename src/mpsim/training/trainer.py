@@ -88,9 +88,10 @@ class Trainer:
         plateau_factor: learning-rate factor on a plateau (reference: 0.5).
         min_lr: the learning rate is never reduced below this.
         early_stop_patience: stop after this many epochs without validation improvement (0: never).
-        window: train on windows of this many steps instead of whole trajectories (null: whole). Each batch
-            takes one random window start (so a batch shares its clock); validation and test still roll out
-            whole trajectories. Long chaotic records train better this way (multiple shooting).
+        window: train on windows of this many steps instead of whole trajectories (null: whole). An epoch
+            tiles every trajectory with windows from a random offset and visits each (batch, window) pair once,
+            in random order (a batch shares its clock); validation and test still roll out whole trajectories.
+            Long chaotic records train better this way (multiple shooting).
         eval_window: measure the per-epoch validation/test errors over the first this-many steps only
             (null: whole trajectories) — for chaotic systems, whose long rollouts decorrelate from any model.
         eval_batch_size: trajectories per batch when evaluating.
@@ -245,15 +246,21 @@ class Trainer:
         model.train()
         order = torch.randperm(len(data), generator=shuffle)
         t = data.t.to(data.x)
+        batches = list(range(0, len(data), self.batch_size))
+        steps: list[tuple[int, int | None]] = [(b, None) for b in batches]
+        if self.window and data.n_times - 1 > self.window:
+            offset = int(torch.randint(0, self.window, (1,), generator=shuffle))
+            starts = list(range(offset, data.n_times - self.window, self.window)) or [0]
+            steps = [(b, s) for b in batches for s in starts]
+            steps = [steps[i] for i in torch.randperm(len(steps), generator=shuffle).tolist()]
         total, norms, count = 0.0, [], 0
-        for k, start in enumerate(range(0, len(data), self.batch_size)):
-            idx = order[start : start + self.batch_size]
+        for k, (first, wstart) in enumerate(steps):
+            idx = order[first : first + self.batch_size]
             batch = data.subset(idx.to(data.x.device))
             bt = t
-            if self.window and data.n_times - 1 > self.window:
-                start = int(torch.randint(0, data.n_times - self.window, (1,), generator=shuffle))
-                batch = batch.time_slice(start, start + self.window + 1)
-                bt = t[start : start + self.window + 1]
+            if wstart is not None:
+                batch = batch.time_slice(wstart, wstart + self.window + 1)
+                bt = t[wstart : wstart + self.window + 1]
             loss, pred = model.training_loss(batch, bt, loss_fn, self.huber_delta)
             if not torch.isfinite(loss):
                 raise DivergenceError(_divergence_message(pred, bt, epoch, k, idx))
