@@ -86,6 +86,7 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
     ckpt = load_init(cfg, rt)
     system = None if cfg.data.path and cfg.data.graph != "system" else build_system(cfg)
     model, model_cfg, splits = model_and_data(cfg, rt, system, ckpt, refit=False)
+    model.latent_reset = cfg.trainer.window  # latent states (messages) were trained over windows this long
     p = cfg.diagnose
     horizons = list(cfg.eval.horizons)
     log.info(f"diagnosing {Path(ckpt['path']).name} on {len(splits.train)} held-in trajectories")
@@ -135,6 +136,7 @@ def _fix(cfg, rt, ckpt, model_cfg, model, splits, diag: Diagnosis, horizons):
     fixed, _ = build_model_for(cfg, rt, Shape.of(splits.train), fixed_ckpt)
     fixed.set_normalisation(model.state_mean, model.state_std)
     fixed.shift_parameters(diag.parameter_shifts)  # the joint refit of the model's own parameters
+    fixed.latent_reset = model.latent_reset
     # the finetune starts near the optimum (fitted coefficients, trained weights): smaller steps
     trainer = build(cfg.trainer, "trainer", lr=cfg.trainer.lr * cfg.diagnose.fix_lr_factor)
     base = checkpoint_base(fixed_cfg, fixed, splits.train.meta, {"mode": "finetune", "init": ckpt["path"]})

@@ -294,36 +294,59 @@ def find_effects(
                      not_considered=list(undecidable))
     while diag.accepted and not _joint_refit(diag, library, res, keep, base, model):
         pass  # an effect whose coefficient was not stable was dropped: refit the others
-    while len(diag.accepted) > 1 and not _confirm_by_integration(diag, library, model, data, base, min_gain):
+    while diag.accepted and not _confirm_by_integration(diag, library, model, data, base, min_gain):
         while diag.accepted and not _joint_refit(diag, library, res, keep, base, model):
             pass
     return diag
 
 
+def _fit_one(cand: Candidate, res: Residual, target: int, keep: torch.Tensor, base: torch.Tensor | None):
+    """Least-squares fit of one candidate to one variable's residual (nuisance projected out): the coefficient
+    vector, the share of the residual it explains and the RMS it accounts for."""
+    y, groups, base_d = _rows([cand], res, target, keep, base)
+    y, (g,) = _project(y, groups, base_d)
+    flat_y, flat_g = y.reshape(-1), g.reshape(y.numel(), -1)
+    sol, _ = _lstsq(flat_g, flat_y)
+    fitted = float((flat_g @ sol).pow(2).sum())
+    return sol, fitted / max(float(flat_y.pow(2).sum()), 1e-300), math.sqrt(fitted / max(flat_y.numel(), 1))
+
+
 def _confirm_by_integration(diag: Diagnosis, library: list[Candidate], model: Model, data: Trajectories,
-                            base: torch.Tensor | None, min_gain: float) -> bool:
-    """Add the named effects to the model one at a time, strongest first, and recompute the residual: an effect
-    on one variable shows up, through the step's integration, as a small residual in the variables it feeds
-    (damping of ω leaves a residual of order c·Δt/2 in θ). A term that no longer reaches its threshold once
-    the stronger effects are part of the model was such an echo: it is rejected and False is returned."""
+                            base: torch.Tensor | None, min_gain: float, iterations: int = 3) -> bool:
+    """Add the named effects to the model one at a time, strongest first, refitting each through the model's
+    integration of a step, and test the others against the residual that is left.
+
+    The regression on step-averaged features sees an effect only through the step's integration, which the
+    rest of the dynamics shapes (Lorenz's −σx relaxes a drive on x within a step of 0.05 by ≈ σΔt/2): each
+    effect's coefficients are corrected by refitting the residual of the model *with* the effect, a few
+    fixed-point steps. An effect on one variable also shows up as a small residual in the variables it feeds
+    within a step (damping of ω leaves a residual of order c·Δt/2 in θ): a term whose coefficient halves, or
+    which falls below its threshold, once the stronger effects are part of the model was such an echo — it is
+    rejected and False is returned (the caller refits the rest and calls again)."""
     labels = {c.label(diag.state_names): i for i, c in enumerate(library)}
     order = sorted(diag.accepted, key=lambda f: f.explained_rms / max(f.threshold, 1e-300), reverse=True)
     trial = copy.deepcopy(model)
     dtype = model.state_mean.dtype
-    for i, strong in enumerate(order[:-1]):
+    names = diag.state_names
+    for i, strong in enumerate(order):
         cand = library[labels[strong.label.split(": ", 1)[1]]]
-        trial.effects.append(cand.make_effect(strong.coef, strong.target, diag.state_names).to(dtype))
+        coef = list(strong.coef)
+        trial.effects.append(cand.make_effect(coef, strong.target, names).to(dtype))
+        for _ in range(iterations):
+            res = one_step_residual(trial, data)
+            keep = torch.isfinite(res.r).flatten(1).all(dim=1)
+            delta, _, _ = _fit_one(cand, res, strong.target, keep, base)
+            coef = [c + float(d) for c, d in zip(coef, delta, strict=True)]
+            trial.effects[-1] = cand.make_effect(coef, strong.target, names).to(dtype)
+            if float(delta.norm()) <= 1e-3 * math.hypot(*coef):
+                break
+        strong.coef, strong.effect = coef, cand.effect_config(coef, strong.target, names)
+        if i == len(order) - 1:
+            break
         res = one_step_residual(trial, data)
         keep = torch.isfinite(res.r).flatten(1).all(dim=1)
         for f in order[i + 1 :]:
-            y, groups, base_d = _rows([library[labels[f.label.split(": ", 1)[1]]]], res, f.target, keep, base)
-            y, (g,) = _project(y, groups, base_d)
-            flat_y, flat_g = y.reshape(-1), g.reshape(y.numel(), -1)
-            sol, _ = _lstsq(flat_g, flat_y)
-            fit = flat_g @ sol
-            total = float(flat_y.pow(2).sum())
-            gain = float(fit.pow(2).sum()) / max(total, 1e-300)
-            part = math.sqrt(float(fit.pow(2).sum()) / max(flat_y.numel(), 1))
+            sol, gain, part = _fit_one(library[labels[f.label.split(": ", 1)[1]]], res, f.target, keep, base)
             before, after = math.hypot(*f.coef), float(sol.norm())
             if part < f.threshold or gain < min_gain or after < 0.5 * before:
                 f.accepted = False

@@ -44,6 +44,9 @@ class Model(nn.Module):
     #: observed states a rollout starts from: 1 = x0 [B, N, D]; K > 1 = the first K states [B, K, N, D]
     #: (forecasters that read a window); errors are then measured from step K on
     context_steps: int = 1
+    #: one-step residuals of a model with a latent state (MP-NODE messages) restart it at zero every this many
+    #: steps — set to the training window, over which the latent state was trained (None: carry it throughout)
+    latent_reset: int | None = None
 
     def __init__(self, state_dim: int, control_dim: int = 0, effects: Sequence[Effect] = ()) -> None:
         super().__init__()

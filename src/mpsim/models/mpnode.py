@@ -175,7 +175,8 @@ class MPNODE(Model):
 
     def one_step(self, x, t, edge_index, u=None, node_features=None, meta=None):
         """One-step predictions along an observed trajectory with the messages carried from step to step
-        (starting at zero at t0, as in a rollout), so each step sees the latent state a rollout would."""
+        (starting at zero at t0, as in a rollout, and again every `latent_reset` steps if set), so each step
+        sees the latent state a rollout would."""
         b, n_t, n, d = x.shape
         graph = batch_graph(edge_index.to(x.device), b, n, self_loops=self.self_loops, dtype=x.dtype)
         effect_graph = batch_graph(edge_index.to(x.device), b, n, dtype=x.dtype) if len(self.effects) else None
@@ -184,6 +185,8 @@ class MPNODE(Model):
         messages = x.new_zeros(b, n, self.message_size)
         preds = []
         for k in range(n_t - 1):  # sequential in time: the messages carry over
+            if self.latent_reset and k % self.latent_reset == 0:
+                messages = torch.zeros_like(messages)  # as at the start of a training window
             y0 = torch.cat([self.normalise(x[:, k]), messages], dim=-1)
             field.held = None if u is None else k  # the input of this interval is its first sample
             y1 = self.integrate(field, y0, t[k : k + 2].to(x), self.solver)[:, 1]
