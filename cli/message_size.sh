@@ -2,26 +2,27 @@
 # MP-NODE paper, Figures 8 and 7: effect of the message size. Kuramoto10 (BA) with m = 1, 3, 7, 13 (Figure 8), and
 # 3 and 6 quadrotors with m = 7, 13, 20 next to L2S (Figure 7), each trained from scratch over seeds.
 # CPU-sized by default (about an hour on 2 free cores): K_EPOCHS=100 Kuramoto epochs on 100 trajectories,
-# Q_EPOCHS=40 quadrotor epochs on 100 trajectories of QH=60 steps, 2 seeds (paper: 4000 epochs).
+# Q_EPOCHS=40 quadrotor epochs on 100 trajectories of QH=60 steps (one RK4 step per sample: QSOLVER=rk4), 2 seeds
+# (paper: 4000 epochs).
 # Paper-sized: PAPER=1 cli/message_size.sh. Figures and tables: $OUT/message_size.md.
 set -euo pipefail
 OUT=${OUT:-outputs/message_size}
 PAPER=${PAPER:-0}
 if [ "$PAPER" = 1 ]; then
   K_EPOCHS=${K_EPOCHS:-4000}; Q_EPOCHS=${Q_EPOCHS:-4000}; N_TRAIN=${N_TRAIN:-700}; TRAINER=${TRAINER:-paper}
-  SEEDS=${SEEDS:-0,1,2}; QH=${QH:-50}
+  SEEDS=${SEEDS:-0,1,2}; QH=${QH:-50}; QSOLVER=${QSOLVER:-dopri5}
   SIZE="paper-sized: MPNODE.jl trainer, $K_EPOCHS epochs, $N_TRAIN trajectories"
 else
   K_EPOCHS=${K_EPOCHS:-100}; Q_EPOCHS=${Q_EPOCHS:-40}; N_TRAIN=${N_TRAIN:-100}; TRAINER=${TRAINER:-default}
-  SEEDS=${SEEDS:-0,1}; QH=${QH:-60}
-  SIZE="CPU-sized: Kuramoto $K_EPOCHS epochs, quadrotors $Q_EPOCHS epochs on $N_TRAIN trajectories of $QH steps (paper: 4000 epochs)"
+  SEEDS=${SEEDS:-0,1}; QH=${QH:-60}; QSOLVER=${QSOLVER:-rk4}
+  SIZE="CPU-sized: Kuramoto $K_EPOCHS epochs, quadrotors $Q_EPOCHS epochs on $N_TRAIN trajectories of $QH steps, integrated with $QSOLVER (paper: 4000 epochs)"
 fi
 K_MSG=${K_MSG:-1,3,7,13}
 Q_MSG=${Q_MSG:-7,13,20}
 JOBS=${JOBS:-2}
 common=(paths.output_root=$OUT trainer=$TRAINER trainer.progress=false trainer.early_stop_patience=0 eval.plots=false
         export=false data.n_train=$N_TRAIN hydra/launcher=joblib hydra.launcher.n_jobs=$JOBS seed=$SEEDS)
-quad=(data.horizon=$QH data.n_val=30 data.n_test=30 trainer.max_epochs=$Q_EPOCHS)
+quad=(data.horizon=$QH data.n_val=30 data.n_test=30 trainer.max_epochs=$Q_EPOCHS solver=$QSOLVER)
 
 rm -rf "$OUT"
 mpsim train -m hydra.sweep.dir=$OUT/kuramoto system=kuramoto10_ba model.message_size=$K_MSG \

@@ -17,19 +17,20 @@ else
   SIZE="CPU-sized: $EPOCHS epochs on $N_TRAIN trajectories (paper: 4000 epochs, L2S 10000, on 700), batch 32, lr 3e-3"
 fi
 SEEDS=${SEEDS:-"0 1 2"}
+MODELS=${MODELS:-"mpnode l2s"}   # add node for the monolithic baseline (same 16 nodes, so it can run zero-shot)
 JOBS=${JOBS:-2}
 common=(paths.output_root=$OUT trainer=$TRAINER trainer.progress=false trainer.early_stop_patience=0 eval.plots=false)
 
 rm -rf "$OUT"
 for seed in $SEEDS; do  # one checkpoint directory per seed: every run exports <system>.ckpt
-  for model in mpnode l2s; do
+  for model in $MODELS; do
     epochs=$EPOCHS; [ $model = l2s ] && epochs=$L2S_EPOCHS
     echo "mpsim train system=gene_ba_small model=$model seed=$seed data.n_train=$N_TRAIN trainer.max_epochs=$epochs \
       paths.ckpt_dir=$OUT/checkpoints/$model/s$seed hydra.run.dir=$OUT/train/$model/s$seed ${common[*]}"
   done
 done | xargs -P "$JOBS" -I{} bash -c {}
 for seed in $SEEDS; do
-  for model in mpnode l2s; do
+  for model in $MODELS; do
     mpsim train -m mode=zeroshot init=$OUT/checkpoints/$model/s$seed/gene_ba_small.ckpt \
       system=gene_er_small,gene_ws_small hydra.sweep.dir=$OUT/zeroshot/$model/s$seed "${common[@]}"
   done

@@ -7,10 +7,14 @@
 #   Quadrotors               finetune from 3 quadrotors      vs scratch, and L2S, on 6 quadrotors
 # CPU-sized by default (about an hour on 2 free cores): EPOCHS=60 epochs per target run (paper: 4000 for
 # MP-NODE, 10000 for L2S), pre-training PRE_EPOCHS=150 epochs on 200 trajectories (paper: 700), quadrotor
-# trajectories cut to QH=60 steps (3 s, the align-and-morph phase), 2 seeds. Paper-sized: PAPER=1 cli/table2.sh.
+# trajectories cut to QH=60 steps (3 s, the align-and-morph phase) and integrated by the models with one RK4 step
+# per 0.05 s sample (QSOLVER=rk4; at rtol 1e-4 dopri5 also takes one step per sample, at 3× the cost), 2 seeds.
+# Paper-sized: PAPER=1 cli/table2.sh.
 # Finetunes refit the normalisation on the new data, as MPNODE.jl does (REFIT=false keeps the checkpoint's).
 # Seeds vary the initial weights of scratch runs and the batch order of every run; datasets are fixed.
-# Any size can be overridden, e.g. EPOCHS=100 SEEDS=0,1,2 COLUMNS="gene quad" cli/table2.sh.
+# Any size can be overridden, e.g. EPOCHS=100 SEEDS=0,1,2 COLS="gene quad" cli/table2.sh.
+# REUSE=1 keeps a pre-trained checkpoint already in $OUT/checkpoints (e.g. cli/table1.sh's MP-NODE seed 0,
+# which is the same run as the gene pre-training here) instead of training it again.
 # Tables: $OUT/table2.md (Table 2) and $OUT/figure5.md (learning curves), with PNGs beside them.
 set -euo pipefail
 OUT=${OUT:-outputs/table2}
@@ -18,25 +22,29 @@ PAPER=${PAPER:-0}
 if [ "$PAPER" = 1 ]; then
   EPOCHS=${EPOCHS:-4000}; L2S_EPOCHS=${L2S_EPOCHS:-10000}; PRE_EPOCHS=${PRE_EPOCHS:-4000}; PRE_N=${PRE_N:-700}
   TRAINER=${TRAINER:-paper}; SEEDS=${SEEDS:-0,1,2}; QH=${QH:-50}; Q_DS=${Q_DS:-500}; G_DS=${G_DS:-700}
+  QSOLVER=${QSOLVER:-dopri5}
   SIZE="paper-sized: MPNODE.jl trainer (batch 128, lr 1e-3), $EPOCHS epochs per run ($L2S_EPOCHS for L2S), pre-training on $PRE_N trajectories"
 else
   EPOCHS=${EPOCHS:-60}; L2S_EPOCHS=${L2S_EPOCHS:-$EPOCHS}; PRE_EPOCHS=${PRE_EPOCHS:-150}; PRE_N=${PRE_N:-200}
   TRAINER=${TRAINER:-default}; SEEDS=${SEEDS:-0,1}; QH=${QH:-60}; Q_DS=${Q_DS:-100}; G_DS=${G_DS:-100}
-  SIZE="CPU-sized: $EPOCHS epochs per run (paper: 4000; L2S 10000), pre-training $PRE_EPOCHS epochs on $PRE_N trajectories (paper: 4000 on 700), batch 32, lr 3e-3"
+  QSOLVER=${QSOLVER:-rk4}
+  SIZE="CPU-sized: $EPOCHS epochs per run (paper: 4000; L2S 10000), pre-training $PRE_EPOCHS epochs on $PRE_N trajectories (paper: 4000 on 700), batch 32, lr 3e-3; gene 8×8 on $G_DS trajectories; quadrotors $Q_DS trajectories of $QH steps, models integrated with $QSOLVER"
 fi
 DS=${DS:-50,100,500}        # Lorenz10 / Kuramoto finetuning dataset sizes
 REFIT=${REFIT:-true}        # finetunes refit the state (and control) normalisation on the target data
 MSG=${MSG:-13}              # quadrotor message size
 JOBS=${JOBS:-2}             # parallel jobs per sweep
-COLUMNS=${COLUMNS:-"lorenz kuramoto gene quad"}
+COLS=${COLS:-"lorenz kuramoto gene quad"}  # not COLUMNS: shells set that to the terminal width
 CKPT=$OUT/checkpoints
 common=(paths.output_root=$OUT paths.ckpt_dir=$CKPT trainer=$TRAINER trainer.progress=false
         trainer.early_stop_patience=0 eval.plots=false)
 sweep=(-m hydra/launcher=joblib hydra.launcher.n_jobs=$JOBS)
-quad=(data.horizon=$QH data.n_val=30 data.n_test=30)
+quad=(data.horizon=$QH data.n_val=30 data.n_test=30 solver=$QSOLVER)
+REUSE=${REUSE:-0}
 
 pretrain() {  # name system [overrides...]: one scratch run that exports <system>.ckpt
   local name=$1 system=$2; shift 2
+  if [ "$REUSE" = 1 ] && [ -f "$CKPT/$system.ckpt" ]; then echo "reusing $CKPT/$system.ckpt"; return; fi
   rm -rf "$OUT/$name"
   mpsim train system=$system data.n_train=$PRE_N trainer.max_epochs=$PRE_EPOCHS hydra.run.dir=$OUT/$name \
     "${common[@]}" "$@"
@@ -54,7 +62,7 @@ l2s() {  # name system [overrides...]: L2S from scratch over seeds
     trainer.max_epochs=$L2S_EPOCHS export=false "${common[@]}" "$@"
 }
 
-for column in $COLUMNS; do
+for column in $COLS; do
   case $column in
     lorenz)
       pretrain lorenz3_pre lorenz3

@@ -83,3 +83,17 @@ def test_controls_enter_with_zero_order_hold():
     u_late[:, 3:] = 1.0  # changes from t[3] on: the first three steps are unaffected
     late = model.rollout(x0, t, chain(3), u_late)
     assert torch.equal(base[:, :4], late[:, :4]) and not torch.allclose(base[:, 4], late[:, 4])
+
+
+def test_dense_and_edge_list_aggregation_agree():
+    # small graphs aggregate with a dense adjacency product, large ones over the edge list: same field
+    dense, sparse = _model(), _model(dense_max_nodes=0)
+    x0 = torch.randn(2, 5, 2, dtype=torch.float64)
+    t = torch.linspace(0, 1, 4, dtype=torch.float64)
+    a, b = chain(5), complete(5)
+    padded = torch.full((2, 2, b.shape[1]), -1)
+    padded[0, :, : a.shape[1]], padded[1] = a, b
+    for graph in (a, padded):
+        assert torch.allclose(dense.rollout(x0, t, graph), sparse.rollout(x0, t, graph), atol=1e-10)
+    loops_dense, loops_sparse = _model(self_loops=True), _model(self_loops=True, dense_max_nodes=0)
+    assert torch.allclose(loops_dense.rollout(x0, t, a), loops_sparse.rollout(x0, t, a), atol=1e-10)
