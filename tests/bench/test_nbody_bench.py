@@ -81,3 +81,16 @@ def test_cost_only_rows() -> None:
     assert row["paper_rmse20"] == pytest.approx(0.2416)
     with pytest.raises(ConfigError, match="deltagn:full:1000"):
         NBodyTable(cost_only=["full:1000"], measure=False).run()
+
+
+def test_generalisation_rows_get_the_transfer_numbers(tmp_path) -> None:
+    """A model evaluated at another N is compared with the paper's cross-N number, not the in-N one."""
+    run = tmp_path / "transfer"
+    _summary(run, "DeltaGN", "hierarchical", 100, "nbody100")
+    summary = json.loads((run / "summary.json").read_text())
+    summary["trained_on"] = "nbody1000"
+    (run / "summary.json").write_text(json.dumps(summary))
+    (row,) = NBodyTable(runs=[str(run)], measure=False).run()
+    assert row["trained_on"] == "nbody1000" and row["N"] == 100
+    assert row["paper_rmse200"] == pytest.approx(0.117) and math.isnan(row["paper_rmse20"])
+    assert "notebook" in row["paper_source"]

@@ -176,3 +176,15 @@ def test_gravity_features_and_errors() -> None:
         NBody(n_particles=10, force="coulomb").energy(traj.x)
     with pytest.raises(ConfigError, match="force"):
         NBody(force="magnetic")
+
+
+def test_generic_config_any_size_and_force(cfg_factory) -> None:
+    """`system=nbody` with `system.n_particles` / `system.force`: the paper's constants, box sqrt(12 N)."""
+    from hydra.utils import instantiate
+
+    system = instantiate(cfg_factory("train", "system=nbody", "system.n_particles=30", "system.force=coulomb").system)
+    assert isinstance(system, NBody) and system.n_nodes == 30 and system.force == "coulomb"
+    assert math.isclose(system.box_size, math.sqrt(12 * 30)) and system.substeps == 32
+    assert (system.softening, system.G, system.dt, system.horizon) == (0.2, 2.0, 0.01, 200)
+    named = instantiate(cfg_factory("train", "system=nbody100").system)
+    assert named.params() == instantiate(cfg_factory("train", "system=nbody").system).params()

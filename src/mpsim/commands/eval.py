@@ -60,7 +60,8 @@ def horizon_rows(metrics: dict[str, Any]) -> list[tuple[str, str]]:
     if not hz:
         return []
     cells = ", ".join(f"{k} steps (t={fmt(v['t'], 3)}): {fmt(v['rmse'])}" for k, v in hz.items())
-    return [("test RMSE at", cells)]
+    raw = ", ".join(f"{k} steps: {fmt(v['rmse_raw'])}" for k, v in hz.items())
+    return [("test RMSE at", f"{cells} (normalised)"), ("", f"{raw} (raw units)")]
 
 
 def run_eval(cfg: DictConfig, output_dir: str | Path | None = None, overrides: list[str] | None = None) -> dict:
