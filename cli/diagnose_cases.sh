@@ -24,7 +24,10 @@ if has 2; then
 mpsim train experiment=lorenz3_forced hydra.run.dir=$OUT/case2/train "${common[@]}"
 # the network must relearn its autonomous part once the drive is explicit: finetune at the full learning rate
 mpsim diagnose experiment=lorenz3_forced init=lorenz3_forced.ckpt fix=true diagnose.fix_lr_factor=1.0 \
-  trainer.max_epochs=30 hydra.run.dir=$OUT/case2/diagnose "${common[@]}"
+  trainer.max_epochs=80 hydra.run.dir=$OUT/case2/diagnose "${common[@]}"
+# control: the same 80-epoch finetune without the effect (is the gain the effect's, or just more training?)
+mpsim train experiment=lorenz3_forced init=lorenz3_forced.ckpt trainer.max_epochs=80 export=false \
+  hydra.run.dir=$OUT/case2/control "${common[@]}"
 fi
 
 if has 4; then
@@ -58,6 +61,11 @@ for case, horizon in (("case1", "50"), ("case2", "10")):
                  f"| {b['rollout_rmse']:.4g} → {a.get('rollout_rmse', float('nan')):.4g} | "
                  f"{hb.get('rmse', float('nan')):.4g} → {ha.get('rmse', float('nan')):.4g} ({horizon} steps, t={hb.get('t', 0):.3g}) "
                  f"| {b['valid_prediction_time']:.3g} → {a.get('valid_prediction_time', float('nan')):.3g} |")
+control = out / "case2" / "control" / "summary.json"
+if control.exists():
+    h = json.loads(control.read_text())["test"]["horizons"]
+    lines += ["", "case 2 control (the same finetune without the effect): rollout RMSE at "
+              + ", ".join(f"{k} steps {v['rmse']:.4g}" for k, v in h.items())]
 lines.append("")
 for noise_dir in sorted((out / "case4").glob("noise*")):
     verdicts = [json.loads(p.read_text())["verdict"] for p in sorted(noise_dir.glob("seed*/diagnose/diagnosis.json"))]

@@ -144,6 +144,48 @@ def test_window_draws_repeat_after_a_resume():
     assert torch.equal(a.training_loss(data, data.t, mse_loss)[0], b.training_loss(data, data.t, mse_loss)[0])
 
 
+def test_sensitivities_and_parameter_shifts():
+    data = linear_data()
+    model = SMNNDiscovery(state_dim=2, window=20, state_names=["x", "y"]).double()
+    model.set_normalisation(*fit_normalisation(data))
+    model._initialise(data.x[:, :20], 0.01)  # a non-trivial preconditioner
+    with torch.no_grad():
+        model.theta.copy_(torch.randn(6, 2, dtype=F64))
+    model.mask[3:, 1] = 0  # dy/dt keeps 1, x, y
+    names = model.sensitivity_names()
+    assert names[:3] == ["dx/dt: 1", "dx/dt: x", "dx/dt: y"] and names[-1] == "dy/dt: y" and len(names) == 9
+    x = data.x[0, :5]  # [5, 1, 2]
+    sens = model.sensitivities(torch.zeros(5, 1, dtype=F64), x, data.edge_index)
+    assert sens.shape == (5, 1, 2, 9)
+    assert torch.equal(sens[..., 0, 3], x[..., 0] ** 2) and torch.equal(sens[..., 0, 4], x[..., 0] * x[..., 1])
+    assert torch.equal(sens[..., 1, 3], torch.zeros(5, 1, dtype=F64)) and torch.equal(sens[..., 1, 8], x[..., 1])
+    before = model.coefficients().detach().clone()
+    model.shift_parameters({"dx/dt: x y": 0.25, "dy/dt: y": -1.0, "not a parameter": 3.0})
+    change = model.coefficients().detach() - before
+    expected = torch.zeros(6, 2, dtype=F64)
+    expected[4, 0], expected[2, 1] = 0.25, -1.0
+    assert torch.allclose(change, expected, atol=1e-10)
+
+
+def test_effects_join_the_field_the_windows_and_the_gradient():
+    from mpsim.effects import CubicStiffness
+
+    data = linear_data(n_traj=4)
+    model = SMNNDiscovery(state_dim=2, window=20, window_batch=8, state_names=["x", "y"],
+                          effects=[CubicStiffness(0.3, target="x")]).double()
+    model.bind_effects(["x", "y"])
+    model.set_normalisation(*fit_normalisation(data))
+    x = data.x[:2, :3]
+    step = model.one_step(x, data.t[:3], data.edge_index)  # ξ = 0: only the effect moves the state
+    drift = -0.3 * x[:, :2, :, 0] ** 3
+    assert torch.allclose((step[..., 0] - x[:, :2, :, 0]) / 0.01, drift, rtol=0.03)
+    assert torch.allclose(step[..., 1], x[:, :2, :, 1])
+    loss, _ = model.training_loss(data, data.t, mse_loss)
+    loss.backward()
+    assert model.effects[0].coef.grad is not None and float(model.effects[0].coef.grad.abs()) > 0
+    assert model.report()["effects"] == ["dx/dt += -0.3·x³"]
+
+
 def test_bad_configs_are_refused():
     with pytest.raises(IncompatibleError, match="control"):
         SMNNDiscovery(state_dim=3, control_dim=2)

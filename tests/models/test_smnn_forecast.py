@@ -92,6 +92,26 @@ def test_training_beats_persistence_and_random_starts(pendulums):
     assert float(err) < 0.5 * float(persistence)
 
 
+def test_whole_state_couples_every_node_and_keeps_its_graph_size(pendulums):
+    model = SMNNForecaster(state_dim=2, context_steps=3, chunk=4, hidden=16, whole_state=True, n_nodes=2).double()
+    model.set_normalisation(*fit_normalisation(pendulums))
+    assert model.encoder[0].in_features == 3 * 4 + 4 and not model.transfers_across_graphs
+    x = pendulums.x
+    assert torch.allclose(model.rollout(x[:, :3], pendulums.t, pendulums.edge_index)[:, 3:],
+                          x[:, 2:3].expand_as(x[:, 3:]), atol=1e-10)  # untrained: persistence
+    with torch.no_grad():
+        model.encoder[-1].weight.normal_(0, 0.1)
+    pred = model.rollout(x[:, :3], pendulums.t, pendulums.edge_index)
+    moved = x[:, :3].clone()
+    moved[:, :, 1] += 0.5  # node 1's past changes node 0's forecast: one ODE for the whole state
+    other = model.rollout(moved, pendulums.t, pendulums.edge_index)
+    assert not torch.allclose(other[:, 3:, 0], pred[:, 3:, 0])
+    with pytest.raises(ConfigError, match="built for 2 nodes"):
+        model.rollout(torch.zeros(1, 3, 3, 2, dtype=F64), pendulums.t, complete(3))
+    with pytest.raises(ConfigError, match="n_nodes"):
+        SMNNForecaster(state_dim=2, whole_state=True)
+
+
 def test_bad_configs_are_refused():
     with pytest.raises(ConfigError, match="solver_method"):
         SMNNForecaster(state_dim=2, solver_method="lu")

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from mpsim.bench.smnn_table3 import relative_mse, solver_inputs, table3_systems, truth
 from mpsim.errors import MpsimError
 from mpsim.solvers import smnn_cyclic
 from mpsim.solvers.mnn_dense import dense_solve
@@ -98,67 +99,24 @@ def test_blocks_match_row_by_row_least_squares(central, O):
         assert rel_err(u, ref) < (1e-7 if O == 5 else 1e-11), method
 
 
-# ---- paper Table 3 (ODEBench linear ODEs, 1000 steps of 0.01, O = 3) ---------------------------------------
-def _table3_systems():
-    """name -> (coefficients [1, E, D, 3], rhs [1, E], init [D], closed form of x_0(t), published relMSE)."""
-    sys_ = {}
-    c0, c1, c2 = 0.7, 1.2, 2.31
-    sys_["R"] = ([[[[1 / c1, c2, 0]]]], [[c0]], [10.0],
-                 lambda t, i: c0 * c1 + (i[0] - c0 * c1) * torch.exp(-t / (c1 * c2)),
-                 (4.8e-12, 4.8e-12, 2.2e-7))
-    p0 = 0.23
-    sys_["P"] = ([[[[p0, -1, 0]]]], [[0.0]], [4.78], lambda t, i: i[0] * torch.exp(p0 * t),
-                 (9.4e-12, 9.4e-12, 9.6e-8))
-    l0, l1 = 0.32, 0.28
-    sys_["L"] = ([[[[l0 + l1, 1, 0]]]], [[l0]], [0.14],
-                 lambda t, i: l0 / (l0 + l1) - (l0 / (l0 + l1) - i[0]) * torch.exp(-(l0 + l1) * t),
-                 (2.6e-11, 2.6e-11, 7.1e-7))
-    h0, w0 = 2.1, math.sqrt(2.1)
-    sys_["H"] = ([[[[0, 1, 0], [-1, 0, 0]], [[h0, 0, 0], [0, 1, 0]]]], [[0.0, 0.0]], [0.4, -0.03],
-                 lambda t, i: i[0] * torch.cos(w0 * t) + i[1] / w0 * torch.sin(w0 * t),
-                 (9.5e-8, 7.7e-8, 5.1e-7))
-    d0, d1 = 4.5, 0.43
-    w = math.sqrt(d0 - d1**2 / 4)
-    sys_["D"] = ([[[[0, 1, 0], [-1, 0, 0]], [[d0, 0, 0], [d1, 1, 0]]]], [[0.0, 0.0]], [0.12, 0.043],
-                 lambda t, i: torch.exp(-d1 * t / 2) * (i[0] * torch.cos(w * t) + (d1 * i[0] / 2 + i[1]) / w
-                                                         * torch.sin(w * t)),
-                 (2.1e-7, 2.3e-7, 4.0e-7))
-    sys_["T"] = ([[[[0, 1, 0], [-1, 0, 0], [0, 0, 0]], [[0, 0, 0], [0, 1, 0], [-1, 0, 0]],
-                   [[0, 0, 0], [1, 0, 0], [1, 1, 0]]]], [[0.0, 0.0, 0.0]], [0.0, -1.0, 1.0],
-                 lambda t, i: i[0] + i[1] + i[2] + torch.exp(-t / 2) * (
-                     -(i[1] + i[2]) * torch.cos(math.sqrt(0.75) * t) + (i[1] - i[2]) / math.sqrt(3)
-                     * torch.sin(math.sqrt(0.75) * t)),
-                 (1.0e-9, 6.8e-10, 4.3e-9))
-    return sys_
-
-
-TABLE3 = _table3_systems()
+# ---- paper Table 3 (ODEBench linear ODEs, 1000 steps of 0.01, O = 3; systems in mpsim.bench.smnn_table3) ----
+TABLE3 = table3_systems()
 
 
 def _table3_inputs(name):
-    coef, rhs, init, _, _ = TABLE3[name]
-    init = torch.tensor(init, dtype=F64)[None, :, None]  # [S=1, D, I=1]: only x(0)
-    return torch.tensor(coef, dtype=F64), torch.tensor(rhs, dtype=F64), init
-
-
-def _truth(name, t):
-    """x_0 and its first two derivatives from the closed form (autograd of the formula). [T, 3]"""
-    t = t.clone().requires_grad_(True)
-    x = TABLE3[name][3](t, TABLE3[name][2])
-    d1 = torch.autograd.grad(x.sum(), t, create_graph=True)[0]
-    d2 = torch.autograd.grad(d1.sum(), t)[0]
-    return torch.stack([x.detach(), d1.detach(), d2], -1)
+    return solver_inputs(TABLE3[name])
 
 
 @pytest.mark.parametrize("name", list(TABLE3))
 def test_table3_relative_mse(name):
     T, h = 1000, 0.01
-    truth = _truth(name, torch.arange(T, dtype=F64) * h)
-    published = torch.tensor(TABLE3[name][4], dtype=F64)
+    exact = truth(TABLE3[name], torch.arange(T, dtype=F64) * h)
+    published = torch.tensor(TABLE3[name].published, dtype=F64)
     for method in METHODS:
         u = smnn_solve(*_table3_inputs(name), torch.tensor([h], dtype=F64), n_steps=T, method=method)
         # relMSE_k = mean_t (û_k − x⁽ᵏ⁾)² / Var_t(x⁽ᵏ⁾), variable x_0, orders k = 0, 1, 2
-        rel_mse = ((u[:, 0, :] - truth) ** 2).mean(0) / truth.var(0, unbiased=False)
+        rel_mse = relative_mse(u, exact)
+        assert torch.allclose(rel_mse, ((u[:, 0, :] - exact) ** 2).mean(0) / exact.var(0, unbiased=False))
         ratio = rel_mse / published
         assert bool(((ratio > 1 / 3) & (ratio < 3)).all()), f"{method}: {rel_mse.tolist()} vs {published}"
 
@@ -227,6 +185,11 @@ def test_auto_picks_cyclic_for_thin_steps_and_banded_for_many_rhs():
     assert choose_method(1, 9, 1, cpu) == "cyclic"  # one trajectory: per-step dispatch dominates
     assert choose_method(1, 9, 1, cpu, n_steps=1000) == "cyclic"
     assert choose_method(1, 9, 1, cpu, n_steps=100) == "banded"  # short: the sweep is cheaper
+    # one shared matrix, 1536 columns (the bench's Lorenz shapes): banded for windows, cyclic for long sequences
+    assert choose_method(1, 3, 1536, cpu, n_steps=50) == "banded"
+    assert choose_method(1, 3, 1536, cpu, n_steps=500) == "banded"
+    assert choose_method(1, 3, 1536, cpu, n_steps=5000) == "cyclic"
+    assert choose_method(1536, 3, 1, cpu, n_steps=5000) == "banded"  # one matrix per sample: factor-bound
     coef, rhs, init, steps = random_problem(40, E=1, D=1, O=3, S=1, I=1, seed=4)
     banded = smnn_solve(coef, rhs, init, steps, method="banded")
     assert rel_err(smnn_solve(coef, rhs, init, steps), banded) < 1e-10

@@ -30,6 +30,8 @@ from mpsim.solvers.mnn_dense import DenseSizeError, dense_solve, mnn_dense_solve
 from mpsim.solvers.smnn import smnn_solve
 
 SOLVERS = ("banded", "cyclic", "dense", "mnn")
+SOLVER_NAMES = {"banded": "S-MNN banded", "cyclic": "S-MNN cyclic reduction", "dense": "S-MNN dense",
+                "mnn": "MNN dense (slack)"}
 LHS_MODES = ("shared", "per_sample")
 
 
@@ -49,8 +51,21 @@ def lorenz_inputs(
 
 
 def fwd_bwd(method: str, batch: int, length: int, lhs: str, n_orders: int, max_bytes: int) -> None:
-    """One forward + backward pass of `method` on fresh Lorenz-shaped inputs (module level: picklable)."""
-    coef, rhs, init = lorenz_inputs(batch, length, lhs, n_orders)
+    """One forward + backward pass of `method` on fresh Lorenz-shaped inputs (module level: picklable; the
+    peak-memory measurement, which counts the inputs as a model's step would)."""
+    solve_and_backward(method, *lorenz_inputs(batch, length, lhs, n_orders), max_bytes)
+
+
+def solve_and_backward(
+    method: str,
+    coef: torch.Tensor,  # [1 or batch, 3, 1, 1, 1, O] coefficients
+    rhs: torch.Tensor,  # [batch, 3, T, 1] right-hand sides
+    init: torch.Tensor,  # [batch, 3, 1, 1, 1] initial values
+    max_bytes: int,
+) -> None:
+    """Forward + backward of one solver on given inputs (what is timed: generating the random inputs is not)."""
+    for x in (coef, rhs, init):
+        x.grad = None
     if method == "dense":
         u = dense_solve(coef, rhs, init, 0.01, max_bytes=max_bytes, check=False)
     elif method == "mnn":
@@ -135,15 +150,19 @@ class SMNNBench(Suite):
         fn = functools.partial(fwd_bwd, method, batch, length, lhs, self.n_orders, self.max_bytes)
         row: dict[str, Any] = {"lhs": lhs, "method": method, "batch": batch, "T": length, "status": "ok",
                                "fwd_bwd_ms": math.nan, "peak_mib": math.nan}
+        inputs = lorenz_inputs(batch, length, lhs, self.n_orders)
+        step = functools.partial(solve_and_backward, method, *inputs, self.max_bytes)
         try:
-            stats = timeit(fn, repeats=self.repeats, warmup=1, max_seconds=20.0)
+            stats = timeit(step, repeats=self.repeats, warmup=1, max_seconds=20.0)
         except DenseSizeError as err:
             row["status"] = (f"refused: needs {err.need_bytes / 2**30:.1f} GiB "
                              f"(budget {err.limit_bytes / 2**30:.1f} GiB)")
             return row
         row["fwd_bwd_ms"] = 1e3 * stats["median_s"]
         if self.memory:
-            row["peak_mib"] = peak_memory_mb(fn, threads=torch.get_num_threads())
+            # one thread in the forked child: OpenMP is not fork-safe once the parent has run a parallel region
+            # (a child with 2 threads hangs), and the peak memory does not depend on the thread count
+            row["peak_mib"] = peak_memory_mb(fn, threads=1)
         return row
 
     # ---- summary ---------------------------------------------------------------------------------------
@@ -156,29 +175,16 @@ class SMNNBench(Suite):
         if self.load is not None:
             lines.append(f"- 1-minute load average {self.load[0]:.1f} before and {self.load[1]:.1f} after the run "
                          f"on {os.cpu_count()} CPU(s): absolute times scale with it, ratios much less")
+        lines += ["", *self.table1(rows), "", *self.exponents(rows), ""]
         b0, t0 = self.base_batch, self.base_length
         for lhs in self.lhs_modes:
             fast = self._find(rows, lhs=lhs, method="banded", batch=b0, T=t0)
             for other in ("dense", "mnn", "cyclic"):
                 slow = self._find(rows, lhs=lhs, method=other, batch=b0, T=t0)
                 if fast and slow:
-                    lines.append(f"- {lhs} LHS, batch {b0}, T={t0}: banded is {slow['fwd_bwd_ms'] / fast['fwd_bwd_ms']:.1f}× "
+                    ratio = slow["fwd_bwd_ms"] / fast["fwd_bwd_ms"]
+                    lines.append(f"- {lhs} LHS, batch {b0}, T={t0}: banded is {ratio:.1f}× "
                                  f"faster than {other} ({fast['fwd_bwd_ms']:.1f} vs {slow['fwd_bwd_ms']:.1f} ms)")
-            for method in self.methods:
-                for key, unit, start in (("fwd_bwd_ms", "time", self.fit_from),
-                                         ("peak_mib", "peak memory", self.fit_memory_from)):
-                    sweep = sorted((r["T"], r[key]) for r in rows if r["lhs"] == lhs and r["method"] == method
-                                   and r["batch"] == b0 and r["status"] == "ok" and r["T"] >= start)
-                    if len(sweep) >= 2:
-                        k = scaling_exponent([s for s, _ in sweep], [v for _, v in sweep])
-                        lines.append(f"- {lhs} LHS, {method}: {unit} ∝ T^{k:.2f} (batch {b0}, T = {sweep[0][0]}…"
-                                     f"{sweep[-1][0]})")
-                sweep = sorted((r["batch"], r["fwd_bwd_ms"]) for r in rows if r["lhs"] == lhs and r["method"] == method
-                               and r["T"] == t0 and r["status"] == "ok")
-                if len(sweep) >= 2:
-                    k = scaling_exponent([s for s, _ in sweep], [v for _, v in sweep])
-                    lines.append(f"- {lhs} LHS, {method}: time ∝ batch^{k:.2f} (T={t0}, batch {sweep[0][0]}…"
-                                 f"{sweep[-1][0]})")
         fast = self._find(rows, lhs="shared", method="banded", batch=b0, T=t0)
         slow = self._find(rows, lhs="per_sample", method="mnn", batch=b0, T=t0)
         if fast and slow:  # paper Table 1: S-MNN with its frozen left-hand side vs mech-nn's dense MNN
@@ -194,6 +200,51 @@ class SMNNBench(Suite):
                     lines.append(f"- T={length}, batch {b0}, shared LHS: {method} {r['fwd_bwd_ms'] / 1e3:.2f} s "
                                  f"forward + backward, peak {r['peak_mib']:.0f} MiB")
         return lines
+
+    def table1(self, rows: list[dict[str, Any]]) -> list[str]:
+        """The paper's Table 1 layout: one column per (batch, T), time rows then memory rows per solver."""
+        paper = [(512, 50), (512, 5), (512, 500), (64, 50), (4096, 50)]
+        measured = list(dict.fromkeys((r["batch"], r["T"]) for r in rows))
+        cols = [c for c in paper if c in measured] + [c for c in measured if c not in paper]
+        series = list(dict.fromkeys((r["method"], r["lhs"]) for r in rows))
+        head = "| (batch, T) | " + " | ".join(f"({b}, {t})" for b, t in cols) + " |"
+        out = ["Forward + backward of the solver on the Lorenz discovery shapes (paper Table 1 layout; the paper "
+               "times a whole optimisation step on an H100). —: not run.", "", head,
+               "|---|" + "---|" * len(cols)]
+        for key, unit, fmt in (("fwd_bwd_ms", "time, ms", "{:.1f}"), ("peak_mib", "peak memory, MiB", "{:.0f}")):
+            for method, lhs in series:
+                cells = []
+                for b, t in cols:
+                    r = next((r for r in rows if (r["method"], r["lhs"], r["batch"], r["T"]) == (method, lhs, b, t)),
+                             None)
+                    if r is None:
+                        cells.append("—")
+                    elif r["status"] != "ok":
+                        cells.append(r["status"].split(" (")[0].replace("refused: needs", "refused, needs"))
+                    else:
+                        cells.append(fmt.format(r[key]) if r[key] == r[key] else "—")
+                label = f"{unit}: {SOLVER_NAMES[method]} ({lhs.replace('_', '-')} LHS)"
+                out.append(f"| {label} | " + " | ".join(cells) + " |")
+        return out
+
+    def exponents(self, rows: list[dict[str, Any]]) -> list[str]:
+        """Least-squares slopes of log(time) and log(memory) against log(T) at the base batch, and of log(time)
+        against log(batch) at the base T."""
+        b0, t0 = self.base_batch, self.base_length
+        out = [f"Fitted scaling exponents (1 = linear): time over T ≥ {self.fit_from} and peak memory over "
+               f"T ≥ {self.fit_memory_from} at batch {b0}, time over batch at T = {t0}.", "",
+               "| solver | time ∝ T^k | memory ∝ T^k | time ∝ batch^k |", "|---|---|---|---|"]
+        for method, lhs in dict.fromkeys((r["method"], r["lhs"]) for r in rows):
+            ok = [r for r in rows if r["method"] == method and r["lhs"] == lhs and r["status"] == "ok"]
+            cells = []
+            for key, axis, fixed, start in (("fwd_bwd_ms", "T", ("batch", b0), self.fit_from),
+                                            ("peak_mib", "T", ("batch", b0), self.fit_memory_from),
+                                            ("fwd_bwd_ms", "batch", ("T", t0), 0)):
+                pts = sorted((r[axis], r[key]) for r in ok if r[fixed[0]] == fixed[1] and r[axis] >= start)
+                k = scaling_exponent([p for p, _ in pts], [v for _, v in pts]) if len(pts) >= 2 else math.nan
+                cells.append("—" if k != k else f"{k:.2f} ({axis} = {pts[0][0]}…{pts[-1][0]})")
+            out.append(f"| {SOLVER_NAMES[method]} ({lhs.replace('_', '-')} LHS) | " + " | ".join(cells) + " |")
+        return out
 
     def plot(self, rows: list[dict[str, Any]], out_dir: Path) -> list[str]:
         import matplotlib.pyplot as plt

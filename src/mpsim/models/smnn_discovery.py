@@ -22,7 +22,9 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import nn
 
+from mpsim.effects import Effect, EffectContext, min_delay, total
 from mpsim.errors import ConfigError, IncompatibleError
+from mpsim.graphs.batch import batch_graph
 from mpsim.models.base import Model
 from mpsim.models.mpnode import mlp
 from mpsim.solvers.mnn_dense import dense_solve, mnn_dense_solve
@@ -66,6 +68,21 @@ def monomial_name(term: tuple[int, ...], names: Sequence[str]) -> str:
     return " ".join(names[v] + (f"^{p}" if p > 1 else "") for v, p in sorted({v: term.count(v) for v in term}.items()))
 
 
+def parse_monomial(text: str) -> list[tuple[str, int]]:
+    """[(name, power), ...] of a monomial written "x^3", "x y^2" or "x*y*z" (names of state variables); "x**3"
+    is read as "x^3" (Hydra's command-line grammar takes it unquoted: model.extra_terms=[x**3])."""
+    factors = []
+    for token in text.replace("**", "^").replace("*", " ").split():
+        name, _, power = token.partition("^")
+        if not name or (power and not power.isdigit()) or (power and int(power) < 1):
+            raise ConfigError(f"model.extra_terms: cannot read {text!r}; write monomials like \"x^3\", \"x y^2\" "
+                              "or \"x*z\".")
+        factors.append((name, int(power) if power else 1))
+    if not factors:
+        raise ConfigError(f"model.extra_terms: {text!r} is empty; write monomials like \"x^3\".")
+    return factors
+
+
 def uniform_step(t: torch.Tensor) -> float | None:  # t: [T] times
     """The grid's step when `t` is uniform (to 1e-6 relative), else None."""
     dt = t[1:] - t[:-1]
@@ -86,14 +103,29 @@ def sample_windows(
 
 
 class _PolynomialField(nn.Module):
-    """dx/dt = φ(x) ξ for the ODE solver (ξ fixed during one rollout)."""
+    """dx/dt = φ(x) ξ + Σ effects (ξ fixed during one solve), optionally in a rescaled time.
 
-    def __init__(self, library: Callable[[torch.Tensor], torch.Tensor], xi: torch.Tensor) -> None:
+    With `scale` and `start`, each trajectory b runs in τ ∈ [0, 1] over its own step: t = start_b + τ·scale_b
+    and dx/dτ = scale_b · dx/dt (the one-step predictions of `SMNNDiscovery.one_step`).
+    """
+
+    def __init__(
+        self,
+        model: SMNNDiscovery,
+        xi: torch.Tensor,  # [n_terms, D] coefficients
+        graph: Any = None,  # BatchedGraph of the batch (effects that read neighbours), or None
+        scale: torch.Tensor | None = None,  # [B, 1, 1] step length per trajectory (None: plain time)
+        start: torch.Tensor | None = None,  # [B, 1] start time per trajectory (with scale)
+    ) -> None:
         super().__init__()
-        self.library, self.xi = library, xi
+        self.model, self.xi, self.graph, self.scale, self.start = model, xi, graph, scale, start
 
-    def forward(self, t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:  # t: [], x: [B, N, D]
-        return self.library(x) @ self.xi
+    def forward(self, t: torch.Tensor, x: torch.Tensor, history=None) -> torch.Tensor:  # t: [], x: [B, N, D]
+        dx = self.model.library(x) @ self.xi
+        if len(self.model.effects):
+            when = t if self.scale is None else self.start + t * self.scale[..., 0]  # [] or [B, 1]
+            dx = dx + total(self.model.effects, when, x, EffectContext(self.graph, history))
+        return dx if self.scale is None else self.scale * dx
 
 
 class SMNNDiscovery(Model):
@@ -121,9 +153,21 @@ class SMNNDiscovery(Model):
             an extra loss on var.
         seed: seed of the window sampling (combined with the step count, so a resumed run draws the same
             windows).
-        state_names: names used in the printed equations (default: x, y, z for D = 3, else x0, x1, ...).
-        solver: integrates the discovered ODE in `rollout` (default dopri5).
+        state_names: names used in the printed equations and in `extra_terms` (default: the data's state
+            names; x, y, z for D = 3, else x0, x1, ... before the model is bound to data).
+        extra_terms: monomials added to the library beyond `degree`, by state name: "x^3" (or "x**3",
+            which the command line takes unquoted), "x y^2", "x*z" — e.g. the term `mpsim diagnose` found
+            missing (`CubicStiffness` on x is "x^3"). They enter every equation; an extra term is masked when
+            its typical contribution |ξ|·φ(σ) (σ: the states' standard deviations) is at most what the
+            threshold allows a linear term, threshold·mean(σ), since a raw threshold of 0.1 would remove any
+            cubic coefficient of realistic size.
+        effects: named terms (`mpsim.effects`) added to every equation they target, with their coefficients
+            trained alongside ξ (in raw units: prefer `extra_terms` for polynomial terms in a rediscovery).
+        solver: integrates the discovered ODE in `rollout` and `one_step` (default dopri5).
     """
+
+    #: constants and linear terms are in every library (degree ≥ 1): the residual loop refits them as nuisance
+    represents = ("Bias", "LinearDamping")
 
     def __init__(
         self,
@@ -141,9 +185,11 @@ class SMNNDiscovery(Model):
         denoiser_hidden: int = 0,
         seed: int = 0,
         state_names: Sequence[str] | None = None,
+        extra_terms: Sequence[str] = (),
+        effects: Sequence[Effect] = (),
         solver: ODESolver | None = None,
     ) -> None:
-        super().__init__(state_dim, control_dim)
+        super().__init__(state_dim, control_dim, effects)
         if control_dim:
             raise IncompatibleError(f"SMNNDiscovery's library has no control terms, but the data has {control_dim} "
                                     "controls per node. Use a system without controls.")
@@ -157,11 +203,19 @@ class SMNNDiscovery(Model):
         self.solver_method, self.threshold, self.seed = solver_method, float(threshold), int(seed)
         self.threshold_every, self.threshold_rounds = int(threshold_every), int(threshold_rounds)
         self.solver = solver or ODESolver()
-        self.terms = monomials(state_dim, degree)
-        n_terms = len(self.terms)
-        # library as a gather from [x, 1]: the constant slot pads lower-degree terms (gradient-safe, no pow)
-        index = [list(term) + [state_dim] * (degree - len(term)) for term in self.terms]
-        self.register_buffer("term_index", torch.tensor(index, dtype=torch.long), persistent=False)
+        self.represents_polynomials = int(degree)  # the residual loop projects these out (`Model`)
+        if degree >= 3:
+            self.represents = (*type(self).represents, "CubicStiffness")
+        self.names_given = bool(state_names)
+        default = ["x", "y", "z"] if state_dim == 3 else [f"x{i}" for i in range(state_dim)]
+        self.state_names = list(state_names) if state_names else default
+        if len(self.state_names) != state_dim:
+            raise ConfigError(f"model.state_names has {len(self.state_names)} names for {state_dim} states.")
+        self.extra_terms = [str(term) for term in extra_terms]
+        self.extra = [parse_monomial(term) for term in self.extra_terms]  # [(name, power), ...] per term
+        n_terms = len(monomials(state_dim, degree)) + len(self.extra)
+        self.register_buffer("term_index", torch.zeros(n_terms, 1, dtype=torch.long), persistent=False)
+        self._resolve_terms(strict=self.names_given)
         self.register_buffer("mask", torch.ones(n_terms, state_dim))
         # ξ = mask ⊙ deriv_scale ⊙ (precond @ θ): precond whitens the library on the first training batch
         self.register_buffer("precond", torch.eye(n_terms))
@@ -181,14 +235,45 @@ class SMNNDiscovery(Model):
         if denoiser_hidden > 0:
             self.denoiser = mlp(window * state_dim, denoiser_hidden, window * state_dim, 2, "relu")
             nn.init.zeros_(self.denoiser[-1].weight)  # var = x at the start
-        default = ["x", "y", "z"] if state_dim == 3 else [f"x{i}" for i in range(state_dim)]
-        self.state_names = list(state_names) if state_names else default
-        if len(self.state_names) != state_dim:
-            raise ConfigError(f"model.state_names has {len(self.state_names)} names for {state_dim} states.")
+
+    def _resolve_terms(self, strict: bool) -> None:
+        """Library terms from `degree` and `extra_terms` under the current state names; the gather index.
+
+        With `strict=False` (names not known yet), extra terms whose names do not resolve wait for `bind_effects`.
+        """
+        d, names = self.state_dim, self.state_names
+        terms = monomials(d, self.degree)
+        for text, factors in zip(self.extra_terms, self.extra, strict=True):
+            unknown = [name for name, _ in factors if name not in names]
+            if unknown:
+                if strict:
+                    raise ConfigError(f"model.extra_terms: {text!r} names {unknown}, not state variables; choose from "
+                                      f"{names}.")
+                self.terms = None
+                return
+            term = tuple(sorted(i for name, p in factors for i in [names.index(name)] * p))
+            if term in terms:
+                raise ConfigError(f"model.extra_terms: {text!r} is already in the library (degree {self.degree}) "
+                                  "or listed twice.")
+            terms.append(term)
+        self.terms = terms
+        # library as a gather from [x, 1]: the constant slot pads lower-degree terms (gradient-safe, no pow)
+        width = max(len(term) for term in terms)
+        index = [list(term) + [d] * (width - len(term)) for term in terms]
+        self.term_index = torch.tensor(index, dtype=torch.long, device=self.term_index.device)
+
+    def bind_effects(self, state_names: Sequence[str]) -> None:
+        """Take the data's state names (unless `state_names` was given) and resolve `extra_terms` with them."""
+        super().bind_effects(state_names)
+        if not self.names_given and len(state_names) == self.state_dim:
+            self.state_names = list(state_names)
+        self._resolve_terms(strict=True)
 
     # ---- the library and the coefficients ------------------------------------------------------------------
     def library(self, x: torch.Tensor) -> torch.Tensor:  # x: [..., D] states (raw units)
         """[..., n_terms] monomials of x."""
+        if self.terms is None:
+            self._resolve_terms(strict=True)  # raises: the extra terms name unknown variables
         ext = torch.cat([x, torch.ones_like(x[..., :1])], -1)
         return ext[..., self.term_index].prod(-1)
 
@@ -229,6 +314,8 @@ class SMNNDiscovery(Model):
         self,
         windows: torch.Tensor,  # [M, W, N, D] observed windows (raw units)
         steps: torch.Tensor | float,  # [M, W-1] step sizes per window, or one shared step
+        times: torch.Tensor | None = None,  # [M, W] absolute times of the windows (time-dependent effects)
+        edge_index: torch.Tensor | None = None,  # [2, E] graph (effects that read neighbours)
     ) -> tuple[torch.Tensor, torch.Tensor]:  # [M, W, N, D] layer solution, [M, W, N, D] its input var
         """Integrate u' = φ(var) ξ over each window from var's first state with the least-squares layer."""
         m, w, n, d = windows.shape
@@ -237,6 +324,15 @@ class SMNNDiscovery(Model):
             flat = self.normalise(windows).permute(0, 2, 1, 3).reshape(m, n, w * d)
             var = windows + self.state_std * self.denoiser(flat).reshape(m, n, w, d).permute(0, 2, 1, 3)
         rhs = self.library(var) @ self.coefficients()  # [M, W, N, D]
+        if len(self.effects):
+            if min_delay(self.effects) > 0:
+                raise ConfigError("SMNNDiscovery cannot train a DelayedFeedback effect (its windows carry no "
+                                  "history); drop it from model.effects.")
+            when = torch.zeros(m, w, dtype=var.dtype, device=var.device) if times is None else times.to(var)
+            flat = var.reshape(m * w, n, d)
+            ei = torch.zeros(2, 0, dtype=torch.long) if edge_index is None else edge_index
+            graph = batch_graph(ei.to(var.device), m * w, n, dtype=var.dtype)
+            rhs = rhs + total(self.effects, when.reshape(m * w, 1), flat, EffectContext(graph)).reshape(m, w, n, d)
         # every state variable is its own 1-D ODE u' = r (E = D = 1): one shared left-hand side, M·N·D columns
         coef = rhs.new_zeros(1, 1, 1, self.n_orders)
         coef[..., 1] = 1.0
@@ -269,7 +365,9 @@ class SMNNDiscovery(Model):
             steps = dt
         if not bool(self.initialised):
             self._initialise(win, float(t[1] - t[0]))
-        pred, var = self.integrate_windows(win, steps)
+        times = t[start[:, None] + torch.arange(length, device=t.device)] if len(self.effects) else None
+        edges = batch.edge_index if batch.edge_index.dim() == 2 else batch.edge_index[0]
+        pred, var = self.integrate_windows(win, steps, times, edges)
         loss = loss_fn(self.normalise(pred), self.normalise(win), delta)
         if self.denoiser is not None:
             loss = loss + loss_fn(self.normalise(var), self.normalise(win), delta)
@@ -282,26 +380,122 @@ class SMNNDiscovery(Model):
 
     @torch.no_grad()
     def after_step(self) -> None:
-        """Count the step; every `threshold_every` steps mask the coefficients with |ξ| ≤ threshold."""
+        """Count the step; every `threshold_every` steps mask the coefficients with |ξ| ≤ threshold (extra terms:
+        see `term_thresholds`)."""
         self.n_updates += 1
         every, done = self.threshold_every, int(self.rounds_done)
         if every > 0 and done < self.threshold_rounds and int(self.n_updates) % every == 0:
-            self.mask.mul_((self.coefficients().abs() > self.threshold).to(self.mask))
+            keep = self.coefficients().abs() > self.term_thresholds()[:, None].to(self.mask)
+            self.mask.mul_(keep.to(self.mask))
             self.rounds_done += 1
+
+    def term_thresholds(self) -> torch.Tensor:
+        """[n_terms] the threshold of each library term: `threshold` for the degree-`degree` library (raw units,
+        as the reference), and for an extra term the coefficient whose typical contribution |ξ|·φ(σ) equals
+        threshold·mean(σ), with σ the states' standard deviations."""
+        n_base = len(self.terms) - len(self.extra)
+        std = self.state_std.double()
+        size = self.library(std)  # [n_terms] φ_j at the typical state size
+        out = torch.full_like(size, self.threshold)
+        out[n_base:] = self.threshold * std.mean() / size[n_base:].abs().clamp(min=1e-300)
+        return out
 
     # ---- rollout and report --------------------------------------------------------------------------------
     def rollout(
         self,
         x0: torch.Tensor,  # [B, N, D] initial states (raw units)
         t: torch.Tensor,  # [T] times
-        edge_index: torch.Tensor,  # unused: every node follows the same discovered ODE
+        edge_index: torch.Tensor,  # [2, E] or [B, 2, E] graph, read only by effects that couple neighbours
         u: torch.Tensor | None = None,  # unused: no controls
         node_features: torch.Tensor | None = None,  # unused
         meta: dict[str, Any] | None = None,  # unused
     ) -> torch.Tensor:
-        """[B, T, N, D] the discovered ODE integrated from x0 with the model's ODE solver."""
-        field = _PolynomialField(self.library, self.coefficients().to(x0))
-        return self.solver(field, x0, t.to(x0))
+        """[B, T, N, D] the discovered ODE (plus any effects) integrated from x0 with the model's ODE solver."""
+        field = _PolynomialField(self, self.coefficients().to(x0), self._graph(edge_index, x0))
+        return self.integrate(field, x0, t.to(x0), self.solver)
+
+    def one_step(
+        self,
+        x: torch.Tensor,  # [B, T, N, D] observed states (raw units)
+        t: torch.Tensor,  # [T] times
+        edge_index: torch.Tensor,  # [2, E] or [B, 2, E] graph, read only by effects that couple neighbours
+        u: torch.Tensor | None = None,  # unused: no controls
+        node_features: torch.Tensor | None = None,  # unused
+        meta: dict[str, Any] | None = None,  # unused
+    ) -> torch.Tensor:
+        """[B, T−1, N, D] each x_{k+1} predicted from the observed x_k by the discovered ODE.
+
+        All B·(T−1) steps are one batched solve: the autonomous ODE over a step of length Δ_k is integrated in
+        the rescaled time τ ∈ [0, 1], dx/dτ = Δ_k φ(x) ξ, so steps of any length share one call of the solver.
+        """
+        b, n_t, n, d = x.shape
+        if n_t < 2:
+            return x[:, :0]
+        if min_delay(self.effects) > 0:  # a delayed term needs each step's history: step by step
+            return super().one_step(x, t, edge_index, u, node_features, meta)
+        t = t.to(x)
+        dt = t[1:] - t[:-1]  # [T-1]
+        starts = x[:, :-1].reshape(b * (n_t - 1), n, d)
+        scale = dt.expand(b, n_t - 1).reshape(-1, 1, 1)  # [B·(T−1), 1, 1] each start's step length
+        start = t[:-1].expand(b, n_t - 1).reshape(-1, 1)  # [B·(T−1), 1] each start's time
+        if edge_index.dim() == 3:  # one graph per trajectory: repeat it for each of its steps
+            edge_index = edge_index.repeat_interleave(n_t - 1, dim=0)
+        field = _PolynomialField(self, self.coefficients().to(x), self._graph(edge_index, starts), scale, start)
+        tau = torch.tensor([0.0, 1.0], dtype=x.dtype, device=x.device)
+        return self.solver(field, starts, tau)[:, 1].reshape(b, n_t - 1, n, d)
+
+    def _graph(self, edge_index: torch.Tensor, x: torch.Tensor) -> Any:  # edge_index: [2, E] or [B, 2, E]
+        """The batched graph for effects that read neighbours (None without effects)."""
+        if not len(self.effects):
+            return None
+        return batch_graph(edge_index.to(x.device), x.shape[0], x.shape[1], dtype=x.dtype)
+
+    # ---- interpretable parameters (for the residual loop's joint refit) --------------------------------------
+    def _active(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """([P] library index, [P] equation index) of the active coefficients, equation-major."""
+        eq, term = torch.nonzero(self.mask.mT > 0, as_tuple=True)
+        return term, eq
+
+    def sensitivities(
+        self,
+        t: torch.Tensor,  # [M, 1] or [] times (unused: the library is autonomous)
+        x: torch.Tensor,  # [M, N, D] states (raw units)
+        edge_index: torch.Tensor,  # unused
+    ) -> torch.Tensor:
+        """[M, N, D, P] ∂(dx/dt)/∂ξ for the P active coefficients: the term's monomial in its own equation."""
+        term, eq = self._active()
+        phi = self.library(x)[..., term]  # [M, N, P]
+        onehot = torch.nn.functional.one_hot(eq, self.state_dim).mT.to(phi)  # [D, P]
+        return phi[..., None, :] * onehot
+
+    def sensitivity_names(self) -> list[str]:
+        term, eq = self._active()
+        return [f"d{self.state_names[i]}/dt: {self.monomial(self.terms[j])}" for j, i in zip(term.tolist(), eq.tolist(),
+                                                                                        strict=True)]
+
+    @torch.no_grad()
+    def shift_parameters(self, shifts: dict[str, float]) -> None:
+        """Add `shifts` ({"dx/dt: x z": Δ, ...}, see `sensitivity_names`) to the discovered coefficients."""
+        names = self.sensitivity_names()
+        term, eq = self._active()
+        delta = torch.zeros_like(self.mask, dtype=torch.float64)
+        for name, value in shifts.items():
+            if name in names:
+                k = names.index(name)
+                delta[term[k], eq[k]] += value
+        if not bool(delta.ne(0).any()):
+            return
+        # ξ = mask ⊙ s ⊙ (P θ): on the active entries, Δθ = P⁻¹ (Δξ / s)
+        step = torch.linalg.solve(self.precond.double(), delta / self.deriv_scale.double())
+        if self.theta is not None:
+            self.theta.add_(step.to(self.theta))
+        else:  # θ is the reference MLP's output: move its last bias
+            bias = self.param_net[-1].bias
+            bias.add_(step.reshape(-1).to(bias))
+
+    def monomial(self, term: tuple[int, ...]) -> str:
+        """The readable name of a library term ("x z", "x^3") under the model's state names."""
+        return monomial_name(term, self.state_names)
 
     def equations(self, digits: int = 3) -> dict[str, str]:
         """Readable equations, e.g. {"x": "dx/dt = -10.000 x + 10.000 y"}: active terms that do not round to
@@ -324,10 +518,12 @@ class SMNNDiscovery(Model):
         coefs = {name: {monomial_name(term, names): float(xi[j, i]) for j, term in enumerate(self.terms)
                         if self.mask[j, i] > 0} for i, name in enumerate(names)}
         return {"equations": self.equations(), "coefficients": coefs,
-                "library": [monomial_name(term, names) for term in self.terms],
+                "library": [monomial_name(term, names) for term in self.terms], "extra_terms": self.extra_terms,
+                "effects": [e.describe() for e in self.effects],
                 "n_active_terms": int(self.mask.sum()), "threshold_rounds_done": int(self.rounds_done),
                 "optimiser_steps": int(self.n_updates), "solver_method": self.solver_method,
                 "n_orders": self.n_orders}
 
     def report_lines(self) -> list[tuple[str, str]]:
-        return [("discovered", eq) for eq in self.equations(4).values()]
+        rows = [("discovered", eq) for eq in self.equations(4).values()]
+        return rows + [("effect", e.describe()) for e in self.effects]

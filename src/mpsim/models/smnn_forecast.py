@@ -10,7 +10,9 @@ the S-MNN layer solves it (least squares over values and derivatives with Taylor
 and the solution is the continuation. Longer horizons repeat this autoregressively on the newest K states,
 as the reference's KdV forecaster does (spec §4.4). The encoder's output layer starts at zero (A = 0, r = 0),
 so an untrained model is the persistence forecast, and training is measured against that baseline.
-Because the encoder is per node and aggregates neighbours by a mean, a model runs on any graph.
+Because the encoder is per node and aggregates neighbours by a mean, a model runs on any graph. With
+`whole_state=true` the N nodes' states are instead one state of size N·D (a dense A couples every variable of
+every node): no graph structure is assumed, and the model runs only on graphs of `n_nodes` nodes.
 """
 
 from __future__ import annotations
@@ -50,6 +52,8 @@ class SMNNForecaster(Model):
         train_steps: predicted steps per training sample, from a random start in each trajectory (None: the
             whole trajectory from its first K states, single shooting).
         seed: seed of the random training starts (combined with the step count, so a resumed run matches).
+        whole_state: one linear ODE for the flattened state of all `n_nodes` nodes instead of one per node.
+        n_nodes: N, required with `whole_state` (the encoder's size depends on it).
         solver: unused (the layer is the solver); accepted because every model receives one.
     """
 
@@ -67,9 +71,14 @@ class SMNNForecaster(Model):
         solver_method: str = "auto",
         train_steps: int | None = None,
         seed: int = 0,
+        whole_state: bool = False,
+        n_nodes: int | None = None,
         solver: ODESolver | None = None,
     ) -> None:
         super().__init__(state_dim, control_dim)
+        if whole_state and (n_nodes is None or n_nodes < 1):
+            raise ConfigError("model.whole_state=true needs model.n_nodes=<nodes of the system> (the encoder reads "
+                              "all nodes' states at once).")
         if solver_method not in LAYER_METHODS:
             raise ConfigError(f"model.solver_method={solver_method!r}; choose one of {LAYER_METHODS}.")
         if context_steps < 1 or chunk < 1 or n_orders < 2 or (train_steps is not None and train_steps < 1):
@@ -79,8 +88,13 @@ class SMNNForecaster(Model):
         self.context_steps, self.chunk, self.n_orders = int(context_steps), int(chunk), int(n_orders)
         self.neighbours, self.solver_method, self.train_steps = bool(neighbours), solver_method, train_steps
         self.seed = int(seed)
-        d, k = state_dim, self.context_steps
-        n_in = k * d * (2 if self.neighbours else 1) + d + (k + self.chunk) * control_dim
+        self.whole_state, self.n_nodes = bool(whole_state), n_nodes
+        self.transfers_across_graphs = not self.whole_state
+        width = n_nodes if self.whole_state else 1  # nodes folded into one state
+        if self.whole_state:
+            self.neighbours = False
+        d, k, c = state_dim * width, self.context_steps, control_dim * width
+        n_in = k * d * (2 if self.neighbours else 1) + d + (k + self.chunk) * c
         self.encoder = mlp(n_in, hidden, d * d + (self.chunk + 1) * d, n_hidden_layers, activation)
         nn.init.zeros_(self.encoder[-1].weight)  # A = 0, r = 0: the untrained model is persistence
         self.register_buffer("n_updates", torch.zeros((), dtype=torch.long))
@@ -104,9 +118,10 @@ class SMNNForecaster(Model):
         if controls is not None:
             feats.append(controls.permute(0, 2, 1, 3).reshape(b, n, -1))
         out = self.encoder(torch.cat(feats, -1))
-        # |A_ij| < 1/chunk bounds the growth of u' = Au over a chunk by e^D: an unbounded A lets one bad
-        # encoder output blow a rollout up exponentially, and its gradient with it
-        A = torch.tanh(out[..., : d * d]).reshape(b, n, d, d) / self.chunk
+        # |A_ij| < 2/(chunk·D) bounds every row sum of |A| by 2/chunk, so u' = Au grows by at most e² over a
+        # chunk whatever the state size (13 quadrotor states with |A_ij| < 1/chunk allowed e^13): an unbounded A
+        # lets one bad encoder output blow a rollout up exponentially, and its gradient with it
+        A = torch.tanh(out[..., : d * d]).reshape(b, n, d, d) * (2.0 / (self.chunk * d))
         return A, out[..., d * d :].reshape(b, n, self.chunk + 1, d)
 
     def solve_chunk(
@@ -140,12 +155,35 @@ class SMNNForecaster(Model):
         b, k, n, d = context.shape
         if k != self.context_steps:
             raise ConfigError(f"SMNNForecaster reads {self.context_steps} context states; got {k}.")
+        if t.shape[0] <= k:
+            return context[:, : t.shape[0]]
+        if self.whole_state:  # one node whose state is every node's state
+            if n != self.n_nodes:
+                raise ConfigError(f"SMNNForecaster(whole_state=true) was built for {self.n_nodes} nodes; the data has "
+                                  f"{n}. Use whole_state=false (per node) to run on other graphs.")
+            flat_u = None if u is None else u.flatten(2)[:, :, None]  # [B, T, 1, N·C]
+            no_edges = torch.zeros(2, 0, dtype=torch.long, device=context.device)
+            pred = self._rollout_flat(self.normalise(context).reshape(b, k, 1, n * d), t, no_edges, flat_u)
+            pred = pred.reshape(b, -1, n, d)
+        else:
+            pred = self._rollout_flat(self.normalise(context), t, edge_index, u)
+        return torch.cat([context, self.denormalise(pred)], 1)  # the context as given
+
+    def _rollout_flat(
+        self,
+        context: torch.Tensor,  # [B, K, N', D'] normalised context (N' = 1, D' = N·D with whole_state)
+        t: torch.Tensor,  # [T] times
+        edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
+        u: torch.Tensor | None,  # [B, T, N', C'] controls
+    ) -> torch.Tensor:  # [B, T − K, N', D'] normalised predictions after the context
+        """Chunk after chunk of S-MNN continuation in normalised units."""
+        b, k, n, _ = context.shape
         t = t.to(context)
         n_t = t.shape[0]
         graph = batch_graph(edge_index.to(context.device), b, n, dtype=context.dtype)
         dt = uniform_step(t) if n_t > 1 else 1.0
         scaled = t.diff() / (t[1] - t[0]) if n_t > 1 else t  # steps in units of the first sample step
-        states = list(self.normalise(context).unbind(1))  # one [B, N, D] per time step
+        states = list(context.unbind(1))  # one [B, N, D] per time step
         while len(states) < n_t:
             s, length = len(states) - 1, min(self.chunk, n_t - len(states))
             controls = None
@@ -156,9 +194,7 @@ class SMNNForecaster(Model):
             steps = 1.0 if dt is not None else scaled[s : s + length]
             nxt = self.solve_chunk(A, r[:, :, : length + 1], states[-1], steps)
             states.extend(nxt.unbind(1))
-        if n_t <= k:
-            return context[:, :n_t]
-        return torch.cat([context, self.denormalise(torch.stack(states[k:n_t], 1))], 1)  # context as given
+        return torch.stack(states[k:n_t], 1)
 
     # ---- training ----------------------------------------------------------------------------------------
     def training_loss(
@@ -193,4 +229,4 @@ class SMNNForecaster(Model):
 
     def report(self) -> dict[str, Any]:
         return {"context_steps": self.context_steps, "chunk": self.chunk, "solver_method": self.solver_method,
-                "n_orders": self.n_orders}
+                "n_orders": self.n_orders, "whole_state": self.whole_state}

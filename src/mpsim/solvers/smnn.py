@@ -192,9 +192,27 @@ def assemble_blocks(prob: SMNNProblem) -> Blocks:
         v = prob.init.expand(S, *prob.init.shape[1:])
         v = torch.nn.functional.pad(v, (0, O - n_iv)).reshape(S, *v.shape[1:-2], B)  # orders ≥ I: no value
         v = w_i**2 * batch_to_columns(v, bl, prob.batch)
-        # out of place: an in-place add on the first S steps would cost the same full copy in the backward
-        beta = torch.index_add(beta.expand(T, *beta.shape[1:]), 0, torch.arange(S, device=dev), v)
+        if beta.shape[0] == T:  # beta is a fresh matmul result: add in place (a full copy costs ~0.1 s at Lorenz
+            beta = AddHead.apply(beta, v)  # T = 5000, batch 512), with a pass-through backward
+        else:  # broadcast over time: materialise it once, with the initial values added
+            beta = torch.index_add(beta.expand(T, *beta.shape[1:]), 0, torch.arange(S, device=dev), v)
     return Blocks(a0, a1, a2, beta.expand(T, *beta.shape[1:]))
+
+
+class AddHead(torch.autograd.Function):
+    """x[:S] += head in place on a fresh intermediate; the backward passes the gradient through unchanged
+    (no copy: an out-of-place add or an autograd-tracked in-place slice add both copy the whole tensor)."""
+
+    @staticmethod
+    def forward(ctx, x, head):  # x: [T, ...] (not saved by any backward), head: [S, ...]
+        x[: head.shape[0]] += head
+        ctx.mark_dirty(x)
+        ctx.n_head = head.shape[0]
+        return x
+
+    @staticmethod
+    def backward(ctx, grad):
+        return grad, grad[: ctx.n_head]
 
 
 def check_determined(prob: SMNNProblem, tol: float = 1e-11) -> None:
@@ -332,13 +350,16 @@ def columns_to_output(
     x: torch.Tensor,  # [T, L, X, R]
     batch_lhs: torch.Size,
     batch: torch.Size,
-) -> torch.Tensor:  # [*batch, T, X], contiguous
-    """The solver's result in the caller's batch-first layout, in one fast copy (see `permuted_copy`)."""
+    copy: bool = False,
+) -> torch.Tensor:  # [*batch, T, X]
+    """The solver's result in the caller's batch-first layout: a permuted view of `x` (no pass over the
+    solution, which at T = 5000 and 1536 columns is 184 MB), or with `copy` a contiguous copy made in one fast
+    transpose (see `permuted_copy`)."""
     perm = _column_perm(batch_lhs)  # dim k of the reshaped x holds axis perm[k] of (T, *batch, X)
     full = (x.shape[0], *batch, x.shape[2])
     x = x.reshape([full[p] for p in perm])
-    order = [*range(1, len(batch) + 1), 0, len(batch) + 1]  # (*batch, T, X)
-    return PermutedCopy.apply(x, [perm.index(a) for a in order])
+    order = [perm.index(a) for a in [*range(1, len(batch) + 1), 0, len(batch) + 1]]  # (*batch, T, X)
+    return PermutedCopy.apply(x, order) if copy else x.permute(order)
 
 
 def _column_perm(batch_lhs: torch.Size) -> list[int]:
@@ -492,14 +513,19 @@ def choose_method(n_lhs: int, block: int, n_rhs: int, device: torch.device, n_st
     On a CPU the sequential sweep pays ~10 µs of dispatch per operation and step (about 9 per step for a
     forward + backward), which chunked cyclic reduction avoids. Measured forward + backward on 2 busy CPU cores
     (one trajectory, D = 3, O = 3, time-varying coefficients): cyclic 2.3x faster at T = 1000, 3.7x at T = 5000,
-    banded 1.3x faster at T = 100. When a time step carries a lot of data (Lorenz discovery: 1536 right-hand
-    sides) both are bound by memory traffic and within ~10 % of each other; banded is kept there. On a GPU the
-    launch overhead dominates even more, so cyclic reduction is taken there (not benchmarked).
+    banded 1.3x faster at T = 100. With one small shared matrix and many right-hand sides (Lorenz discovery
+    shapes, 1536 columns; `mpsim bench bench=smnn`) banded wins at T = 50 (9 vs 13 ms), they tie at T = 500 and
+    cyclic wins from T ≈ 1000 (T = 5000: 1.0 vs 2.0 s). With many matrices (one per sample) the factorisation
+    dominates and cyclic reduction's extra Schur-complement work makes banded faster (T = 500: 1.3 vs 2.4 s).
+    On a GPU the launch overhead dominates even more, so cyclic reduction is taken there (not benchmarked).
     """
     if device.type != "cpu":
         return "cyclic"
-    thin = n_lhs * block * (block + n_rhs) < 2048
-    return "cyclic" if thin and (n_steps is None or n_steps >= 256) else "banded"
+    if n_steps is not None and n_steps < 256:
+        return "banded"
+    thin = n_lhs * block * (block + n_rhs) < 2048  # little data per step: dispatch-bound at any T ≥ 256
+    cheap_factor = n_lhs * block * block <= 1024  # few small matrices: dispatch-bound once T is long
+    return "cyclic" if thin or (cheap_factor and n_steps is not None and n_steps >= 1000) else "banded"
 
 
 def smnn_solve(
@@ -544,7 +570,8 @@ def smnn_solve(
         dtype: compute dtype; float64 is needed (cond(AᵀWA) ~ 1/h^{2K}). The result has the inputs' dtype.
 
     Returns:
-        u[..., t, d, k] ≈ dᵏx_d/dtᵏ at step t.
+        u[..., t, d, k] ≈ dᵏx_d/dtᵏ at step t: a strided view of the solver's buffer, in which each step's
+        values over the right-hand-side batch dims are contiguous (call `.contiguous()` if a layout matters).
 
     Raises:
         SolverError: invalid shapes or steps, a singular system (with the rows that are missing), or a
@@ -565,5 +592,5 @@ def smnn_solve(
     if not bool(torch.isfinite(x.sum())):  # one reduction instead of an elementwise pass
         raise SolverError("S-MNN solution is not finite: check coefficients, rhs_equation, init_vars and "
                           "steps for NaN/inf.")
-    u = columns_to_output(x, prob.batch_lhs, prob.batch)  # [*batch, T, B]
-    return u.view(*prob.batch, prob.n_steps, *prob.dims[1:]).to(out_dtype)
+    u = columns_to_output(x, prob.batch_lhs, prob.batch)  # [*batch, T, B], a view of the solution
+    return u.unflatten(-1, prob.dims[1:]).to(out_dtype)
