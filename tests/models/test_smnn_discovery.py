@@ -186,6 +186,26 @@ def test_effects_join_the_field_the_windows_and_the_gradient():
     assert model.report()["effects"] == ["dx/dt += -0.3·x³"]
 
 
+def test_delayed_effects_train_on_the_windows_observed_history():
+    from mpsim.effects import DelayedFeedback
+
+    data = linear_data(n_traj=4)
+    traj = torch.tensor([2, 0])
+    history = SMNNDiscovery._window_history(data.x, data.t, traj, length=3)
+    t_query = torch.tensor([[0.05], [0.035], [-0.5], [0.2], [0.2], [0.2]], dtype=F64)  # one per window point
+    past = history(t_query)
+    assert torch.allclose(past[0], data.x[2, 5]) and torch.allclose(past[2], data.x[2, 0])  # before t0: x(t0)
+    assert torch.allclose(past[1], 0.5 * (data.x[2, 3] + data.x[2, 4]))  # between samples: interpolated
+    assert torch.allclose(past[3], data.x[0, 20])
+    model = SMNNDiscovery(state_dim=2, window=20, window_batch=8, state_names=["x", "y"],
+                          effects=[DelayedFeedback(0.5, delay=0.05, target="x")]).double()
+    model.bind_effects(["x", "y"])
+    model.set_normalisation(*fit_normalisation(data))
+    loss, _ = model.training_loss(data, data.t, mse_loss)
+    loss.backward()
+    assert float(model.effects[0].coef.grad.abs()) > 0
+
+
 def test_bad_configs_are_refused():
     with pytest.raises(IncompatibleError, match="control"):
         SMNNDiscovery(state_dim=3, control_dim=2)

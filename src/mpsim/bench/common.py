@@ -52,8 +52,10 @@ def peak_memory_mb(fn: Callable[[], Any], threads: int = 1, timeout: float = 600
 
     `fn` must be picklable (a module-level function or a `functools.partial` of one). The child's baseline
     is taken after its imports, so the number is what `fn` itself allocated at its peak. NaN on failure.
+    With `threads` > 1 the child is spawned rather than forked: a forked child deadlocks in OpenMP once the
+    parent has used its thread pool.
     """
-    ctx = mp.get_context("fork")
+    ctx = mp.get_context("fork" if threads <= 1 else "spawn")
     queue = ctx.Queue()
     proc = ctx.Process(target=_child, args=(fn, threads, queue))
     proc.start()

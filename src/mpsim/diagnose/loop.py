@@ -326,6 +326,7 @@ def _confirm_by_integration(diag: Diagnosis, library: list[Candidate], model: Mo
     labels = {c.label(diag.state_names): i for i, c in enumerate(library)}
     order = sorted(diag.accepted, key=lambda f: f.explained_rms / max(f.threshold, 1e-300), reverse=True)
     trial = copy.deepcopy(model)
+    trial.shift_parameters(diag.parameter_shifts)  # the joint refit's correction of the model's own parameters
     dtype = model.state_mean.dtype
     names = diag.state_names
     for i, strong in enumerate(order):
@@ -386,6 +387,13 @@ def _joint_refit(diag: Diagnosis, library: list[Candidate], res: Residual, keep:
             per = torch.zeros(n, d_total, d_total * state.shape[1], dtype=torch.float64)
             for d in range(d_total):  # a handful of state variables
                 per[:, d, d * state.shape[1] : (d + 1) * state.shape[1]] = state
+            if n_shared:  # the model's own parameters take what they can explain: the state columns keep only
+                # the part orthogonal to them (same column space, so the effects' coefficients are unchanged)
+                sens = nuisance[..., :n_shared].reshape(n * d_total, n_shared)
+                flat = per.reshape(n * d_total, -1)
+                scale = sens.norm(dim=0).clamp(min=1e-300)
+                coef = torch.linalg.lstsq(sens / scale, flat, driver="gelsd").solution / scale[:, None]
+                per = (flat - sens @ coef).reshape(per.shape)
             blocks.append(per)
     x = torch.cat(blocks, dim=-1).reshape(n * d_total, -1)
     sol, _ = _lstsq(x, y.reshape(-1))

@@ -316,8 +316,10 @@ class SMNNDiscovery(Model):
         steps: torch.Tensor | float,  # [M, W-1] step sizes per window, or one shared step
         times: torch.Tensor | None = None,  # [M, W] absolute times of the windows (time-dependent effects)
         edge_index: torch.Tensor | None = None,  # [2, E] graph (effects that read neighbours)
+        history: Callable[[torch.Tensor], torch.Tensor] | None = None,  # [M·W, 1] times -> [M·W, N, D] past states
     ) -> tuple[torch.Tensor, torch.Tensor]:  # [M, W, N, D] layer solution, [M, W, N, D] its input var
-        """Integrate u' = φ(var) ξ over each window from var's first state with the least-squares layer."""
+        """Integrate u' = φ(var) ξ (+ effects) over each window from var's first state with the least-squares
+        layer. `history` gives the observed past of each window point (delayed effects only)."""
         m, w, n, d = windows.shape
         var = windows
         if self.denoiser is not None:
@@ -325,14 +327,14 @@ class SMNNDiscovery(Model):
             var = windows + self.state_std * self.denoiser(flat).reshape(m, n, w, d).permute(0, 2, 1, 3)
         rhs = self.library(var) @ self.coefficients()  # [M, W, N, D]
         if len(self.effects):
-            if min_delay(self.effects) > 0:
-                raise ConfigError("SMNNDiscovery cannot train a DelayedFeedback effect (its windows carry no "
-                                  "history); drop it from model.effects.")
+            if min_delay(self.effects) > 0 and history is None:
+                raise ConfigError("SMNNDiscovery needs the windows' history to train a DelayedFeedback effect.")
             when = torch.zeros(m, w, dtype=var.dtype, device=var.device) if times is None else times.to(var)
             flat = var.reshape(m * w, n, d)
             ei = torch.zeros(2, 0, dtype=torch.long) if edge_index is None else edge_index
             graph = batch_graph(ei.to(var.device), m * w, n, dtype=var.dtype)
-            rhs = rhs + total(self.effects, when.reshape(m * w, 1), flat, EffectContext(graph)).reshape(m, w, n, d)
+            extra = total(self.effects, when.reshape(m * w, 1), flat, EffectContext(graph, history))
+            rhs = rhs + extra.reshape(m, w, n, d)
         # every state variable is its own 1-D ODE u' = r (E = D = 1): one shared left-hand side, M·N·D columns
         coef = rhs.new_zeros(1, 1, 1, self.n_orders)
         coef[..., 1] = 1.0
@@ -367,7 +369,8 @@ class SMNNDiscovery(Model):
             self._initialise(win, float(t[1] - t[0]))
         times = t[start[:, None] + torch.arange(length, device=t.device)] if len(self.effects) else None
         edges = batch.edge_index if batch.edge_index.dim() == 2 else batch.edge_index[0]
-        pred, var = self.integrate_windows(win, steps, times, edges)
+        history = self._window_history(batch.x, t, traj, length) if min_delay(self.effects) > 0 else None
+        pred, var = self.integrate_windows(win, steps, times, edges, history)
         loss = loss_fn(self.normalise(pred), self.normalise(win), delta)
         if self.denoiser is not None:
             loss = loss + loss_fn(self.normalise(var), self.normalise(win), delta)
@@ -377,6 +380,29 @@ class SMNNDiscovery(Model):
         bad = ~torch.isfinite(pred.detach()).flatten(1).all(1)
         marked[traj[bad], start[bad]] = torch.nan
         return loss, marked
+
+    @staticmethod
+    def _window_history(
+        x: torch.Tensor,  # [B, T, N, D] the batch's observed trajectories
+        t: torch.Tensor,  # [T] their times
+        traj: torch.Tensor,  # [M] trajectory of each window
+        length: int,  # W
+    ) -> Callable[[torch.Tensor], torch.Tensor]:
+        """history(t_query [M·W, 1]) -> [M·W, N, D]: each window point's trajectory at earlier times, linearly
+        interpolated on the observed grid, constant before its first state (as the delay integrator's)."""
+        dt = uniform_step(t)
+        if dt is None:
+            raise ConfigError("SMNNDiscovery trains delayed effects on uniform time grids only.")
+        rows = traj[:, None].expand(-1, length).reshape(-1)  # [M·W]
+
+        def history(t_query: torch.Tensor) -> torch.Tensor:  # t_query: [M·W, 1]
+            pos = ((t_query[:, 0] - t[0]) / dt).clamp(0, x.shape[1] - 1)
+            lo = pos.floor().long()
+            hi = (lo + 1).clamp(max=x.shape[1] - 1)
+            frac = (pos - lo.to(pos))[:, None, None].to(x)
+            return x[rows, lo] * (1 - frac) + x[rows, hi] * frac
+
+        return history
 
     @torch.no_grad()
     def after_step(self) -> None:
@@ -444,7 +470,11 @@ class SMNNDiscovery(Model):
         tau = torch.tensor([0.0, 1.0], dtype=x.dtype, device=x.device)
         return self.solver(field, starts, tau)[:, 1].reshape(b, n_t - 1, n, d)
 
-    def _graph(self, edge_index: torch.Tensor, x: torch.Tensor) -> Any:  # edge_index: [2, E] or [B, 2, E]
+    def _graph(
+        self,
+        edge_index: torch.Tensor,  # [2, E] or [B, 2, E] graph
+        x: torch.Tensor,  # [B, N, D] states (for the batch size, device and dtype)
+    ) -> Any:
         """The batched graph for effects that read neighbours (None without effects)."""
         if not len(self.effects):
             return None
