@@ -26,6 +26,8 @@ from collections.abc import Callable
 import torch
 from torch import nn
 
+from mpsim.models.base import Model
+
 
 class ControlNormalisation(nn.Module):
     """Per-channel z-score of controls with statistics fitted once from training data.
@@ -108,3 +110,24 @@ def integrate_held(
     finally:
         field.held = None
     return torch.stack(states, dim=1)
+
+
+class ControlledModel(Model):
+    """A model that reads per-node controls through a `ControlNormalisation` (`self.controls`): its control
+    statistics follow the state statistics and are fitted on the first training batch."""
+
+    controls: ControlNormalisation
+
+    def set_normalisation(
+        self,
+        mean: torch.Tensor,  # [D] per-feature mean of the training states
+        std: torch.Tensor,  # [D] per-feature standard deviation
+    ) -> None:
+        """Set the state statistics; the control statistics follow (refit on the next training batch)."""
+        super().set_normalisation(mean, std)
+        self.controls.refit()
+
+    def training_loss(self, batch, t, loss_fn, delta=1.0):
+        """Single shooting (the base class's), after fitting the control scale on the first training batch."""
+        self.controls.fit_once(batch.u)
+        return super().training_loss(batch, t, loss_fn, delta)

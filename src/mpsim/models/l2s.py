@@ -30,8 +30,7 @@ from torch import nn
 
 from mpsim.effects import Effect
 from mpsim.graphs.batch import BatchedGraph, batch_graph, sum_aggregate
-from mpsim.models.base import Model
-from mpsim.models.controls import ControlNormalisation, integrate_held, zero_order_hold
+from mpsim.models.controls import ControlledModel, ControlNormalisation, integrate_held, zero_order_hold
 from mpsim.solvers.odeint import ODESolver
 
 ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU, "softplus": nn.Softplus, "silu": nn.SiLU, "gelu": nn.GELU}
@@ -103,7 +102,7 @@ class _GraphField(nn.Module):
         return m.readout(h + h0)
 
 
-class L2S(Model):
+class L2S(ControlledModel):
     """Continuous-time graph-network ODE baseline (MPNODE.jl `gnnsc_de0`, the paper's L2S).
 
     Args:
@@ -147,20 +146,6 @@ class L2S(Model):
         self.processor = nn.ModuleList(_ProcessorStep(hidden, ACTIVATIONS[activation]) for _ in range(depth))
         self.readout = dense(hidden, state_dim)
         self.controls = ControlNormalisation(control_dim)
-
-    def set_normalisation(
-        self,
-        mean: torch.Tensor,  # [D] per-feature mean of the training states
-        std: torch.Tensor,  # [D] per-feature standard deviation
-    ) -> None:
-        """Set the state statistics; the control statistics follow (refit on the next training batch)."""
-        super().set_normalisation(mean, std)
-        self.controls.refit()
-
-    def training_loss(self, batch, t, loss_fn, delta=1.0):
-        """Single shooting (the base class's), after fitting the control scale on the first training batch."""
-        self.controls.fit_once(batch.u)
-        return super().training_loss(batch, t, loss_fn, delta)
 
     def rollout(
         self,

@@ -22,8 +22,7 @@ from torch import nn
 
 from mpsim.effects import Effect, EffectContext, total
 from mpsim.graphs.batch import BatchedGraph, batch_graph, mean_aggregate
-from mpsim.models.base import Model
-from mpsim.models.controls import ControlNormalisation, integrate_held, zero_order_hold
+from mpsim.models.controls import ControlledModel, ControlNormalisation, integrate_held, zero_order_hold
 from mpsim.solvers.odeint import ODESolver
 
 
@@ -82,7 +81,7 @@ class _MessagePassingField(nn.Module):
         return dy + torch.cat([extra / model.state_std, torch.zeros_like(m)], dim=-1)
 
 
-class MPNODE(Model):
+class MPNODE(ControlledModel):
     """Message-passing neural ODE.
 
     The node MLP can learn any smooth function of the node's state and, through messages, of its
@@ -139,20 +138,6 @@ class MPNODE(Model):
         # controls enter the node MLP z-scored (raw rotor thrusts are 3.3 ± 0.2 N: nearly constant inputs);
         # no buffers without controls, so control-free checkpoints are unchanged
         self.controls = ControlNormalisation(control_dim)
-
-    def set_normalisation(
-        self,
-        mean: torch.Tensor,  # [D] per-feature mean of the training states
-        std: torch.Tensor,  # [D] per-feature standard deviation
-    ) -> None:
-        """Set the state statistics; the control statistics follow (refit on the next training batch)."""
-        super().set_normalisation(mean, std)
-        self.controls.refit()
-
-    def training_loss(self, batch, t, loss_fn, delta=1.0):
-        """Single shooting (the base class's), after fitting the control scale on the first training batch."""
-        self.controls.fit_once(batch.u)
-        return super().training_loss(batch, t, loss_fn, delta)
 
     def rollout_aux(
         self,

@@ -24,8 +24,7 @@ from torch import nn
 
 from mpsim.effects import Effect
 from mpsim.errors import IncompatibleError
-from mpsim.models.base import Model
-from mpsim.models.controls import ControlNormalisation, integrate_held, zero_order_hold
+from mpsim.models.controls import ControlledModel, ControlNormalisation, integrate_held, zero_order_hold
 from mpsim.models.l2s import ACTIVATIONS, dense
 from mpsim.solvers.odeint import ODESolver
 
@@ -50,7 +49,7 @@ class _FlatField(nn.Module):
         return self.net(flat).reshape(b, n, d)
 
 
-class NODE(Model):
+class NODE(ControlledModel):
     """Monolithic neural ODE on the flattened state of all N nodes (cannot change N).
 
     Args:
@@ -126,20 +125,6 @@ class NODE(Model):
                 f"{n_nodes} nodes: its weights are tied to node positions. Use a modular model (model=mpnode, "
                 "or model=l2s) to transfer across graph sizes, or train a NODE from scratch on this graph."
             )
-
-    def set_normalisation(
-        self,
-        mean: torch.Tensor,  # [D] per-feature mean of the training states
-        std: torch.Tensor,  # [D] per-feature standard deviation
-    ) -> None:
-        """Set the state statistics; the control statistics follow (refit on the next training batch)."""
-        super().set_normalisation(mean, std)
-        self.controls.refit()
-
-    def training_loss(self, batch, t, loss_fn, delta=1.0):
-        """Single shooting (the base class's), after fitting the control scale on the first training batch."""
-        self.controls.fit_once(batch.u)
-        return super().training_loss(batch, t, loss_fn, delta)
 
     def rollout(
         self,
