@@ -23,7 +23,7 @@ def _allocate(mb):
 def test_peak_memory_sees_an_allocation():
     small = peak_memory_mb(functools.partial(_allocate, 1))
     big = peak_memory_mb(functools.partial(_allocate, 200))
-    assert 150 < big - small < 260
+    assert 150 < big - small < 260, (small, big)
 
 
 def test_timeit_counts_runs():

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import multiprocessing as mp
+import os
 import resource
 import statistics
 import time
@@ -36,13 +37,32 @@ def timeit(fn: Callable[[], Any], repeats: int = 5, warmup: int = 1, max_seconds
     return {"median_s": statistics.median(times), "min_s": min(times), "runs": len(times)}
 
 
+def _rss_kib(field: str) -> int | None:
+    """VmRSS or VmHWM of this process in KiB (Linux), or None."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return None
+
+
 def _child(fn: Callable[[], Any], threads: int, queue: Any) -> None:
     torch.set_num_threads(threads)
-    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    try:  # restart the high-water mark at the current size: import-time peaks are not fn's
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        base = _rss_kib("VmRSS")
+    except OSError:
+        base = None
+    if base is None:
+        base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     try:
         fn()
-        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-        queue.put(("ok", (peak - base) / 1024.0))  # ru_maxrss is in KiB on Linux
+        peak = _rss_kib("VmHWM") or resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        queue.put(("ok", (peak - base) / 1024.0))
     except Exception as err:  # noqa: BLE001 - report any failure of the measured code
         queue.put(("error", f"{type(err).__name__}: {err}"))
 
@@ -51,14 +71,23 @@ def peak_memory_mb(fn: Callable[[], Any], threads: int = 1, timeout: float = 600
     """Peak resident-memory growth (MiB) while `fn()` runs, measured in a fresh process.
 
     `fn` must be picklable (a module-level function or a `functools.partial` of one). The child's baseline
-    is taken after its imports, so the number is what `fn` itself allocated at its peak. NaN on failure.
-    With `threads` > 1 the child is spawned rather than forked: a forked child deadlocks in OpenMP once the
-    parent has used its thread pool.
+    is taken after its imports (and its high-water mark reset there), so the number is what `fn` itself
+    allocated at its peak. NaN on failure. The child is spawned, not forked (a forked child deadlocks in
+    OpenMP once the parent has used its thread pool), and it returns freed memory to the kernel
+    (MPSIM_KEEP_HEAP=0): otherwise pages freed during its imports would absorb fn's allocations unseen.
     """
-    ctx = mp.get_context("fork" if threads <= 1 else "spawn")
+    ctx = mp.get_context("spawn")
     queue = ctx.Queue()
     proc = ctx.Process(target=_child, args=(fn, threads, queue))
-    proc.start()
+    saved = os.environ.get("MPSIM_KEEP_HEAP")
+    os.environ["MPSIM_KEEP_HEAP"] = "0"  # read by the child when it imports mpsim
+    try:
+        proc.start()
+    finally:
+        if saved is None:
+            del os.environ["MPSIM_KEEP_HEAP"]
+        else:
+            os.environ["MPSIM_KEEP_HEAP"] = saved
     proc.join(timeout)
     if proc.is_alive():
         proc.kill()

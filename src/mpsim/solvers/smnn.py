@@ -514,9 +514,11 @@ def choose_method(n_lhs: int, block: int, n_rhs: int, device: torch.device, n_st
     forward + backward), which chunked cyclic reduction avoids. Measured forward + backward on 2 busy CPU cores
     (one trajectory, D = 3, O = 3, time-varying coefficients): cyclic 2.3x faster at T = 1000, 3.7x at T = 5000,
     banded 1.3x faster at T = 100. With one small shared matrix and many right-hand sides (Lorenz discovery
-    shapes, 1536 columns; `mpsim bench bench=smnn`) banded wins at T = 50 (9 vs 13 ms), they tie at T = 500 and
-    cyclic wins from T ≈ 1000 (T = 5000: 1.0 vs 2.0 s). With many matrices (one per sample) the factorisation
-    dominates and cyclic reduction's extra Schur-complement work makes banded faster (T = 500: 1.3 vs 2.4 s).
+    shapes, 1536 columns; `mpsim bench bench=smnn`) banded wins at T = 50 (10 vs 15 ms) and both are bound by
+    memory traffic from T ≈ 500 on (T = 5000: 0.77 vs 0.87 s, T = 10 000: 1.66 vs 1.73 s, once freed memory is
+    reused rather than faulted in again: see `mpsim._keep_freed_cpu_memory`). With many matrices (one per
+    sample) the factorisation dominates and cyclic reduction's extra Schur-complement work makes banded faster
+    (T = 500: 1.1 vs 1.7 s).
     On a GPU the launch overhead dominates even more, so cyclic reduction is taken there (not benchmarked).
     """
     if device.type != "cpu":
