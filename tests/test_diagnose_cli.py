@@ -24,8 +24,13 @@ def test_hidden_damping_found_added_and_error_drops(tmp_path):
     (fixed,) = result["fixed_effects"]
     assert fixed["vs_truth"]["relative_error"]["coef"] < 0.1
     assert result["after"]["rollout_rmse"] * 10 <= result["before"]["rollout_rmse"]
+    # one round: the damping is added, and the finetuned model, diagnosed again, lacks nothing (its own damping
+    # coefficient is refit as the model's parameter, not found a second time)
+    (only,) = result["rounds"]
+    assert only["added"] == found["label"] and only["then_found"] == []
+    assert result["effects_named"] == [found["label"]] and result["not_confirmed"] == []
     for name in ("diagnosis.md", "plots/residual.png", "plots/explained_variance.png", "plots/before_after.png",
-                 "fix/checkpoints/best.ckpt"):
+                 "fix/round1/checkpoints/best.ckpt"):
         assert (run / name).is_file(), name
 
 

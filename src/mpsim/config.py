@@ -146,6 +146,7 @@ class DiagnoseParams:
     min_inclusion: float = 0.8
     vpt_threshold: float = 0.3
     fix_lr_factor: float = 0.1
+    rounds: int = 3
 
 
 @dataclass

@@ -27,7 +27,7 @@ from mpsim.commands.common import (
 )
 from mpsim.commands.console import fmt, print_summary
 from mpsim.data.trajectories import Trajectories
-from mpsim.diagnose.loop import Diagnosis, find_effects, valid_prediction_time
+from mpsim.diagnose.loop import Diagnosis, Finding, find_effects, valid_prediction_time
 from mpsim.diagnose.residual import one_step_residual
 from mpsim.errors import ConfigError
 from mpsim.files import atomic_write, write_json
@@ -108,16 +108,10 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
         "before": before,
         "true_effects": truths,
     }
-    fixed_model = None
     if cfg.fix and diag.accepted:
-        fixed_model, after, fixed_cfg = _fix(cfg, rt, ckpt, model_cfg, model, splits, diag, horizons)
-        result["after"] = after
-        result["fixed_model_config"] = fixed_cfg
-        result["fixed_effects"] = [
-            {"effect": e.config(), "describe": e.describe(), "vs_truth": _compare(e.config(), truths)}
-            for e in fixed_model.effects
-        ]
-        result["fixed_checkpoint"] = str(rt.output_dir / "fix" / "checkpoints" / "best.ckpt")
+        final = _fix_in_rounds(cfg, rt, ckpt, model_cfg, model, splits, diag, horizons, truths)
+        result.update(final)
+        result["verdict"] = "effects found" if result["effects_named"] else "no effect found"
     elif cfg.fix:
         result["after"] = None
     _plots(diag, before, result.get("after"), splits.test, rt.output_dir)
@@ -128,20 +122,73 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
     return result
 
 
-def _fix(cfg, rt, ckpt, model_cfg, model, splits, diag: Diagnosis, horizons):
-    """Add the accepted effects to the model config, finetune from the checkpoint, evaluate held-out."""
+def strongest(diag: Diagnosis) -> Finding:
+    """The accepted finding that stands furthest above its null threshold (the one a round adds)."""
+    return max(diag.accepted, key=lambda f: f.explained_rms / max(f.threshold, 1e-300))
+
+
+def _fix_in_rounds(cfg, rt, ckpt, model_cfg, model, splits, diag: Diagnosis, horizons, truths) -> dict[str, Any]:
+    """Add the effects one at a time: the strongest finding, finetune, diagnose the finetuned model again.
+
+    A one-shot fit can name a term that only compensates for what the model did to make up for the main
+    effect (an MP-NODE without a clock that learned part of a drive on x leaves a drive-like residual on y):
+    once the main effect is part of the model and the weights are refit, such a term is gone from the residual
+    and is never added. The loop stops when a diagnosis names nothing or after `diagnose.rounds` rounds.
+    """
+    p = cfg.diagnose
+    rounds: list[dict[str, Any]] = []
+    current, current_cfg, current_ckpt, current_diag = model, model_cfg, ckpt, diag
+    while current_diag.accepted and len(rounds) < p.rounds:
+        k = len(rounds) + 1
+        add = strongest(current_diag)
+        log.info(f"round {k}: adding {add.label} and finetuning")
+        run_dir = rt.output_dir / "fix" / f"round{k}"
+        fixed, after, fixed_cfg = _fix(cfg, rt, current_ckpt, current_cfg, current, splits, add,
+                                       current_diag.parameter_shifts, horizons, run_dir)
+        log.info(f"round {k}: diagnosing the finetuned model")
+        again = find_effects(fixed, splits.train, tuple(p.kinds), list(p.delays) if p.delays else None, p.n_boot,
+                             p.min_gain, p.null_factor, p.min_inclusion, cfg.seed)
+        rounds.append({
+            "round": k,
+            "added": add.label,
+            "added_effect": add.effect,
+            "found_before": [f.label for f in current_diag.accepted],
+            "effects_after_finetune": [e.describe() for e in fixed.effects],
+            "after": {key: after[key] for key in ("one_step_rmse", "rollout_rmse", "valid_prediction_time")},
+            "then_found": [f.label for f in again.accepted],
+            "then_found_detail": [f.as_dict() for f in again.accepted],
+        })
+        current_ckpt = {**current_ckpt, "path": str(run_dir / "checkpoints" / "best.ckpt"),
+                        "model": {**current_ckpt["model"], "config": fixed_cfg, "state_dict": fixed.state_dict()}}
+        current, current_cfg, current_diag = fixed, fixed_cfg, again
+    named = [r["added"] for r in rounds]
+    dropped = [f.label for f in diag.accepted if f.label not in named]
+    return {
+        "rounds": rounds,
+        "effects_named": named,
+        "not_confirmed": dropped,  # found in the first diagnosis, gone once the stronger effects were added
+        "still_found": [f.label for f in current_diag.accepted],  # non-empty only when the rounds ran out
+        "after": after,
+        "fixed_model_config": current_cfg,
+        "fixed_effects": [{"effect": e.config(), "describe": e.describe(), "vs_truth": _compare(e.config(), truths)}
+                          for e in current.effects],
+        "fixed_checkpoint": current_ckpt["path"],
+    }
+
+
+def _fix(cfg, rt, ckpt, model_cfg, model, splits, add: Finding, shifts: dict[str, float], horizons, run_dir: Path):
+    """Add one effect to the model config, finetune from the checkpoint, evaluate held-out."""
     fixed_cfg = dict(model_cfg)
-    fixed_cfg["effects"] = list(model_cfg.get("effects") or []) + [f.effect for f in diag.accepted]
+    fixed_cfg["effects"] = list(model_cfg.get("effects") or []) + [add.effect]
     fixed_ckpt = {**ckpt, "model": {**ckpt["model"], "config": fixed_cfg}}
     fixed, _ = build_model_for(cfg, rt, Shape.of(splits.train), fixed_ckpt)
     fixed.set_normalisation(model.state_mean, model.state_std)
-    fixed.shift_parameters(diag.parameter_shifts)  # the joint refit of the model's own parameters
+    fixed.shift_parameters(shifts)  # the joint refit of the model's own parameters
     fixed.latent_reset = model.latent_reset
     # the finetune starts near the optimum (fitted coefficients, trained weights): smaller steps
     trainer = build(cfg.trainer, "trainer", lr=cfg.trainer.lr * cfg.diagnose.fix_lr_factor)
     base = checkpoint_base(fixed_cfg, fixed, splits.train.meta, {"mode": "finetune", "init": ckpt["path"]})
-    trainer.fit(fixed, splits.train, splits.val, splits.test, run_dir=rt.output_dir / "fix", seed=cfg.seed,
-                checkpoint_base=base)
+    trainer.fit(fixed, splits.train, splits.val, splits.test, run_dir=run_dir, seed=cfg.seed, checkpoint_base=base)
     after = holdout_metrics(fixed, splits.test, horizons, cfg.diagnose.vpt_threshold)
     after["epochs"] = trainer.history_[-1]["epoch"]
     return fixed, after, fixed_cfg
@@ -195,6 +242,22 @@ def _markdown(result: dict[str, Any], diag: Diagnosis) -> str:
                      f"{'yes' if f.accepted else 'no'} | {f.reason} |")
     if not diag.findings:
         lines.append("| (none: no candidate lowered the BIC) | | | | | | | |")
+    if result.get("rounds"):
+        lines += ["", "## Rounds (fix=true): add the strongest finding, finetune, diagnose again", "",
+                  "| round | found | added | effects after finetune | one-step RMSE | rollout RMSE | then found |",
+                  "|---|---|---|---|---|---|---|"]
+        for r in result["rounds"]:
+            a = r["after"]
+            lines.append(f"| {r['round']} | {'; '.join(r['found_before'])} | {r['added']} | "
+                         f"{'; '.join(r['effects_after_finetune'])} | {fmt(a['one_step_rmse'])} | "
+                         f"{fmt(a['rollout_rmse'])} | {'; '.join(r['then_found']) or 'nothing'} |")
+        if result["not_confirmed"]:
+            lines += ["", f"Not confirmed: {'; '.join(result['not_confirmed'])} — found in the first diagnosis but not "
+                          "once the stronger effects were part of the model and its weights refit (the model's "
+                          "compensation for them, not an effect of its own). Not added."]
+        if result["still_found"]:
+            lines += ["", f"Still found after {len(result['rounds'])} rounds (diagnose.rounds): "
+                          f"{'; '.join(result['still_found'])}. Not added; raise diagnose.rounds to continue."]
     if result.get("fixed_effects"):
         lines += ["", "## After adding the effects and finetuning", ""]
         for e in result["fixed_effects"]:
@@ -231,6 +294,10 @@ def _print(result: dict[str, Any], diag: Diagnosis, out: Path) -> None:
         rows.append(("why", why))
         rows.append(("residual RMS", ", ".join(f"{n} {r:.3g} (null {q:.3g})" for n, r, q in
                                                zip(diag.state_names, diag.residual_rms, diag.null_rms, strict=True))))
+    for r in result.get("rounds", []):
+        rows.append((f"round {r['round']}", f"added {r['added']}; then found: {'; '.join(r['then_found']) or 'nothing'}"))
+    if result.get("not_confirmed"):
+        rows.append(("not confirmed", "; ".join(result["not_confirmed"])))
     for e in result.get("fixed_effects", []):
         truth = e["vs_truth"]
         rows.append(("after finetune", e["describe"] + (f"  ({_truth_text(truth)})" if truth else "")))

@@ -86,7 +86,7 @@ def _step_average(values: torch.Tensor) -> torch.Tensor:  # values: [B, T, N, K]
     return 0.5 * (values[:, 1:] + values[:, :-1])
 
 
-def _evaluate(effect: fx.Effect, data: Trajectories) -> torch.Tensor:
+def evaluate_effect(effect: fx.Effect, data: Trajectories) -> torch.Tensor:
     """[B, T, N, K] an effect's basis functions at every observed state and time."""
     b, n_t, n, d = data.x.shape
     flat = data.x.double().reshape(b * n_t, n, d)
@@ -129,11 +129,11 @@ def build_library(
         cls = getattr(fx, kind)
         if kind == "Bias":
             effect = cls(0.0, target=0).bind(data.state_names)
-            out.append(Candidate(kind, None, {}, _step_average(_evaluate(effect, data))))
+            out.append(Candidate(kind, None, {}, _step_average(evaluate_effect(effect, data))))
         elif kind == "PeriodicForcing":
             for omega in sorted(set((omegas or {}).values())):
                 effect = cls(0.0, omega=omega, target=0).bind(data.state_names)
-                out.append(Candidate(kind, None, {"omega": omega}, _step_average(_evaluate(effect, data))))
+                out.append(Candidate(kind, None, {"omega": omega}, _step_average(evaluate_effect(effect, data))))
         elif kind == "DelayedFeedback":
             dt = float(data.t[1] - data.t[0])
             for tau in delays or []:
@@ -146,7 +146,7 @@ def build_library(
         else:
             for s in range(d):
                 effect = cls(0.0, target=0, source=s).bind(data.state_names)
-                out.append(Candidate(kind, s, {}, _step_average(_evaluate(effect, data))))
+                out.append(Candidate(kind, s, {}, _step_average(evaluate_effect(effect, data))))
     return out
 
 

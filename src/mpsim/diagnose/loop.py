@@ -18,7 +18,15 @@ from typing import Any
 import torch
 
 from mpsim.data.trajectories import Trajectories
-from mpsim.diagnose.library import DEFAULT_KINDS, Candidate, build_library, dominant_frequency, refine_frequency
+from mpsim.diagnose.library import (
+    DEFAULT_KINDS,
+    Candidate,
+    build_library,
+    delayed,
+    dominant_frequency,
+    evaluate_effect,
+    refine_frequency,
+)
 from mpsim.diagnose.residual import Residual, one_step_residual
 from mpsim.diagnose.select import _lstsq, bootstrap, explained_alone, project_out, stepwise_bic
 from mpsim.models.base import Model
@@ -192,15 +200,26 @@ def model_sensitivities(model: Model, data: Trajectories) -> torch.Tensor | None
     return 0.5 * (sens[:, 1:] + sens[:, :-1])
 
 
-def nuisance_columns(model: Model, data: Trajectories, represented: tuple[str, ...]) -> torch.Tensor | None:
-    """[B, T−1, N, D, P] columns refit but never named: the model's sensitivities to its own parameters
-    (white-box models) and the basis of every effect kind the model can already express (a neural ODE of the
-    node state can learn any state-dependent term, so its residual along those directions is training error,
-    not missing physics)."""
+def nuisance_columns(
+    model: Model, data: Trajectories, represented: tuple[str, ...]
+) -> tuple[torch.Tensor | None, int]:
+    """([B, T−1, N, D, P] columns refit but never named, how many of them are the model's own coefficients).
+
+    First the model's own coefficients, one column each across all state variables: its sensitivities to its
+    interpretable parameters (white-box models) and the basis of every effect it already carries (placed in
+    the rows of the effect's target; in a later round of the loop a drive found before is refit, not found
+    again). Then the basis of every effect kind the model can already express (a neural ODE of the node state
+    can learn any state-dependent term, so its residual along those directions is training error, not missing
+    physics) and the polynomials of a node's state, with a coefficient per state variable.
+    """
     parts = []
     sens = model_sensitivities(model, data)
     if sens is not None:
         parts.append(sens)
+    own = effect_columns(model, data)
+    if own is not None:
+        parts.append(own)
+    n_shared = sum(p.shape[-1] for p in parts)
     if represented:
         cols = torch.cat([c.features for c in build_library(data, {}, [], represented)], dim=-1)  # [B, T-1, N, K]
         parts.append(cols.unsqueeze(-2).expand(-1, -1, -1, data.state_dim, -1))
@@ -208,7 +227,24 @@ def nuisance_columns(model: Model, data: Trajectories, represented: tuple[str, .
         cols = state_polynomials(data.x.double(), model.represents_polynomials)  # [B, T, N, K]
         cols = 0.5 * (cols[:, 1:] + cols[:, :-1])
         parts.append(cols.unsqueeze(-2).expand(-1, -1, -1, data.state_dim, -1))
-    return torch.cat(parts, dim=-1) if parts else None
+    return (torch.cat(parts, dim=-1) if parts else None), n_shared
+
+
+@torch.no_grad()
+def effect_columns(model: Model, data: Trajectories) -> torch.Tensor | None:
+    """[B, T−1, N, D, K] step-averaged basis of each effect the model carries, in its target's rows (or None)."""
+    cols = []
+    for effect in model.effects:
+        if type(effect).__name__ == "DelayedFeedback":
+            m = int(round(float(effect.delay) / float(data.t[1] - data.t[0])))
+            values = delayed(data.x.double(), m)[..., effect.source : effect.source + 1]
+        else:
+            values = evaluate_effect(effect, data)
+        feats = 0.5 * (values[:, 1:] + values[:, :-1])  # [B, T-1, N, K]
+        full = feats.new_zeros(*feats.shape[:-1], data.state_dim, feats.shape[-1])
+        full[..., effect.target, :] = feats
+        cols.append(full)
+    return torch.cat(cols, dim=-1) if cols else None
 
 
 def state_polynomials(x: torch.Tensor, degree: int) -> torch.Tensor:  # x: [B, T, N, D]
@@ -256,7 +292,7 @@ def find_effects(
     undecidable = tuple(k for k in kinds if k in model.indistinguishable)
     kinds = tuple(k for k in kinds if k not in represented and k not in undecidable)
     library = build_library(data, omegas, delays, kinds)
-    base = nuisance_columns(model, data, represented)
+    base, n_shared = nuisance_columns(model, data, represented)
     noise = noise_level(data.x, res.r * res.dt[None, :, None, None])
     null_rms, null_level = _null_check(model, data, omegas, delays, kinds, represented, noise, seed)
     names = data.state_names
@@ -292,10 +328,10 @@ def find_effects(
     diag = Diagnosis(findings, list(names), residual_rms, null_rms, null_level, explained, omegas,
                      [float(v) for v in noise], res, spectra, represented=list(represented),
                      not_considered=list(undecidable))
-    while diag.accepted and not _joint_refit(diag, library, res, keep, base, model):
+    while diag.accepted and not _joint_refit(diag, library, res, keep, base, n_shared, model):
         pass  # an effect whose coefficient was not stable was dropped: refit the others
     while diag.accepted and not _confirm_by_integration(diag, library, model, data, base, min_gain):
-        while diag.accepted and not _joint_refit(diag, library, res, keep, base, model):
+        while diag.accepted and not _joint_refit(diag, library, res, keep, base, n_shared, model):
             pass
     return diag
 
@@ -359,7 +395,7 @@ def _confirm_by_integration(diag: Diagnosis, library: list[Candidate], model: Mo
 
 
 def _joint_refit(diag: Diagnosis, library: list[Candidate], res: Residual, keep: torch.Tensor,
-                 base: torch.Tensor | None, model: Model) -> bool:
+                 base: torch.Tensor | None, n_shared: int, model: Model) -> bool:
     """One least-squares fit over all state variables of the accepted effects together with the model's own
     parameter sensitivities (shared across state variables): consistent coefficients and parameter shifts
     to start the finetune from.
@@ -377,7 +413,6 @@ def _joint_refit(diag: Diagnosis, library: list[Candidate], res: Residual, keep:
         block = torch.zeros(n, d_total, cols.shape[1], dtype=torch.float64)
         block[:, f.target] = cols
         blocks.append(block)
-    n_shared = len(model.sensitivity_names()) if base is not None else 0
     if base is not None:
         nuisance = base[keep].reshape(n, d_total, -1)  # [n, D, P_shared + K]
         if n_shared:  # parameters of the model's own equations: one coefficient across all state variables
@@ -414,9 +449,9 @@ def _joint_refit(diag: Diagnosis, library: list[Candidate], res: Residual, keep:
     for f, coef in refits:
         f.coef = coef
         f.effect = library[labels[f.label.split(": ", 1)[1]]].effect_config(coef, f.target, diag.state_names)
-    names = model.sensitivity_names()
+    names = model.sensitivity_names()  # the first of the shared columns (then the model's effects, not shifted)
     if base is not None and names:
-        diag.parameter_shifts = {name: float(v) for name, v in zip(names, sol[at : at + n_shared], strict=True)}
+        diag.parameter_shifts = {name: float(v) for name, v in zip(names, sol[at : at + len(names)], strict=True)}
     return True
 
 
@@ -434,7 +469,7 @@ def _null_check(model, data, omegas, delays, kinds, represented, sigma, seed) ->
     res = one_step_residual(model, null)
     keep = torch.isfinite(res.r).flatten(1).all(dim=1)
     library = build_library(null, omegas, delays, kinds)
-    base = nuisance_columns(model, null, represented)
+    base, _ = nuisance_columns(model, null, represented)
     rms, level = [], []
     for d in range(data.state_dim):
         y, groups, base_d = _rows(library, res, d, keep, base)
