@@ -46,13 +46,17 @@ python - "$OUT" <<'PY'
 import json, sys
 from pathlib import Path
 out = Path(sys.argv[1])
-lines = ["| case | effect named (fitted → after finetune) | truth | one-step RMSE before → after | "
+lines = ["| case | effect named (fitted → after finetune; fix=true adds one per round) | truth | one-step RMSE before → after | "
          "rollout RMSE before → after | at horizon | valid pred. time before → after |", "|---|---|---|---|---|---|---|"]
 for case, horizon in (("case1", "50"), ("case2", "10")):
     if not (out / case / "diagnose" / "diagnosis.json").exists():
         continue
     d = json.loads((out / case / "diagnose" / "diagnosis.json").read_text())
-    named = "; ".join(f"{f['label']}: {', '.join(f'{c:.4g}' for c in f['coef'])}" for f in d["effects_found"]) or "none"
+    first = {f["label"]: f for f in d["effects_found"]}
+    named = "; ".join(f"{lab}: {', '.join(f'{c:.4g}' for c in first[lab]['coef'])}" for lab in d.get("effects_named", first))
+    named = named or "none"
+    if d.get("not_confirmed"):
+        named += " (first diagnosis also: " + "; ".join(d["not_confirmed"]) + " — not confirmed after round 1, not added)"
     fixed = "; ".join(e["describe"] for e in d.get("fixed_effects", []))
     truth = "; ".join(str({k: v for k, v in t.items() if k != "_target_"}) for t in d["true_effects"])
     b, a = d["before"], d.get("after") or {}
