@@ -85,3 +85,16 @@ def test_normalisation_round_trip():
 def test_bad_sizes_are_refused():
     with pytest.raises(ValueError, match="message_size"):
         MPNODE(2, message_size=-1)
+
+
+def test_sum_aggregation_sees_the_degree_and_mean_does_not():
+    t = torch.linspace(0, 1, 6, dtype=torch.float64)
+    mean, total = _model(), _model(aggregation="sum")
+    total.load_state_dict(mean.state_dict())
+    x0 = torch.randn(2, 4, 2, dtype=torch.float64)
+    pairs = torch.tensor([[0, 1, 2, 3], [1, 0, 3, 2]])  # every node has one neighbour: sum = mean
+    assert torch.allclose(mean.rollout(x0, t, pairs), total.rollout(x0, t, pairs), atol=1e-10)
+    ring = complete(4)  # three neighbours each: the sum is three times the mean
+    assert not torch.allclose(mean.rollout(x0, t, ring), total.rollout(x0, t, ring), atol=1e-4)
+    with pytest.raises(ValueError, match="aggregation"):
+        MPNODE(2, aggregation="max")

@@ -3,7 +3,7 @@
 Each node k carries its state x_k ∈ R^D and a message m_k ∈ R^M (zero at t0 of every trajectory). Inside
 the ODE right-hand side, i.e. at every solver stage,
 
-    m'_k = mean_{j ∈ N(k)} m_j          (0 for a node without neighbours)
+    m'_k = mean_{j ∈ N(k)} m_j          (0 for a node without neighbours; `aggregation=sum`: the sum)
     d/dt [x_k; m_k] = f_θ([x_k; u_k; m'_k])
 
 with f_θ a tanh MLP shared by all nodes (Sanchez/Gupta et al., "Learning Modular Simulations for
@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from mpsim.effects import Effect, EffectContext, total
-from mpsim.graphs.batch import BatchedGraph, batch_graph, mean_aggregate
+from mpsim.graphs.batch import BatchedGraph, batch_graph, mean_aggregate, sum_aggregate
 from mpsim.models.controls import ControlledModel, ControlNormalisation, integrate_held, zero_order_hold
 from mpsim.solvers.odeint import ODESolver
 
@@ -41,6 +41,9 @@ def mlp(n_in: int, hidden: int, n_out: int, n_hidden_layers: int = 2, activation
     return nn.Sequential(*layers)
 
 
+AGGREGATIONS = {"mean": mean_aggregate, "sum": sum_aggregate}
+
+
 class _MessagePassingField(nn.Module):
     """The augmented vector field of one rollout: graph and controls fixed, `net` shared."""
 
@@ -54,9 +57,11 @@ class _MessagePassingField(nn.Module):
         u: torch.Tensor | None = None,  # [B, T, N, C] controls (z-scored by the model)
         model: MPNODE | None = None,  # for its effects and normalisation
         effect_graph: BatchedGraph | None = None,  # the data's coupling graph (no self-loops) for effects
+        aggregation: str = "mean",
     ) -> None:
         super().__init__()
         self.net, self.graph, self.state_dim, self.zero_messages = net, graph, state_dim, zero_messages
+        self.aggregate = AGGREGATIONS[aggregation]
         self.t_grid, self.u = t_grid, u
         self.held: int | None = None  # control sample fixed by an interval-by-interval solve
         self.model, self.effect_graph = model, effect_graph
@@ -67,7 +72,7 @@ class _MessagePassingField(nn.Module):
 
     def forward(self, t: torch.Tensor, y: torch.Tensor, history=None) -> torch.Tensor:  # t: [], y: [B, N, D+M]
         x, m = y[..., : self.state_dim], y[..., self.state_dim :]
-        incoming = torch.zeros_like(m) if self.zero_messages else mean_aggregate(m, self.graph)
+        incoming = torch.zeros_like(m) if self.zero_messages else self.aggregate(m, self.graph)
         u = self.controls_at(t)
         inputs = [x, incoming] if u is None else [x, u, incoming]
         dy = self.net(torch.cat(inputs, dim=-1))
@@ -98,6 +103,9 @@ class MPNODE(ControlledModel):
         zero_messages: replace incoming messages by zeros (the paper's "messages off" ablation; can be
             switched on a trained model to see what the messages carry).
         self_loops: include each node's own message in its mean.
+        aggregation: "mean" of the neighbours' messages (paper, MPNODE.jl's SegmentedMean) or their "sum", which
+            lets the node see how many neighbours it has (coupling that adds up over neighbours, e.g. gene
+            regulation, whose strength a mean cannot tell apart across node degrees).
         effects: named physical terms with learnable coefficients added to the node dynamics.
         solver: how the vector field is integrated (default: dopri5, rtol = atol = 1e-4).
     """
@@ -120,8 +128,12 @@ class MPNODE(ControlledModel):
         self_loops: bool = False,
         effects: Sequence[Effect] = (),
         solver: ODESolver | None = None,
+        aggregation: str = "mean",
     ) -> None:
         super().__init__(state_dim, control_dim, effects)
+        if aggregation not in AGGREGATIONS:
+            raise ValueError(f'model.aggregation must be one of {sorted(AGGREGATIONS)}; got "{aggregation}".')
+        self.aggregation = aggregation
         if message_size < 0 or hidden < 1 or n_hidden_layers < 1:
             raise ValueError(
                 f"model.message_size must be >= 0, model.hidden and model.n_hidden_layers >= 1; got "
@@ -153,7 +165,7 @@ class MPNODE(ControlledModel):
         y0 = torch.cat([self.normalise(x0), x0.new_zeros(b, n, self.message_size)], dim=-1)
         effect_graph = batch_graph(edge_index.to(x0.device), b, n, dtype=x0.dtype) if len(self.effects) else None
         field = _MessagePassingField(self.net, graph, d, self.zero_messages, t.to(x0), self.controls(u), self,
-                                     effect_graph)
+                                     effect_graph, self.aggregation)
         # with controls, one solve per sample interval with the input held (see mpsim.models.controls)
         ys = integrate_held(lambda f, y, tt: self.integrate(f, y, tt, self.solver), field, y0, t)  # [B, T, N, D+M]
         return self.denormalise(ys[..., :d]), {"messages": ys[..., d:]}
@@ -166,7 +178,7 @@ class MPNODE(ControlledModel):
         graph = batch_graph(edge_index.to(x.device), b, n, self_loops=self.self_loops, dtype=x.dtype)
         effect_graph = batch_graph(edge_index.to(x.device), b, n, dtype=x.dtype) if len(self.effects) else None
         field = _MessagePassingField(self.net, graph, d, self.zero_messages, t.to(x), self.controls(u), self,
-                                     effect_graph)
+                                     effect_graph, self.aggregation)
         messages = x.new_zeros(b, n, self.message_size)
         preds = []
         for k in range(n_t - 1):  # sequential in time: the messages carry over
