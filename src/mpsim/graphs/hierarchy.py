@@ -12,13 +12,17 @@ graph has:
    whose parent grid (2x2) wraps onto itself;
 3. assignments: particle -> lowest cell and child cell -> parent cell (used upward, and reversed downward).
 
-Empty cells are pruned: cell ids are compact per level, over the whole batch, ordered by (sample, row,
-column) with row 0 at the top (largest y) and column 0 at the left, as in the reference builder. Cell
-features are Σ mass, Σ charge (the *total*, as the paper states; the reference's rollout builder used a
+Empty cells are pruned: cell ids are compact per level, over the whole batch, ordered by sample and then
+along the Z-order (Morton) curve of (row, column), row 0 at the top (largest y) and column 0 at the left
+(`graphs.order`; the reference builder numbers cells row by row). In Z-order the four children of a parent have
+consecutive ids, so the child -> parent ids are non-decreasing and a cell's 3x3 block lies close by in memory;
+particles numbered in the same order (`order.spatial_order`, as the N-body models do before building the graph)
+get non-decreasing particle -> cell ids. Cell features are Σ mass, Σ charge (the *total*, as the paper states; the reference's rollout builder used a
 mean, spec §7.2), centre of mass and mass-weighted mean velocity.
 
 Everything is vectorised: cell ids come from floor division, neighbour cells from offsets modulo the grid,
-and the particle lists from one sort plus segment sums. The only Python loop is over the ~log4 N levels.
+and the particle lists from one sort plus segment sums. A level's dense cell key is
+sample * grid² + Z-order key, and the parent's is sample * (grid/2)² + (Z-order key >> 2). The only Python loop is over the ~log4 N levels.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ import torch
 
 from mpsim.errors import ConfigError
 from mpsim.graphs.knn import minimum_image, wrap_positions
+from mpsim.graphs.order import grid_cells, morton_decode, morton_encode
 
 
 def hierarchy_depth(n_particles: int) -> int:
@@ -263,13 +268,11 @@ def build_hierarchy(
     # lowest-level integer cell coordinates; binning never needs gradients
     grid = 1 << depth
     cell_size = box_size / grid
-    ij = torch.floor((wrap_positions(pos3.detach(), box_size) + box_size / 2) / cell_size).long()
-    ij = ij.clamp_(0, grid - 1).reshape(-1, 2)  # [B*N, 2] (column from x, row-from-the-bottom from y)
+    row, col = (rc.reshape(-1) for rc in grid_cells(pos3, box_size, grid))  # [B*N] each
     sample = torch.arange(b, device=dev).repeat_interleave(n)  # [B*N]
-    row, col = grid - 1 - ij[:, 1], ij[:, 0]
 
     # lowest level: particles -> cells, and the particle-particle edges
-    key = (sample * grid + row) * grid + col  # [B*N] dense cell key
+    key = sample * (grid * grid) + morton_encode(row, col)  # [B*N] dense cell key
     counts = torch.bincount(key, minlength=b * grid * grid)
     dense, occupied = _compact(counts)
     particle_cell = dense[key]
@@ -277,7 +280,8 @@ def build_hierarchy(
 
     levels: list[dict] = []
     while True:
-        c_sample, c_row, c_col = occupied // (grid * grid), (occupied // grid) % grid, occupied % grid
+        c_sample, c_code = occupied // (grid * grid), occupied % (grid * grid)
+        c_row, c_col = morton_decode(c_code)
         centre = torch.stack(
             [(c_col.to(pos3.dtype) + 0.5) * cell_size, -(c_row.to(pos3.dtype) + 0.5) * cell_size], dim=-1
         ) + torch.tensor([-box_size / 2, box_size / 2], dtype=pos3.dtype, device=dev)
@@ -295,11 +299,11 @@ def build_hierarchy(
         levels.append(level)
         if grid == 4:  # the 2x2 level above is dropped
             break
-        # next level up: a child's parent is (row // 2, col // 2); the occupied parents are those of
-        # occupied children
+        # next level up: a child's parent is (row // 2, col // 2), Z-order key >> 2; the occupied parents are
+        # those of occupied children
         grid //= 2
         cell_size *= 2
-        parent_key = (c_sample * grid + c_row // 2) * grid + c_col // 2
+        parent_key = c_sample * (grid * grid) + (c_code >> 2)
         child_counts = torch.bincount(parent_key, minlength=b * grid * grid)
         dense, occupied = _compact(child_counts)
         level["parent"] = dense[parent_key]
@@ -352,7 +356,7 @@ def _particle_edges(
     n_row = (row[:, None] + block[:, 0]) % grid  # [P, 9]
     n_col = (col[:, None] + block[:, 1]) % grid
     # [P*9] dense keys of the 9 cells each receiver hears
-    nkey = ((sample[:, None] * grid + n_row) * grid + n_col).reshape(-1)
+    nkey = (sample[:, None] * (grid * grid) + morton_encode(n_row, n_col)).reshape(-1)
     per_pair = counts[nkey]
     n_edges = int(per_pair.sum())
     pairs = torch.arange(nkey.shape[0], device=key.device)
@@ -379,7 +383,7 @@ def _near_edges(
         offsets = _NEAR.to(row.device)[(row % 2) * 2 + col % 2]  # [C, 27, 2]
     s_row = (row[:, None] + offsets[..., 0]) % grid
     s_col = (col[:, None] + offsets[..., 1]) % grid
-    sender = dense[(sample[:, None] * grid + s_row) * grid + s_col]  # -1 for empty cells (pruned)
+    sender = dense[sample[:, None] * (grid * grid) + morton_encode(s_row, s_col)]  # -1 for empty cells (pruned)
     receiver = torch.arange(row.shape[0], device=row.device)[:, None].expand_as(sender)
     keep = sender >= 0
     return torch.stack([sender[keep], receiver[keep]])

@@ -66,15 +66,15 @@ class DeltaGN(ParticleModel):
         self.register_buffer("delta_scale", torch.tensor([0.01, 0.01, 0.05, 0.05]))
         self.register_buffer("delta_scale_fitted", torch.zeros((), dtype=torch.bool))
 
-    def advance(
+    def advance_in_graph_order(
         self,
-        x: torch.Tensor,  # [B, N, 4] states
-        nf: torch.Tensor,  # [B, N, 2] (mass, charge)
+        x: torch.Tensor,  # [B, N, 4] states, in graph order
+        nf: torch.Tensor,  # [B, N, 2] (mass, charge), in graph order
         graph: ParticleEdges,  # the graph of `x`
         box: float,
         dt: float,
     ) -> torch.Tensor:
-        """[B, N, 4] x + Δ with positions wrapped into the box."""
+        """[B, N, 4] x + Δ with positions wrapped into the box (in graph order; `advance` reorders)."""
         b, n, _ = x.shape
         pos = x[..., :2].reshape(-1, 2)
         feats = self._features(nf.reshape(-1, 2), x[..., 2:].reshape(-1, 2))  # [P, d]

@@ -11,7 +11,9 @@ Widths and activations follow Martinkus et al. (AAAI 2021), Appendix B, and the 
 
 All aggregations are sums over segments (`index_add`), over the flattened batch: particle i of sample b is
 node b*N + i, cells carry compact ids over the whole batch. No Python loop runs over particles, cells or
-edges; the only loops are over the ~log4 N hierarchy levels and the 3-4 input parts of an MLP.
+edges; the only loops are over the ~log4 N hierarchy levels, the 3-4 input parts of an MLP, and tiles of a few
+thousand edges (`MLP.segment_sum_parts`: an edge MLP and its sum per receiver never hold all edges' [E, 150]
+intermediates at once, so the time per edge stays flat as N grows).
 
 Every edge MLP computes its first layer per *node* and gathers the result onto the edges
 (`MLP.forward_parts`): W [x_s, x_r, d] = W_s x_s + W_r x_r + W_d d, which is the same function and the
@@ -21,6 +23,7 @@ O(edges · in · H) — 2-20x less for the full graph and the 100-200-wide cell 
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -40,6 +43,12 @@ UP = (100, 2)
 DOWN = (150, 2)
 CELL = (100, 3)
 CELL_TO_PARTICLE = (150, 2)
+
+# Rows (edges) per tile of `MLP.segment_sum_parts`: 4096 x 150 float32 = 2.4 MB per intermediate, which stays in
+# a CPU's cache (hierarchical DeltaGN at N = 10^5, one thread: tiles of 1024-16384 rows within the machine's noise,
+# untiled 1.7-2.4x slower); a GPU wants large tiles.
+_TILE_ROWS = 4096
+_TILE_ROWS_CUDA = 1 << 22
 
 # An input part of an MLP: (values [n, f], index [E] gathering them onto the rows, or None if already per row
 # or a single broadcast row [1, f]).
@@ -83,18 +92,65 @@ class MLP(nn.Module):
         gathered onto the R rows (edges); unindexed parts are either per row [R, f_k] or one broadcast row
         [1, f_k] (the constant dt feature). The widths f_k must add up to `n_in`, in input order.
         """
+        return self._rows(self._project(parts), None, n_rows)
+
+    def segment_sum_parts(
+        self,
+        parts: Sequence[Part],
+        segment: torch.Tensor,  # [R] segment (receiver) of each row
+        n_segments: int,
+    ) -> torch.Tensor:
+        """[n_segments, width] Σ per segment of the rows of `forward_parts(parts)`, in tiles of rows.
+
+        The same sums as `segment_sum(forward_parts(parts), segment, n_segments)`, but the R rows (edges) are
+        run through the MLP a tile at a time and summed into the output at once: the per-row intermediates
+        (R x 150 floats each, 0.8 GB at R = 1.4 M) never exist whole. Whole-graph intermediates cost page faults
+        on every fresh allocation and a trip through main memory per layer; tiles stay in the CPU cache, which
+        keeps the time per edge flat from N = 10^3 to 10^5. A GPU gets tiles large enough to fill it.
+        """
+        projected = self._project(parts)
+        n_rows = int(segment.shape[0])
         first = self.layers[0]
-        col, h = 0, None
+        out = first.weight.new_zeros(n_segments, self.width)
+        tile = _TILE_ROWS_CUDA if segment.is_cuda else _TILE_ROWS
+        for r0 in range(0, n_rows, tile):  # a loop over tiles of edges, not over edges
+            rows = slice(r0, min(n_rows, r0 + tile))
+            out.index_add_(0, segment[rows], self._rows(projected, rows, rows.stop - rows.start))
+        return out
+
+    def _project(self, parts: Sequence[Part]) -> list[tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]]:
+        """Per part: (values @ W_k^T [n_k, H], index, None) for indexed parts and broadcast rows (the first layer
+        once per node, not once per row), or (values [R, f_k], None, W_k [H, f_k]) for per-row parts, which
+        `_rows` projects a tile at a time."""
+        first = self.layers[0]
+        col, out = 0, []
         for values, index in parts:
             f = values.shape[-1]
-            proj = values @ first.weight[:, col : col + f].T  # [n_k, H]: one projection per node, not per edge
-            if index is not None:
-                proj = proj.index_select(0, index)
-            h = proj if h is None else h + proj
+            weight = first.weight[:, col : col + f]
+            per_row = index is None and values.shape[0] != 1
+            out.append((values, None, weight) if per_row else (values @ weight.T, index, None))
             col += f
         if col != self.n_in:
             raise ValueError(f"MLP expects {self.n_in} input features; the parts give {col}.")
-        h = h + first.bias
+        return out
+
+    def _rows(
+        self,
+        projected: Sequence[tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]],  # from `_project`
+        rows: slice | None,  # the rows to compute (None: all)
+        n_rows: int | None,  # number of rows computed (to broadcast a result that has one row)
+    ) -> torch.Tensor:
+        """[n_rows, width] the MLP of `rows` from the first layer's per-part projections."""
+        h = None
+        for values, index, weight in projected:
+            if weight is not None:  # a per-row part: project the rows of this tile
+                proj = (values if rows is None else values[rows]) @ weight.T
+            elif index is not None:  # a per-node part: gather its projection onto the rows
+                proj = values.index_select(0, index if rows is None else index[rows])
+            else:  # one broadcast row
+                proj = values
+            h = proj if h is None else h + proj
+        h = h + self.layers[0].bias
         if n_rows is not None and h.shape[0] != n_rows:
             h = h.expand(n_rows, -1)
         h = self.act(h)
@@ -116,25 +172,60 @@ def segment_sum(
 class ParticleEdges:
     """The particle-particle edges a GN block runs on (full, kNN, or a hierarchy's lowest level).
 
+    Node ids are in *graph order*: the particles may have been renumbered along a space-filling curve before the
+    graph was built (`ParticleModel.build_graph`), so that the gathers and segment sums of a forward pass touch
+    memory almost sequentially. Graph node b*N + j is then the caller's particle ``order[b*N + j]`` (always one
+    of sample b's); `to_graph_order` and `to_caller_order` convert per-particle values.
+
     Attributes:
-        edge_index: [2, E] (sender, receiver) flattened particle ids b*N + i.
+        edge_index: [2, E] (sender, receiver) flattened particle ids b*N + j, in graph order.
         n_graphs: B samples.
         n_particles: N particles per sample.
-        hierarchy: the quadtree the edges come from, or None for flat graphs.
+        hierarchy: the quadtree the edges come from (its particle ids in graph order too), or None for flat graphs.
+        order: [B*N] the caller's flattened particle id of each graph node, or None when both orders are the same.
     """
 
     edge_index: torch.Tensor
     n_graphs: int
     n_particles: int
     hierarchy: Hierarchy | None = None
+    order: torch.Tensor | None = None
 
     @property
     def n_nodes(self) -> int:
         return self.n_graphs * self.n_particles
 
+    @functools.cached_property
+    def inverse(self) -> torch.Tensor | None:
+        """[B*N] the graph node of each caller's particle (the inverse permutation of `order`), or None."""
+        if self.order is None:
+            return None
+        inv = torch.empty_like(self.order)
+        inv[self.order] = torch.arange(self.order.shape[0], device=self.order.device)
+        return inv
+
+    def to_graph_order(self, values: torch.Tensor) -> torch.Tensor:  # values: [B, N, F] in the caller's order
+        """[B, N, F] the same per-particle values, in graph order (differentiable)."""
+        return take_rows(values, self.order)
+
+    def to_caller_order(self, values: torch.Tensor) -> torch.Tensor:  # values: [B, N, F] in graph order
+        """[B, N, F] per-particle values computed in graph order, back in the caller's order (differentiable)."""
+        return take_rows(values, self.inverse)
+
     def vectors(self, pos: torch.Tensor, box_size: float) -> torch.Tensor:  # pos: [P, 2] flattened positions
         """[E, 2] minimum-image x_sender - x_receiver (differentiable in `pos`)."""
         return minimum_image(pos[self.edge_index[0]] - pos[self.edge_index[1]], box_size)
+
+
+def take_rows(
+    values: torch.Tensor,  # [B, N, F] per-particle values
+    index: torch.Tensor | None,  # [B*N] flattened source row of each output row, or None (identity)
+) -> torch.Tensor:
+    """[B, N, F] the rows of `values` (flattened over B*N) taken in the order `index` (a permutation within
+    samples); `values` itself when `index` is None."""
+    if index is None:
+        return values
+    return values.reshape(-1, values.shape[-1]).index_select(0, index).reshape(values.shape)
 
 
 class HierarchyPass(nn.Module):
@@ -185,15 +276,16 @@ class HierarchyPass(nn.Module):
         pc = hierarchy.particle_cell  # [P]
         n_p = particle_feats.shape[0]
         vec = minimum_image(particle_pos - cell_pos[0][pc], box)  # [P, 2] x_p - X_c
-        msg = self.up_particle.forward_parts([(particle_feats, None), (cell_feats[0], pc), (vec, None), *extra], n_p)
-        embed = [torch.cat([cell_feats[0], segment_sum(msg, pc, levels[0].n_cells)], dim=-1)]  # [C_0, d+100]
+        up = self.up_particle.segment_sum_parts([(particle_feats, None), (cell_feats[0], pc), (vec, None), *extra],
+                                                pc, levels[0].n_cells)
+        embed = [torch.cat([cell_feats[0], up], dim=-1)]  # [C_0, d+100]
         for lv in range(n_levels - 1):
             parent = levels[lv].parent  # [C_lv] parent id of each cell
             vec = minimum_image(cell_pos[lv] - cell_pos[lv + 1][parent], box)  # X_child - X_parent
-            msg = self.up_cell.forward_parts(
-                [(embed[lv], None), (cell_feats[lv + 1], parent), (vec, None), *extra], levels[lv].n_cells
+            up = self.up_cell.segment_sum_parts(
+                [(embed[lv], None), (cell_feats[lv + 1], parent), (vec, None), *extra], parent, levels[lv + 1].n_cells
             )
-            embed.append(torch.cat([cell_feats[lv + 1], segment_sum(msg, parent, levels[lv + 1].n_cells)], dim=-1))
+            embed.append(torch.cat([cell_feats[lv + 1], up], dim=-1))
 
         # downward pass: near-neighbour interactions at every level, plus the parent's message below the top
         state: torch.Tensor | None = None  # new state of the level above
@@ -201,8 +293,7 @@ class HierarchyPass(nn.Module):
             level, e = levels[lv], embed[lv]
             snd, rcv = level.edge_index
             vec = minimum_image(cell_pos[lv][snd] - cell_pos[lv][rcv], box)  # X_s - X_r
-            near = self.near.forward_parts([(e, snd), (e, rcv), (vec, None), *extra], int(snd.shape[0]))
-            incoming = segment_sum(near, rcv, level.n_cells)  # [C, 150]
+            incoming = self.near.segment_sum_parts([(e, snd), (e, rcv), (vec, None), *extra], rcv, level.n_cells)
             if state is not None:
                 parent = level.parent
                 vec = minimum_image(cell_pos[lv + 1][parent] - cell_pos[lv], box)  # X_parent - X_child
@@ -255,8 +346,7 @@ class InteractionBlock(nn.Module):
         extra: list[tuple[torch.Tensor, None]] = [(dt, None)] if self.dt_feature else []
         snd, rcv = graph.edge_index
         vec = graph.vectors(pos, box_size)  # [E, 2]
-        edges = self.edge.forward_parts([(feats, snd), (feats, rcv), (vec, None), *extra], int(snd.shape[0]))
-        incoming = segment_sum(edges, rcv, graph.n_nodes)  # [P, 150]
+        incoming = self.edge.segment_sum_parts([(feats, snd), (feats, rcv), (vec, None), *extra], rcv, graph.n_nodes)
         if self.hierarchy is not None:
             if graph.hierarchy is None:
                 raise ValueError("a hierarchical block needs a graph built with graph=hierarchical.")

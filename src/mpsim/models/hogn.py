@@ -124,15 +124,15 @@ class HOGN(ParticleModel):
         return dh_dp, -dh_dq
 
     # ---- integration -------------------------------------------------------------------------------
-    def advance(
+    def advance_in_graph_order(
         self,
-        x: torch.Tensor,  # [B, N, 4] states
-        nf: torch.Tensor,  # [B, N, 2] (mass, charge)
+        x: torch.Tensor,  # [B, N, 4] states, in graph order
+        nf: torch.Tensor,  # [B, N, 2] (mass, charge), in graph order
         graph: ParticleEdges,  # the graph of `x`, used by all four stages
         box: float,
         dt: float,
     ) -> torch.Tensor:
-        """[B, N, 4] one classical RK4 step of Hamilton's equations (velocities = p / m)."""
+        """[B, N, 4] one classical RK4 step of Hamilton's equations (velocities = p / m), in graph order."""
         b, n, _ = x.shape
         mc = nf.reshape(-1, 2)
         m = mc[:, :1]
@@ -158,7 +158,8 @@ class HOGN(ParticleModel):
         box: float,
     ) -> torch.Tensor:
         """[B] the learned Hamiltonian of each state, on the graph built from that state."""
-        nf = node_features.to(x)
+        nf = node_features.to(x).expand(x.shape[0], x.shape[1], -1)
         graph = self.build_graph(x[..., :2], nf, x[..., 2:], box)
+        x, nf = graph.to_graph_order(x), graph.to_graph_order(nf)  # H is a sum over particles: order-free
         mc = nf.reshape(-1, 2)
         return self.hamiltonian(graph, x[..., :2].reshape(-1, 2), mc[:, :1] * x[..., 2:].reshape(-1, 2), mc, box)
