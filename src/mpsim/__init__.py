@@ -34,7 +34,21 @@ def _keep_freed_cpu_memory() -> bool:
 
 KEEPS_HEAP = _keep_freed_cpu_memory()
 
-from mpsim.data.trajectories import Trajectories as Trajectories  # noqa: E402 - after the allocator settings
-from mpsim.systems.base import System as System  # noqa: E402
+__all__ = ["System", "Trajectories", "__version__"]
+
+
+def __getattr__(name: str):
+    """`mpsim.Trajectories` and `mpsim.System`, imported on first use: `mpsim --help` and config errors answer
+    without importing torch (and torch is still imported after the allocator settings above)."""
+    if name == "Trajectories":
+        from mpsim.data.trajectories import Trajectories
+
+        return Trajectories
+    if name == "System":
+        from mpsim.systems.base import System
+
+        return System
+    raise AttributeError(f"module 'mpsim' has no attribute {name!r}")
+
 
 __version__ = "0.1.0"

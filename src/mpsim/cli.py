@@ -1,26 +1,28 @@
 """`mpsim <command> [hydra overrides]`: command dispatch only.
 
 Hydra has no subcommands, so `main` pops the command word, rewrites `sys.argv` and calls that command's
-`@hydra.main` wrapper, a thin shell around a plain `run_<command>(cfg) -> dict`. User-facing errors
-(`MpsimError`) end with one message on stderr and a non-zero exit; anything else is a bug and keeps its
-traceback.
+`@hydra.main` wrapper, a thin shell around a plain `run_<command>(cfg) -> dict`. Before Hydra starts a run,
+the command line is composed and checked (`mpsim.config.compose_command`) without importing torch, so
+`--help`, typos and bad values answer at once and leave no run directory behind. User-facing errors
+(`MpsimError`, and failed writes or allocations) end with one message on stderr and the exit code of their
+kind (`mpsim.errors`); anything else is a bug and keeps its traceback.
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import shutil
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
-import hydra
 import yaml
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
 
-from mpsim.config import register_schemas
-from mpsim.errors import MpsimError
+from mpsim.errors import MpsimError, OutputError, ResourceError
 
+CONF_DIR = str(Path(__file__).parent / "conf")
 log = logging.getLogger("mpsim")
 
 USAGE = """usage: mpsim <command> [key=value ...] [-m] [--cfg job] [--help]
@@ -44,94 +46,142 @@ examples:
 TRUE = {"true", "yes", "1", "on"}
 
 
-def _guard(command: str, func: Callable[[DictConfig], dict], cfg: DictConfig) -> dict | None:
+def _fail(command: str, err: MpsimError) -> None:
+    """Print one message and exit with the error's code."""
+    print(f"mpsim {command}: error: {err}", file=sys.stderr)
+    sys.exit(err.exit_code)
+
+
+def _as_user_error(err: BaseException) -> MpsimError | None:
+    """Failed writes and allocations are the user's environment, not a bug: one message each."""
+    if isinstance(err, MpsimError):
+        return err
+    if isinstance(err, OSError):
+        from mpsim.files import describe_os_error
+
+        where = f" {err.filename}" if getattr(err, "filename", None) else ""
+        return OutputError(f"cannot write{where}: {describe_os_error(err)}.")
+    text = str(err)
+    if isinstance(err, MemoryError) or (isinstance(err, RuntimeError) and (
+            "can't allocate memory" in text or "out of memory" in text.lower())):
+        first = text.strip().splitlines()[0][:200] if text.strip() else type(err).__name__
+        return ResourceError(f"ran out of memory ({first}). Make the job smaller (fewer trajectories, shorter "
+                             "data.horizon, smaller trainer.batch_size or system) or use a machine with more memory.")
+    return None
+
+
+def _clean_run_dir(run_dir: Path | None) -> None:
+    """Remove a run directory that holds nothing but Hydra's record of the command and its log."""
+    if run_dir is None or not run_dir.is_dir():
+        return
+    files = [p for p in run_dir.rglob("*") if p.is_file()]
+    if all(p.parent.name == ".hydra" or p.suffix == ".log" for p in files):
+        shutil.rmtree(run_dir, ignore_errors=True)
+
+
+def _divergence_message(command: str, result: dict[str, Any]) -> str:
+    best = result.get("best_epoch") or 0
+    if best >= 1:
+        kept = f"the best checkpoint so far (epoch {best}) was kept: {result.get('checkpoint')}"
+        if result.get("exported"):
+            kept += f", exported as {result['exported']}"
+    else:
+        kept = "no epoch finished, so there is no trained checkpoint (only the starting point in last.ckpt)"
+    return (f"mpsim {command}: training diverged ({result.get('divergence') or 'NaN/inf'}); {kept}. "
+            "Lower trainer.lr or trainer.clip_norm.")
+
+
+def _guard(command: str, func: Callable[[Any], dict], cfg: Any) -> dict | None:
     """Run a command; turn user errors into one message and an exit code."""
+    from hydra.core.hydra_config import HydraConfig
+
     from mpsim.commands.common import hydra_overrides
 
     multirun = HydraConfig.initialized() and HydraConfig.get().mode.name == "MULTIRUN"
+    run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else None
+    fresh = not cfg.get("resume")
     try:
         result = func(cfg)
-    except MpsimError as err:
-        print(f"mpsim {command}: error: {err}", file=sys.stderr)
-        sys.exit(err.exit_code)
     except KeyboardInterrupt:
         args = " ".join(a for a in hydra_overrides() if not a.startswith("resume="))
         print(f"\nmpsim {command}: interrupted. Completed epochs are saved in last.ckpt; continue with:\n"
               f"  mpsim {command} {args} resume=true", file=sys.stderr)
         sys.exit(130)
+    except Exception as err:  # noqa: BLE001 - user errors become one message; bugs are re-raised
+        user = _as_user_error(err)
+        if user is None:
+            raise
+        if fresh and not multirun:
+            _clean_run_dir(run_dir)
+        _fail(command, user)
     if isinstance(result, dict) and result.get("status") == "diverged" and not multirun:
-        print(f"mpsim {command}: training diverged; the best checkpoint so far was kept.", file=sys.stderr)
+        print(_divergence_message(command, result), file=sys.stderr)
         sys.exit(3)
     return None if not multirun else {k: v for k, v in (result or {}).items() if isinstance(v, str | int | float)}
 
 
-def _train() -> None:
-    from mpsim.commands.train import run_train
+def _hydra_command(command: str) -> Callable[[], None]:
+    """The `@hydra.main` wrapper of `mpsim <command>` around `mpsim.commands.<command>.run_<command>`."""
 
-    hydra.main(version_base="1.3", config_path="conf", config_name="train")(
-        lambda cfg: _guard("train", run_train, cfg)
-    )()
+    def wrapper() -> None:
+        import importlib
 
+        import hydra
 
-def _eval() -> None:
-    from mpsim.commands.eval import run_eval
+        func = getattr(importlib.import_module(f"mpsim.commands.{command}"), f"run_{command}")
+        hydra.main(version_base="1.3", config_path="conf", config_name=command)(
+            lambda cfg: _guard(command, func, cfg)
+        )()
 
-    hydra.main(version_base="1.3", config_path="conf", config_name="eval")(lambda cfg: _guard("eval", run_eval, cfg))()
-
-
-def _simulate() -> None:
-    from mpsim.commands.simulate import run_simulate
-
-    hydra.main(version_base="1.3", config_path="conf", config_name="simulate")(
-        lambda cfg: _guard("simulate", run_simulate, cfg)
-    )()
+    return wrapper
 
 
-def _report() -> None:
-    from mpsim.commands.report import run_report
-
-    hydra.main(version_base="1.3", config_path="conf", config_name="report")(
-        lambda cfg: _guard("report", run_report, cfg)
-    )()
+COMMANDS: dict[str, Callable[[], None]] = {
+    name: _hydra_command(name) for name in ("train", "eval", "simulate", "report", "bench", "diagnose")
+}
 
 
-def _diagnose() -> None:
-    from mpsim.commands.diagnose import run_diagnose
-
-    hydra.main(version_base="1.3", config_path="conf", config_name="diagnose")(
-        lambda cfg: _guard("diagnose", run_diagnose, cfg)
-    )()
+def _key(arg: str) -> str:
+    return arg.split("=", 1)[0].lstrip("+~")
 
 
-def _bench() -> None:
-    from mpsim.commands.bench import run_bench
-
-    hydra.main(version_base="1.3", config_path="conf", config_name="bench")(
-        lambda cfg: _guard("bench", run_bench, cfg)
-    )()
+def _own(args: list[str]) -> list[str]:
+    """The overrides that define a run (not `resume`, not Hydra's own settings)."""
+    return [a for a in args if not _key(a).startswith(("resume", "hydra")) and a not in ("-m", "--multirun")]
 
 
-COMMANDS: dict[str, Callable[[], None]] = {"train": _train, "eval": _eval, "simulate": _simulate, "report": _report, "bench": _bench, "diagnose": _diagnose}
+def _saved_overrides(run: Path) -> list[str] | None:
+    path = run / ".hydra" / "overrides.yaml"
+    if not path.is_file():
+        return None
+    try:
+        saved = yaml.safe_load(path.read_text()) or []
+    except yaml.YAMLError:
+        return None
+    return [str(a) for a in saved] if isinstance(saved, list) else None
 
 
 def find_resumable(args: list[str], command: str = "train") -> Path | None:
     """The newest earlier run of `mpsim <command>` with the same overrides (ignoring `resume`) that has a
     `last.ckpt`, under `paths.output_root`."""
-    key = sorted(a for a in args if not a.split("=", 1)[0].lstrip("+~").startswith(("resume", "hydra")))
+    key = sorted(_own(args))
     root = next((a.split("=", 1)[1] for a in args if a.startswith("paths.output_root=")), "outputs")
     found = []
     for overrides in Path(root).glob(f"{command}/*/*/.hydra/overrides.yaml"):
         run = overrides.parent.parent
-        saved = yaml.safe_load(overrides.read_text()) or []
-        saved = sorted(a for a in saved if not a.split("=", 1)[0].lstrip("+~").startswith(("resume", "hydra")))
+        saved = _saved_overrides(run)
         last = run / "checkpoints" / "last.ckpt"
-        if saved == key and last.is_file():
+        if saved is not None and sorted(_own(saved)) == key and last.is_file():
             found.append((last.stat().st_mtime, run))
     return max(found)[1] if found else None
 
 
 def _with_resume(args: list[str]) -> list[str]:
-    """Point Hydra's run directory at the run that `resume=` continues."""
+    """Point Hydra's run directory at the run that `resume=` continues, with that run's own overrides.
+
+    The resumed run keeps its `.hydra/` record (nothing is rewritten there). Overrides that differ from the
+    run's own (other data, another learning rate, ...) are refused: they would silently change the run.
+    """
     values = [a.split("=", 1)[1] for a in args if a.startswith("resume=")]
     if not values or values[-1].lower() in {"false", "no", "0", "off", "null"}:
         return args
@@ -149,9 +199,54 @@ def _with_resume(args: list[str]) -> list[str]:
     else:
         run = Path(value)
         if not (run / "checkpoints" / "last.ckpt").is_file():
-            raise MpsimError(f"resume={value}: {run}/checkpoints/last.ckpt does not exist.")
+            raise MpsimError(f"resume={value}: {run}/checkpoints/last.ckpt does not exist. Pass the directory of an "
+                             "earlier train run (it holds checkpoints/last.ckpt).")
+    saved = _saved_overrides(run)
+    if saved is None:
+        print(f"mpsim train: warning: {run}/.hydra/overrides.yaml is missing; resuming with the overrides given "
+              "now, which cannot be checked against the run's own.", file=sys.stderr)
+        own = _own(args)
+    else:
+        mine, theirs = dict(_split(a) for a in _own(args)), dict(_split(a) for a in _own(saved))
+        differ = [f"{k}={v} (the run has {k}={theirs[k]})" if k in theirs else f"{k}={v} (not set in the run)"
+                  for k, v in mine.items() if theirs.get(k) != v]
+        if differ:
+            raise MpsimError(
+                f"resume={value}: {'; '.join(differ)}. A resumed run continues with its own config "
+                f"({' '.join(_own(saved)) or 'no overrides'}); drop the differing overrides, or start a new run "
+                "without resume= (finetune from its checkpoint with init=<run>/checkpoints/best.ckpt)."
+            )
+        own = _own(saved)
     print(f"mpsim train: resuming {run}", file=sys.stderr)
-    return [*args, f"hydra.run.dir={run.resolve()}"]
+    hydra_args = [a for a in args if _key(a).startswith("hydra")]
+    return [*own, *hydra_args, f"resume={value}", f"hydra.run.dir={run.resolve()}", "hydra.output_subdir=null"]
+
+
+def _split(arg: str) -> tuple[str, str]:
+    key, _, value = arg.partition("=")
+    return key.lstrip("+~"), value
+
+
+def _check_writable(cfg: Any, command: str) -> None:
+    """Refuse at start (before any work) output locations that cannot be written."""
+    paths = cfg.get("paths")
+    if paths is None:
+        return
+    targets = [("paths.output_root", paths.get("output_root"))]
+    if command == "train" and cfg.get("export"):
+        targets.append(("paths.ckpt_dir", paths.get("ckpt_dir")))
+    for key, value in targets:
+        if not value:
+            continue
+        path = Path(os.path.expanduser(str(value))).absolute()
+        probe = path
+        while not probe.exists() and probe != probe.parent:
+            probe = probe.parent
+        if not probe.is_dir():
+            raise OutputError(f"{key}={value}: {probe} is a file, not a directory. Choose a directory: {key}=<dir>.")
+        if not os.access(probe, os.W_OK | os.X_OK):
+            raise OutputError(f"{key}={value}: {probe} is not writable (permissions or a read-only file system). "
+                              f"Choose a writable directory: {key}=<dir>.")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -170,13 +265,17 @@ def main(argv: list[str] | None = None) -> None:
         print(f"mpsim: unknown command {command!r}; choose one of {', '.join(COMMANDS)} (mpsim --help).",
               file=sys.stderr)
         sys.exit(2)
+    from mpsim.config import compose_command, register_schemas
+
     try:
         if command == "train":
             rest = _with_resume(rest)
+        register_schemas()
+        cfg = compose_command(command, rest, CONF_DIR)
+        if cfg is not None:
+            _check_writable(cfg, command)
     except MpsimError as err:
-        print(f"mpsim {command}: error: {err}", file=sys.stderr)
-        sys.exit(2)
-    register_schemas()
+        _fail(command, err)
     sys.argv = [f"mpsim {command}", *rest]
     COMMANDS[command]()
 

@@ -1,6 +1,9 @@
 """Config schemas and checks, used only by the command layer.
 
-Two layers of checking make a typo or a wrong type fail at start with a clear message:
+Before Hydra starts a run, `compose_command` composes the command line exactly as the run will (no torch
+import, no run directory), turns Hydra's composition errors into one line with a did-you-mean (Hydra's own
+advice, "To append to your config use +key", is the wrong fix for a typo) and checks value ranges
+(`validate_values`). Two layers of checking make a typo or a wrong type fail at start with a clear message:
 
 1. Typed structured-config schemas (dataclasses below, registered in Hydra's ConfigStore and named first in
    each primary config's defaults list) cover the fixed-shape parts: data, trainer, mode, paths, eval and the
@@ -15,9 +18,12 @@ from __future__ import annotations
 import difflib
 import importlib
 import inspect
+import math
+import re
 import types
 import typing
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
@@ -100,6 +106,7 @@ class CommonConf:
     device: str = "auto"  # auto | cpu | cuda | cuda:1 ...
     dtype: str = "float32"  # model precision: float32 | float64
     threads: int | None = 1  # torch CPU threads (null: torch's default, or cores / jobs under joblib)
+    memory_check: bool = True  # refuse a simulation/dataset/training step whose memory estimate does not fit
 
 
 @dataclass
@@ -251,3 +258,242 @@ def check_targets(cfg: DictConfig, keys: tuple[str, ...] = ("system", "model", "
     for key in keys:
         if key in cfg and cfg[key] is not None:
             check_target_node(OmegaConf.to_container(cfg[key], resolve=True), key)
+
+
+# ---- values ------------------------------------------------------------------------------------------------
+DEVICE = re.compile(r"auto|cpu|mps|cuda(:\d+)?")
+_FINITE_GROUPS = ("system", "model", "solver", "trainer", "data", "eval")
+
+
+def _check(ok: bool, message: str) -> None:
+    if not ok:
+        raise ConfigError(message)
+
+
+def _nonfinite(node: Any, where: str, allow_inf: bool) -> str | None:
+    """The first key under `node` holding NaN (or ±inf unless `allow_inf`), as `key=value`."""
+    if isinstance(node, dict):
+        for key, value in node.items():
+            found = _nonfinite(value, f"{where}.{key}", allow_inf)
+            if found:
+                return found
+    elif isinstance(node, list | tuple):
+        for i, value in enumerate(node):
+            found = _nonfinite(value, f"{where}[{i}]", allow_inf)
+            if found:
+                return found
+    elif isinstance(node, float) and (math.isnan(node) or (math.isinf(node) and not allow_inf)):
+        return f"{where}={node}"
+    return None
+
+
+def validate_values(cfg: DictConfig) -> None:
+    """Check the values every command relies on (ranges, choices, finiteness) without importing torch.
+
+    Raises:
+        ConfigError: the first value that is out of range, naming the key, the rule and the fix.
+    """
+    if "device" in cfg:
+        _check(bool(DEVICE.fullmatch(str(cfg.device))),
+               f"device={cfg.device} is not supported; choose auto, cpu, cuda, cuda:<index> or mps.")
+    if cfg.get("threads") is not None:
+        _check(cfg.threads >= 1, f"threads={cfg.threads}: give a number of CPU threads >= 1, or threads=null for "
+                                 "torch's default.")
+    for group in _FINITE_GROUPS:
+        if cfg.get(group) is None:
+            continue
+        try:
+            node = OmegaConf.to_container(cfg[group], resolve=True)
+        except Exception:  # noqa: BLE001 - unresolvable interpolations are reported where they are used
+            continue
+        bad = _nonfinite(node, group, allow_inf=group in ("trainer", "model", "solver"))
+        _check(bad is None, f"{bad} is not a finite number; give a finite value for {str(bad).split('=')[0]}.")
+    data = cfg.get("data")
+    if data is not None:
+        _check(data.noise_std >= 0, f"data.noise_std={data.noise_std}: noise is a standard deviation (in units of each "
+                                    "feature's std); give a value >= 0 (0: no noise).")
+        for key in ("n_train", "n_val", "n_test"):
+            _check(data[key] >= 1, f"data.{key}={data[key]}: each split needs at least 1 trajectory.")
+        _check(data.burn_in >= 0, f"data.burn_in={data.burn_in}: give a number of steps >= 0.")
+        _check(data.dt is None or data.dt > 0, f"data.dt={data.dt}: the sampling step must be > 0 (or null).")
+        _check(data.horizon is None or data.horizon >= 1, f"data.horizon={data.horizon}: give >= 1 step (or null).")
+        _check(data.gt_rtol > 0 and data.gt_atol > 0, "data.gt_rtol and data.gt_atol must be > 0.")
+    ev = cfg.get("eval")
+    if ev is not None:
+        bad_h = [h for h in ev.horizons if h < 1]
+        _check(not bad_h, f"eval.horizons={list(ev.horizons)}: horizons are numbers of steps >= 1; remove {bad_h}.")
+    trainer = cfg.get("trainer")
+    if trainer is not None:
+        _validate_trainer(trainer)
+    if "n" in cfg and cfg.get("task") == "simulate":
+        _check(cfg.n >= 1, f"n={cfg.n}: simulate at least 1 trajectory.")
+
+
+def _validate_trainer(t: DictConfig) -> None:
+    rules = [
+        ("max_epochs", lambda v: v >= 0, ">= 0"),
+        ("batch_size", lambda v: v >= 1, ">= 1"),
+        ("eval_batch_size", lambda v: v >= 1, ">= 1"),
+        ("lr", lambda v: 0 < v < math.inf, "> 0 and finite"),
+        ("weight_decay", lambda v: v >= 0, ">= 0"),
+        ("clip_norm", lambda v: v >= 0, ">= 0 (0: no clipping)"),
+        ("huber_delta", lambda v: v > 0, "> 0"),
+        ("plateau_patience", lambda v: v >= 0, ">= 0"),
+        ("plateau_factor", lambda v: 0 < v < 1, "between 0 and 1"),
+        ("min_lr", lambda v: v >= 0, ">= 0"),
+        ("early_stop_patience", lambda v: v >= 0, ">= 0 (0: never stop early)"),
+        ("window", lambda v: v is None or v >= 1, ">= 1 step, or null"),
+        ("eval_window", lambda v: v is None or v >= 1, ">= 1 step, or null"),
+    ]
+    for key, ok, rule in rules:
+        if key in t and isinstance(t[key], int | float | type(None)) and not ok(t[key]):
+            raise ConfigError(f"trainer.{key}={t[key]}: must be {rule}.")
+
+
+# ---- composing the command line (before Hydra starts a run) -------------------------------------------------
+_FLAGS_WITHOUT_VALUE = ("-m", "--multirun")
+
+
+MAX_SWEEP_CHECKS = 64
+
+
+def _sweep_variants(args: list[str]) -> list[list[str]] | None:
+    """Override lists that together use every value of every sweep at least once: the first values, then each
+    other value of one sweep with the others at their first (None if the sweeps cannot be expanded here)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parsed = OverridesParser.create().parse_overrides(args)
+    values: list[list[str]] = []
+    for item in parsed:
+        if item.is_sweep_override():
+            try:
+                values.append([f"{item.get_key_element()}={v}" for v in item.sweep_string_iterator()])
+            except Exception:  # noqa: BLE001 - glob() and friends need Hydra's config loader
+                return None
+        else:
+            values.append([item.input_line])
+    first = [v[0] for v in values]
+    variants = [first]
+    for i, options in enumerate(values):
+        for option in options[1:]:
+            variants.append([*first[:i], option, *first[i + 1 :]])
+    return variants[:MAX_SWEEP_CHECKS]
+
+
+def compose_command(command: str, args: list[str], config_dir: str) -> DictConfig | None:
+    """Compose `command`'s config from its command-line `args` exactly as the run will, and check it.
+
+    Runs before Hydra creates a run directory, without importing torch, so a typo or a bad value answers at
+    once and leaves nothing behind. Returns None when the arguments hold options this check leaves to Hydra
+    (``--cfg``, ``--help``, ``--config-dir``, ...).
+
+    Raises:
+        ConfigError: unknown key (with a did-you-mean instead of Hydra's "+key" advice), unknown option of a
+            config group, a value of the wrong type, or a value out of range (`validate_values`).
+    """
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import OverrideParseException
+
+    if any(a.startswith("-") and a not in _FLAGS_WITHOUT_VALUE for a in args):
+        return None
+    overrides = [a for a in args if a not in _FLAGS_WITHOUT_VALUE]
+    try:
+        variants = _sweep_variants(overrides)
+    except OverrideParseException as err:
+        raise ConfigError(f"cannot parse the command line: {_one_line(err)}") from None
+    if variants is None:
+        return None
+
+    def _compose(items: list[str]) -> DictConfig:
+        with initialize_config_dir(config_dir=config_dir, version_base="1.3", job_name=command):
+            return compose(config_name=command, overrides=items)
+
+    first = None
+    for items in variants:
+        cfg = _compose_one(items, _compose, config_dir)
+        validate_values(cfg)
+        first = first or cfg
+    return first
+
+
+def _compose_one(firsts: list[str], _compose: Any, config_dir: str) -> DictConfig:
+    """Compose one override list, turning Hydra's composition errors into `ConfigError`."""
+    from hydra.errors import ConfigCompositionException, HydraException, MissingConfigException
+
+    try:
+        return _compose(firsts)
+    except MissingConfigException as err:
+        raise ConfigError(_one_line(err)) from None
+    except ConfigCompositionException as err:
+        text = str(err)
+        match = re.match(r"Could not override '([^']+)'", text)
+        if match:
+            raise ConfigError(_unknown_key(match.group(1), [a for a in firsts if not _is_key(a, match.group(1))],
+                                           _compose, config_dir)) from None
+        cause = f": {_one_line(err.__cause__)}" if err.__cause__ is not None else ""
+        raise ConfigError(f"{_one_line(err)}{cause}") from None
+    except HydraException as err:
+        raise ConfigError(_one_line(err)) from None
+
+
+def _is_key(arg: str, key: str) -> bool:
+    return arg.split("=", 1)[0].lstrip("+~") == key
+
+
+def _one_line(err: BaseException) -> str:
+    """An exception's message on one line (Hydra's option listings joined with commas)."""
+    lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
+    lines = [ln for ln in lines if not ln.startswith(("full_key:", "object_type=", "reference_type=", "To append"))]
+    if not lines:
+        return type(err).__name__
+    head, rest = lines[0], lines[1:]
+    if rest and rest[0].startswith("Available options"):
+        options = [ln for ln in rest[1:] if not ln.startswith(("Config search path", "provider="))]
+        return f"{head.rstrip('.')}. {rest[0]} {', '.join(options)}."
+    return " ".join([head, *rest[:2]])
+
+
+def _unknown_key(key: str, others: list[str], compose_fn: Any, config_dir: str) -> str:
+    """Message for `key=...` naming no key of the composed config: the closest keys, or how to add a parameter
+    that the target class takes but its config file does not list."""
+    parent, _, leaf = key.rpartition(".")
+    try:
+        base = compose_fn(others)
+    except Exception:  # noqa: BLE001
+        return f"{key} is not a config key. Check its spelling (mpsim <command> --cfg job lists every key)."
+    node = OmegaConf.select(base, parent) if parent else base
+    if not isinstance(node, DictConfig):
+        parts, here = key.split("."), base
+        for depth, part in enumerate(parts[:-1]):
+            if not isinstance(here, DictConfig) or part not in here:
+                options = [str(k) for k in here.keys()] if isinstance(here, DictConfig) else []
+                close = difflib.get_close_matches(part, options, n=3, cutoff=0.6)
+                prefix = ".".join(parts[:depth])
+                name = f"{prefix}.{part}" if prefix else part
+                hint = f" Did you mean {' or '.join((prefix + '.' if prefix else '') + c for c in close)}?" if close else ""
+                return f"{key}: {name} is not a config section.{hint} (mpsim <command> --cfg job lists every key.)"
+            here = here[part]
+        return f"{key}: {parent} is not a config section (mpsim <command> --cfg job lists every key)."
+    keys = [str(k) for k in node.keys()]
+    where = f"{parent}." if parent else ""
+    if not parent:  # a top-level name may also be a config group
+        keys += [p.name for p in Path(config_dir).iterdir() if p.is_dir() and not p.name.startswith("_")]
+    close = difflib.get_close_matches(leaf, keys, n=3, cutoff=0.6)
+    if close:
+        return (f"{key} is not a config key. Did you mean {' or '.join(where + c for c in close)}? "
+                f"Keys of {parent or 'the config'}: {', '.join(sorted(set(k for k in keys if not k.startswith('_'))))}.")
+    target = node.get("_target_") if parent else None
+    if isinstance(target, str):
+        try:
+            obj = _import(target, parent)
+            params = inspect.signature(obj.__init__ if inspect.isclass(obj) else obj).parameters
+        except (ConfigError, TypeError, ValueError):
+            params = {}
+        if leaf in params:
+            return (f"{key} is a parameter of {target} that {parent}'s config file does not list; add it with "
+                    f"+{key}=<value>.")
+        close = difflib.get_close_matches(leaf, [p for p in params if p != "self"], n=3, cutoff=0.6)
+        if close:
+            return f"{key} is not a parameter of {target}. Did you mean {' or '.join(where + c for c in close)}?"
+    listing = ", ".join(sorted(k for k in keys if not k.startswith("_")))
+    return f"{key} is not a config key; {parent or 'the config'} has: {listing}."

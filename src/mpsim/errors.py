@@ -2,7 +2,22 @@
 
 Each message says what was wrong, where (file, row, column, config key) and how to fix it. The CLI prints
 the message without a traceback; anything that is not an `MpsimError` is a bug and keeps its traceback.
+
+Exit codes (documented in the README, "What mpsim guarantees"):
+
+| code | meaning |
+|---|---|
+| 0 | success |
+| 1 | a bug in mpsim (the traceback is printed) |
+| 2 | bad input: config, data file, checkpoint, impossible model/system pairing |
+| 3 | training or a rollout diverged (NaN/inf) |
+| 4 | an output could not be written (permissions, read-only file system, full disk) |
+| 5 | the job would not fit in memory (estimate refused before starting; `memory_check=false` overrides) |
+| 130 | interrupted (Ctrl-C); `resume=true` continues |
 """
+
+EXIT_CODES = {0: "success", 1: "bug (traceback)", 2: "bad input", 3: "diverged", 4: "cannot write output",
+              5: "not enough memory", 130: "interrupted"}
 
 
 class MpsimError(Exception):
@@ -20,7 +35,7 @@ class DataError(MpsimError, ValueError):
 
 
 class CheckpointError(MpsimError, ValueError):
-    """A checkpoint is missing, unreadable, or does not fit the model or system asked for."""
+    """A checkpoint is missing, unreadable, unsafe, or does not fit the model or system asked for."""
 
 
 class IncompatibleError(MpsimError, ValueError):
@@ -31,3 +46,15 @@ class DivergenceError(MpsimError, RuntimeError):
     """A rollout produced NaN/inf or the ODE solver's step size underflowed."""
 
     exit_code = 3
+
+
+class OutputError(MpsimError, OSError):
+    """An output file or directory cannot be written (permissions, read-only file system, full disk)."""
+
+    exit_code = 4
+
+
+class ResourceError(MpsimError, MemoryError):
+    """The job would not fit in the memory available (estimated before it starts)."""
+
+    exit_code = 5

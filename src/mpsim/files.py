@@ -1,16 +1,55 @@
-"""Atomic file writes: readers (and concurrent sweep jobs) never see half a file."""
+"""Atomic file writes: readers (and concurrent sweep jobs) never see half a file.
+
+Files are created with the permissions the user's umask gives a plain `open()` (0644 under the usual 022;
+`tempfile.mkstemp` alone would make them 0600), and a file that is replaced keeps its mode. A write that fails
+(permissions, read-only file system, full disk) leaves the previous file untouched, no temporary file behind,
+and raises `OutputError` naming the file.
+"""
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
+import re
 import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+
+from mpsim.errors import OutputError
+
+_UNSAFE = re.compile(r"[^A-Za-z0-9_.-]")
+
+
+def current_umask() -> int:
+    """The process umask, read without changing it where the OS allows (Linux: /proc/self/status)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def describe_os_error(err: BaseException) -> str:
+    """A short reason for a failed write, with the usual fix."""
+    code = getattr(err, "errno", None)
+    if code == errno.ENOSPC:
+        return "the disk is full; free space or write elsewhere (paths.output_root=..., paths.ckpt_dir=...)"
+    if code in (errno.EACCES, errno.EPERM):
+        return "permission denied; fix the directory's permissions or choose another location"
+    if code == errno.EROFS:
+        return "the file system is read-only; choose a writable location"
+    lines = str(err).splitlines()
+    return str(getattr(err, "strerror", None) or (lines[0] if lines else type(err).__name__))
 
 
 def atomic_write(path: str | Path, write: Any, mode: str = "wb") -> Path:
@@ -20,21 +59,53 @@ def atomic_write(path: str | Path, write: Any, mode: str = "wb") -> Path:
         path: destination.
         write: callable receiving the open temporary file object.
         mode: "wb" or "w".
+
+    Raises:
+        OutputError: the directory or file cannot be written (the previous file, if any, is untouched).
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        try:
+            file_mode = path.stat().st_mode & 0o7777 if path.exists() else 0o666 & ~current_umask()
+            os.fchmod(fd, file_mode)
+        except OSError:
+            pass
         with os.fdopen(fd, mode) as f:
             write(f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
+    except BaseException as err:
+        if tmp is not None and os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(err, OSError) and not isinstance(err, OutputError):
+            raise OutputError(f"cannot write {path}: {describe_os_error(err)}.") from None
+        if isinstance(err, RuntimeError) and "writ" in str(err).lower():  # torch.save's stream writer
+            raise OutputError(f"cannot write {path}: {str(err).splitlines()[0]} (full disk?).") from None
         raise
     return path
+
+
+def safe_name(name: Any, fallback: str = "model") -> str:
+    """A file name derived from data (e.g. a system name read from a file) reduced to ``[A-Za-z0-9_.-]``.
+
+    Path separators and other characters become ``_``; leading dots are dropped, so the result is never
+    ``..``, hidden, or a path. Empty results become `fallback`.
+    """
+    text = _UNSAFE.sub("_", str(name)).lstrip(".")
+    return text[:128] or fallback
+
+
+def child_path(directory: str | Path, name: str) -> Path:
+    """`directory / name` where `name` is checked to stay inside `directory` (no separators, no ``..``)."""
+    directory = Path(directory)
+    out = directory / name
+    if name != safe_name(name) or out.resolve().parent != directory.resolve():
+        raise OutputError(f"refusing to write {name!r}: it would leave {directory}.")
+    return out
 
 
 def json_default(obj: Any) -> Any:
