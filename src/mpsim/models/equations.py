@@ -1,0 +1,234 @@
+"""`equations`: a white-box model whose equations are written in the config (`mpsim.equations`), no Python.
+
+    mpsim train model=equations model.spec=my_pendulums.yaml data.path=measured.npz
+
+The spec's learnable parameters are trained by the same trainer as any model (full-rollout shooting through
+the model's ODE solver); the rest stay fixed. Neighbour terms run over the data's own graph (one per trajectory
+where the data has several). The spec is plain data inside the checkpoint, so finetune, eval and zero-shot work
+as for any model, and `mpsim diagnose` reads the parameters' sensitivities and the kinematic rows.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import torch
+from torch import nn
+
+from mpsim.effects import Effect, EffectContext, total
+from mpsim.equations import SYSTEM_KEYS, EquationField, Spec, check_nodes, check_states, parse_spec
+from mpsim.errors import ConfigError, IncompatibleError
+from mpsim.graphs.batch import BatchedGraph, batch_graph
+from mpsim.models.base import Model
+from mpsim.solvers.odeint import ODESolver
+
+ENTRY = re.compile(r"^(?P<name>\w+)\[(?P<i>\d+)\]$")
+
+
+def merge_spec(spec: Mapping[str, Any] | None, inline: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """The spec from `spec` with the keys given inline on top (inline keys win)."""
+    if isinstance(spec, str):
+        raise ConfigError(f"{where}.spec={spec!r} is a file name, but specs are read by the command layer "
+                          "(`mpsim ... model.spec=<file>`); in Python pass the loaded mapping "
+                          "(mpsim.equations.load_spec_file).")
+    if spec is not None and not isinstance(spec, Mapping):
+        raise ConfigError(f"{where}.spec must be a mapping or a YAML file name; got {type(spec).__name__}.")
+    merged = dict(spec or {})
+    merged.update({k: v for k, v in inline.items() if v is not None})
+    if not merged:
+        raise ConfigError(f"{where}: no equations. Pass {where}.spec=<file.yaml> or {where}.states / "
+                          f"{where}.equations / {where}.params inline (see README, 'Your own equations').")
+    return merged
+
+
+class _Field(nn.Module):
+    def __init__(self, model: EquationsModel, values: dict[str, torch.Tensor], graph: BatchedGraph | None) -> None:
+        super().__init__()
+        self.model, self.values, self.graph = model, values, graph
+
+    def forward(self, t: torch.Tensor, x: torch.Tensor, history=None) -> torch.Tensor:  # x: [B, N, D] raw
+        dx = self.model.field(t, x, self.values, self.graph)
+        if len(self.model.effects):
+            dx = dx + total(self.model.effects, t, x, EffectContext(self.graph, history))
+        return dx
+
+
+class EquationsModel(Model):
+    """Equations from a spec, with the spec's learnable parameters trainable (plus optional learnable effects).
+
+    Args:
+        state_dim, control_dim: set from the data (the spec's states must match the data's).
+        spec: the spec as a mapping (`model.spec=<file>` is loaded by the command layer).
+        states, equations, params, learnable, kinematic, nodes: the same keys inline (they override `spec`'s).
+        init: starting values {name: value} of learnable parameters (default: the spec's values).
+        effects: extra named terms with learnable coefficients.
+        solver: ODE solver of the rollouts.
+    """
+
+    def __init__(
+        self,
+        state_dim: int,
+        control_dim: int = 0,
+        spec: dict[str, Any] | None = None,
+        states: list[str] | None = None,
+        equations: dict[str, Any] | None = None,
+        params: dict[str, Any] | None = None,
+        learnable: list[str] | None = None,
+        kinematic: list[str] | None = None,
+        nodes: int | None = None,
+        init: dict[str, Any] | None = None,
+        effects: Sequence[Effect] = (),
+        solver: ODESolver | None = None,
+    ) -> None:
+        super().__init__(state_dim, control_dim, effects)
+        inline = {"states": states, "equations": equations, "params": params, "learnable": learnable,
+                  "kinematic": kinematic, "nodes": nodes}
+        self.spec: Spec = parse_spec(merge_spec(spec, inline, "model"), "model.spec", extra_keys=SYSTEM_KEYS)
+        if self.spec.state_dim != state_dim:
+            raise ConfigError(f"model.spec has {self.spec.state_dim} states {list(self.spec.states)} but the data "
+                              f"has {state_dim} per node.")
+        if control_dim:
+            raise ConfigError("model=equations has no control inputs yet; the data has controls. Use model=mpnode.")
+        self.field = EquationField(self.spec)
+        self.solver = solver or ODESolver()
+        values = dict(self.spec.params)
+        for name, value in (init or {}).items():
+            if name not in self.spec.learnable:
+                raise ConfigError(f"model.init.{name}: not a learnable parameter; learnable: {list(self.spec.learnable)}.")
+            start = torch.as_tensor(value, dtype=torch.float64)
+            if start.shape != values[name].shape:
+                raise ConfigError(f"model.init.{name} has shape {list(start.shape)}; the spec's value has "
+                                  f"{list(values[name].shape)}.")
+            values[name] = start
+        # positive constants are trained in log space so they stay positive (as model=physics)
+        self.positive = [n for n in self.spec.learnable if bool((values[n] > 0).all())]
+        self.raw = nn.ParameterDict(
+            {n: nn.Parameter(values[n].log() if n in self.positive else values[n].clone()) for n in self.spec.learnable}
+        )
+        self.fixed = [n for n in self.spec.params if n not in self.spec.learnable]
+        for n in self.fixed:
+            self.register_buffer(f"fixed_{n}", values[n].clone())
+        self.kinematic_states = list(self.spec.kinematic)
+
+    # ---- parameters ---------------------------------------------------------------------------------------
+    def parameters_now(self) -> dict[str, torch.Tensor]:
+        """{name: current value} of every spec parameter (learnable ones as trained)."""
+        out = {n: (p.exp() if n in self.positive else p) for n, p in self.raw.items()}
+        out.update({n: getattr(self, f"fixed_{n}") for n in self.fixed})
+        return out
+
+    # ---- checks -------------------------------------------------------------------------------------------
+    def bind_effects(self, state_names: Sequence[str]) -> None:
+        """Check the data's state names against the spec's, then resolve the effects' names."""
+        check_states(self.spec, state_names, "model.spec")
+        super().bind_effects(state_names)
+
+    def check_compatible(
+        self, state_dim: int, control_dim: int, n_nodes: int, trained_nodes: int | None = None
+    ) -> None:
+        super().check_compatible(state_dim, control_dim, n_nodes, None)
+        try:
+            check_nodes(self.spec, n_nodes, "model.spec")
+        except ConfigError as err:
+            raise IncompatibleError(str(err)) from None
+
+    # ---- rollout ------------------------------------------------------------------------------------------
+    def rollout(
+        self,
+        x0: torch.Tensor,  # [B, N, D] initial states (raw units)
+        t: torch.Tensor,  # [T] times
+        edge_index: torch.Tensor,  # [2, E] or [B, 2, E] the data's graph (neighbour terms run over it)
+        u: torch.Tensor | None = None,  # [B, T, N, C] unused (no controls)
+        node_features: torch.Tensor | None = None,  # unused
+        meta: dict[str, Any] | None = None,  # unused
+    ) -> torch.Tensor:
+        check_nodes(self.spec, x0.shape[1], "model.spec")
+        values = {k: v.to(x0) for k, v in self.parameters_now().items()}
+        return self.integrate(_Field(self, values, self._graph(edge_index, x0)), x0, t, self.solver)
+
+    def _graph(self, edge_index: torch.Tensor, x: torch.Tensor) -> BatchedGraph | None:  # x: [B, N, D]
+        if not (self.field.uses_graph or len(self.effects)):
+            return None
+        return batch_graph(edge_index.to(x.device), x.shape[0], x.shape[1], dtype=x.dtype)
+
+    # ---- what the residual loop reads ---------------------------------------------------------------------
+    def _entries(self) -> list[tuple[str, str, int | None]]:
+        """(label, parameter, index) of every learnable scalar and per-node entry (matrices are left out)."""
+        out: list[tuple[str, str, int | None]] = []
+        for n in self.spec.learnable:
+            v = self.spec.params[n]
+            if v.dim() == 0:
+                out.append((n, n, None))
+            elif v.dim() == 1:
+                out += [(f"{n}[{i}]", n, i) for i in range(v.numel())]
+        return out
+
+    def sensitivities(self, t, x, edge_index):
+        """[M, N, D, P] ∂f/∂p of the equations at the given states for every learnable scalar and per-node entry
+        (one forward-mode derivative each; matrix parameters are left out)."""
+        values = {n: v.detach().to(x) for n, v in self.parameters_now().items()}
+        graph = self._graph(edge_index, x) if self.field.uses_graph else None
+        columns = []
+        for _, name, index in self._entries():  # a loop over the spec's few parameters
+            tangent = torch.zeros_like(values[name])
+            if index is None:
+                tangent.fill_(1.0)
+            else:
+                tangent[index] = 1.0
+
+            def f(v: torch.Tensor, name: str = name) -> torch.Tensor:
+                return self.field(t, x, {**values, name: v}, graph)
+
+            columns.append(torch.func.jvp(f, (values[name],), (tangent,))[1])
+        if not columns:
+            return None
+        return torch.stack(columns, dim=-1)
+
+    def sensitivity_names(self) -> list[str]:
+        return [label for label, _, _ in self._entries()]
+
+    def shift_parameters(self, shifts: dict[str, float]) -> None:
+        current = self.parameters_now()
+        with torch.no_grad():
+            for label, delta in shifts.items():
+                m = ENTRY.match(label)
+                name, index = (m["name"], int(m["i"])) if m else (label, None)
+                if name not in self.raw:
+                    continue
+                value = current[name].detach().clone()
+                if index is None:
+                    value = value + delta
+                else:
+                    value[index] += delta
+                if name in self.positive:
+                    if bool((value <= 0).any()):
+                        continue  # a shift that would flip the sign of a positive constant is not applied
+                    value = value.log()
+                self.raw[name].copy_(value.to(self.raw[name]))
+
+    def report(self) -> dict[str, Any]:
+        values = {n: _plain(v) for n, v in self.parameters_now().items() if n in self.raw}
+        return {"physical_parameters": values, "equations": self.spec.equation_text(),
+                "kinematic": self.kinematic_states, "effects": [e.describe() for e in self.effects]}
+
+    def report_lines(self) -> list[tuple[str, str]]:
+        values = ", ".join(f"{n}={_short(v)}" for n, v in self.parameters_now().items() if n in self.raw)
+        rows = [("fitted parameters", values or "(none learnable)")]
+        rows += [("effect", e.describe()) for e in self.effects]
+        return rows
+
+
+def _plain(v: torch.Tensor) -> Any:
+    v = v.detach()
+    return float(v) if v.dim() == 0 else v.cpu().tolist()
+
+
+def _short(v: torch.Tensor) -> str:
+    if v.dim() == 0:
+        return f"{float(v.detach()):.5g}"
+    flat = v.detach().flatten().tolist()
+    body = ", ".join(f"{x:.4g}" for x in flat[:8]) + (", ..." if len(flat) > 8 else "")
+    return f"[{body}]"
+

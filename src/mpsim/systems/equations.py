@@ -1,0 +1,163 @@
+"""`system=equations`: ground truth simulated from a spec written in the config (`mpsim.equations`).
+
+    mpsim simulate system=equations system.spec=my_pendulums.yaml format=csv
+
+The same spec that `model=equations` trains (states, equations, params) plus what a simulation needs: the
+graph (a topology name or an edge list), initial-state ranges and, optionally, the sampling step and length.
+`system.effects=[...]` adds hidden terms as for any system, so a user can make a synthetic twin of an
+experiment and check that `mpsim diagnose` finds what was put in.
+
+Extra spec keys (each may also be given under `system.`, which wins):
+
+    name: my_pendulums        # dataset/checkpoint name (default: the spec file's name)
+    nodes: 2                  # N (or implied by per-node parameters or the edge list)
+    graph: complete           # complete | chain | ring | grid | erdos_renyi | barabasi_albert | watts_strogatz
+    graph_params: {p: 0.5}    # the family's parameters (seed, p, k, m, rows)
+    edges: [[0, 1]]           # or an explicit edge list [sender, receiver]
+    directed: false           # false: every listed edge also runs the other way
+    init: {theta: [-1.5, 1.5], omega: [-1, 1]}   # uniform initial ranges per state (default [-1, 1])
+    dt: 0.1                   # default sampling step
+    horizon: 50               # default steps per trajectory
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import torch
+
+from mpsim.equations import SYSTEM_KEYS, EquationField, check_nodes, parse_spec
+from mpsim.errors import ConfigError
+from mpsim.graphs.batch import BatchedGraph, batch_graph
+from mpsim.graphs.topology import make_topology
+from mpsim.models.equations import merge_spec
+from mpsim.systems.base import System
+
+SAFE_NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
+
+
+class EquationsSystem(System):
+    """Ground truth from a spec; node states as the spec's `states`.
+
+    Args:
+        spec: the spec as a mapping (`system.spec=<file>` is loaded by the command layer).
+        name, n_nodes, graph, graph_params, edges, directed, init, dt, horizon: as the spec's keys of the same
+            meaning (`n_nodes` is the spec's `nodes`); given here they win over the spec's.
+        effects: extra terms added to the dynamics.
+    """
+
+    def __init__(
+        self,
+        spec: dict[str, Any] | None = None,
+        name: str | None = None,
+        n_nodes: int | None = None,
+        graph: str | None = None,
+        graph_params: dict[str, Any] | None = None,
+        edges: list[list[int]] | None = None,
+        directed: bool | None = None,
+        init: dict[str, list[float]] | None = None,
+        dt: float | None = None,
+        horizon: int | None = None,
+        effects: Sequence[Any] = (),
+    ) -> None:
+        over = {"name": name, "nodes": n_nodes, "graph": graph, "graph_params": graph_params, "edges": edges,
+                "directed": directed, "init": init, "dt": dt, "horizon": horizon}
+        raw = merge_spec(spec, over, "system")
+        self.spec = parse_spec(raw, "system.spec", extra_keys=SYSTEM_KEYS)
+        self.state_names = self.spec.states  # per instance: the spec names them
+        self.field = EquationField(self.spec)
+        name = str(raw.get("name") or "equations")
+        if not SAFE_NAME.match(name):
+            raise ConfigError(f"system.name={name!r}: use letters, digits, '_', '.', '-' only (it names files).")
+        edge_index, n = self._graph(raw)
+        check_nodes(self.spec, n, "system.spec")
+        super().__init__(name, n, edge_index, effects)
+        self.ranges = self._ranges(raw.get("init"))
+        if raw.get("dt") is not None:
+            if not isinstance(raw["dt"], int | float) or raw["dt"] <= 0:
+                raise ConfigError(f"system.dt must be a positive number; got {raw['dt']!r}.")
+            self.dt = float(raw["dt"])
+        if raw.get("horizon") is not None:
+            if not isinstance(raw["horizon"], int) or raw["horizon"] < 1:
+                raise ConfigError(f"system.horizon must be a positive integer; got {raw['horizon']!r}.")
+            self.horizon = int(raw["horizon"])
+        self.values = dict(self.spec.params)
+        self.raw = self.spec.raw
+        self._graphs: dict[tuple, BatchedGraph] = {}
+
+    def _graph(self, raw: Mapping[str, Any]) -> tuple[torch.Tensor, int]:
+        edges, kind = raw.get("edges"), raw.get("graph")
+        n = raw.get("nodes") if raw.get("nodes") is not None else self.spec.n_nodes
+        if edges is not None and kind is not None:
+            raise ConfigError("system: give either graph=<topology> or edges=[[src, dst], ...], not both.")
+        if edges is not None:
+            ok = isinstance(edges, Sequence) and all(
+                isinstance(e, Sequence) and len(e) == 2 and all(isinstance(v, int) and not isinstance(v, bool)
+                                                               and v >= 0 for v in e) for e in edges)
+            if not ok:
+                raise ConfigError(f"system.edges must be a list of [sender, receiver] pairs of node ids >= 0; got "
+                                  f"{str(edges)[:80]}.")
+            ei = torch.tensor(list(edges), dtype=torch.long).reshape(-1, 2).T
+            largest = int(ei.max()) + 1 if ei.numel() else 1
+            n = largest if n is None else n
+            if largest > n:
+                raise ConfigError(f"system.edges names node {largest - 1} but there are {n} nodes (ids 0..{n - 1}).")
+            if not raw.get("directed"):
+                ei = torch.unique(torch.cat([ei, ei.flip(0)], dim=1), dim=1)
+            return ei, int(n)
+        if n is None:
+            raise ConfigError("system: the number of nodes is unknown; set nodes: N in the spec (or system.n_nodes), "
+                              "or give per-node parameters or an edge list.")
+        if not isinstance(n, int) or n < 1:
+            raise ConfigError(f"system.nodes must be a positive integer; got {n!r}.")
+        if n == 1 or (kind is None and not self.field.uses_graph):
+            return torch.zeros(2, 0, dtype=torch.long), n
+        if kind is None:
+            raise ConfigError("system: the equations have neighbour terms but no graph; set graph: <topology> "
+                              "(complete, chain, ring, ...) or edges: [[src, dst], ...].")
+        params = raw.get("graph_params") or {}
+        if not isinstance(params, Mapping):
+            raise ConfigError(f"system.graph_params must be a mapping; got {params!r}.")
+        return make_topology(str(kind), n, **params), n
+
+    def _ranges(self, init: Any) -> torch.Tensor:
+        """[D, 2] uniform initial ranges, [-1, 1] where the spec gives none."""
+        ranges = torch.tensor([[-1.0, 1.0]] * self.spec.state_dim, dtype=torch.float64)
+        if init is None:
+            return ranges
+        if not isinstance(init, Mapping):
+            raise ConfigError(f"system.init must map state names to [low, high]; got {init!r}.")
+        for state, bounds in init.items():
+            if state not in self.spec.states:
+                raise ConfigError(f"system.init.{state}: not a state; states: {list(self.spec.states)}.")
+            ok = (isinstance(bounds, Sequence) and len(bounds) == 2
+                  and all(isinstance(v, int | float) and not isinstance(v, bool) for v in bounds))
+            if not ok or bounds[0] > bounds[1]:
+                raise ConfigError(f"system.init.{state} must be [low, high] with low <= high; got {bounds!r}.")
+            ranges[self.spec.states.index(state)] = torch.tensor([float(v) for v in bounds], dtype=torch.float64)
+        return ranges
+
+    def params(self) -> dict[str, Any]:
+        return {"n_nodes": self.n_nodes, "spec": self.raw}
+
+    def dynamics(
+        self,
+        t: torch.Tensor,  # [] time
+        x: torch.Tensor,  # [B, N, D] node states
+        u: torch.Tensor | None = None,  # unused: no controls
+    ) -> torch.Tensor:
+        graph = None
+        if self.field.uses_graph:
+            key = (x.shape[0], x.device, x.dtype)
+            if key not in self._graphs:
+                self._graphs[key] = batch_graph(self.edge_index.to(x.device), x.shape[0], x.shape[1], dtype=x.dtype)
+            graph = self._graphs[key]
+        values = {k: v.to(x) for k, v in self.values.items()}
+        return self.field(t, x, values, graph)
+
+    def sample_initial_states(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        r = torch.rand(n, self.n_nodes, self.spec.state_dim, generator=generator, dtype=torch.float64)
+        lo, hi = self.ranges[:, 0], self.ranges[:, 1]
+        return lo + (hi - lo) * r
