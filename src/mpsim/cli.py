@@ -77,6 +77,11 @@ def _clean_run_dir(run_dir: Path | None) -> None:
     files = [p for p in run_dir.rglob("*") if p.is_file()]
     if all(p.parent.name == ".hydra" or p.suffix == ".log" for p in files):
         shutil.rmtree(run_dir, ignore_errors=True)
+        for parent in list(run_dir.parents)[:2]:  # <command>/<date>/ made for this run alone
+            try:
+                parent.rmdir()
+            except OSError:
+                break
 
 
 def _divergence_message(command: str, result: dict[str, Any]) -> str:

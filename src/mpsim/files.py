@@ -13,7 +13,9 @@ import json
 import math
 import os
 import re
+import shutil
 import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
@@ -95,7 +97,7 @@ def safe_name(name: Any, fallback: str = "model") -> str:
     Path separators and other characters become ``_``; leading dots are dropped, so the result is never
     ``..``, hidden, or a path. Empty results become `fallback`.
     """
-    text = _UNSAFE.sub("_", str(name)).lstrip(".")
+    text = re.sub(r"\.{2,}", ".", _UNSAFE.sub("_", str(name))).strip("._")
     return text[:128] or fallback
 
 
@@ -106,6 +108,25 @@ def child_path(directory: str | Path, name: str) -> Path:
     if name != safe_name(name) or out.resolve().parent != directory.resolve():
         raise OutputError(f"refusing to write {name!r}: it would leave {directory}.")
     return out
+
+
+def keep_previous(path: str | Path) -> Path:
+    """Keep the file at `path` recoverable before it is replaced: a hard link (or copy) named
+    ``<stem>.<its modification time>[-k]<suffix>`` beside it. Returns that name."""
+    path = Path(path)
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(path.stat().st_mtime))
+    backup, k = path.with_name(f"{path.stem}.{stamp}{path.suffix}"), 1
+    while backup.exists():
+        backup, k = path.with_name(f"{path.stem}.{stamp}-{k}{path.suffix}"), k + 1
+    try:
+        os.link(path, backup)
+    except OSError:
+        try:
+            shutil.copy2(path, backup)
+        except OSError as err:
+            raise OutputError(f"cannot keep the previous {path} as {backup.name}: {describe_os_error(err)}; "
+                              "nothing was replaced.") from None
+    return backup
 
 
 def json_default(obj: Any) -> Any:

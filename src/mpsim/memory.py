@@ -9,7 +9,6 @@ under the process's cgroup limit; on a CUDA device, its free memory. `memory_che
 
 from __future__ import annotations
 
-import math
 import os
 from pathlib import Path
 
@@ -20,8 +19,6 @@ FLOAT64 = 8
 # dopri5 keeps 7 stages plus error/interpolation buffers; velocity Verlet keeps positions, velocities and two
 # accelerations plus pair tiles.
 SOLVER_STATES = 16
-# A pairwise (N-body) force tile holds at most this many pairs per trajectory, with a few float64 each.
-PAIR_TILE = (1 << 16) * 8 * FLOAT64
 
 
 def fmt_bytes(n: float) -> str:
@@ -79,12 +76,11 @@ def trajectories_bytes(n_traj: int, n_times: int, n_nodes: int, n_features: int,
     return int(n_traj) * int(n_times) * int(n_nodes) * int(n_features) * int(itemsize)
 
 
-def simulation_bytes(n_traj: int, n_times: int, n_nodes: int, state_dim: int, pairwise: bool = False) -> int:
-    """Ground-truth simulation of `n_traj` trajectories: the stored float64 output plus the solver's working
-    states (and, for all-pairs forces, one pair tile per trajectory)."""
-    out = trajectories_bytes(n_traj, n_times, n_nodes, state_dim)
-    work = SOLVER_STATES * int(n_traj) * int(n_nodes) * int(state_dim) * FLOAT64
-    return out + work + (int(n_traj) * PAIR_TILE if pairwise else 0)
+def simulation_bytes(sizes: list[int], n_times: int, n_nodes: int, state_dim: int) -> int:
+    """Ground-truth simulation of datasets of `sizes` trajectories each (e.g. the three splits, all kept): their
+    stored float64 outputs plus the solver's working states for the largest one."""
+    out = sum(trajectories_bytes(n, n_times, n_nodes, state_dim) for n in sizes)
+    return out + SOLVER_STATES * max(sizes) * int(n_nodes) * int(state_dim) * FLOAT64
 
 
 def training_bytes(
@@ -123,12 +119,8 @@ def check_fits(need: int, what: str, device: str = "cpu", enabled: bool = True, 
     avail = available_bytes(device)
     if avail is None or need <= avail:
         return
-    hint = f"{fix}, " if fix else ""
+    hint = f" ({fix})" if fix else ""
     raise ResourceError(
         f"{what} needs about {fmt_bytes(need)} of memory, but only {fmt_bytes(avail)} is available on {device}. "
-        f"Make it smaller ({hint}or split it into several runs), or set memory_check=false to try anyway."
+        f"Make the job smaller{hint} or split it into several runs; memory_check=false tries anyway."
     )
-
-
-def ceil_div(a: int, b: int) -> int:
-    return int(math.ceil(a / b))

@@ -18,15 +18,16 @@ from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from mpsim.config import check_targets
+from mpsim.config import check_targets, validate_values
 from mpsim.data.dataset import Splits, add_noise, fit_normalisation, simulate_splits, split_trajectories
-from mpsim.data.io import load_trajectories
+from mpsim.data.io import check_representable, load_trajectories
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import CheckpointError, ConfigError, IncompatibleError, MpsimError
+from mpsim.memory import check_fits, simulation_bytes, training_bytes
 from mpsim.models.base import Model
 from mpsim.solvers.odeint import ODESolver
 from mpsim.systems.base import System
-from mpsim.training.checkpoint import load_checkpoint
+from mpsim.training.checkpoint import config_targets, load_checkpoint
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +51,11 @@ def hydra_overrides() -> list[str]:
     return []
 
 
+def is_multirun() -> bool:
+    """Whether this process runs a job of a Hydra sweep (`-m`)."""
+    return HydraConfig.initialized() and HydraConfig.get().mode.name == "MULTIRUN"
+
+
 def locate(output_dir: str | Path | None = None) -> tuple[Path, Path]:
     """(directory the command was started from, this run's output directory), created if needed."""
     if HydraConfig.initialized():
@@ -63,6 +69,7 @@ def locate(output_dir: str | Path | None = None) -> tuple[Path, Path]:
 
 def setup_runtime(cfg: DictConfig, output_dir: str | Path | None = None, overrides: list[str] | None = None) -> Runtime:
     """Check `_target_` nodes, seed, set threads and pick device/dtype; return where things go."""
+    validate_values(cfg)
     check_targets(cfg)
     start_dir, output_dir = locate(output_dir)
     threads = cfg.get("threads")
@@ -153,12 +160,59 @@ def load_splits(cfg: DictConfig, rt: Runtime, system: System | None) -> Splits:
         loaded = load_trajectories(resolve_path(data.path, rt.start_dir), edges, graph, list(data.control_columns))
         log.info(f"loaded {len(loaded)} trajectories from {data.path}: T={loaded.n_times}, N={loaded.n_nodes}, "
                  f"D={loaded.state_dim}")
+        check_representable(loaded, str(cfg.dtype), str(data.path))
+        fit_horizons(cfg, rt, loaded.n_times - 1, f"data.path={data.path}")
         return split_trajectories(loaded, tuple(data.split), data.seed)
     if system is None:
         raise ConfigError("no data: pass system=<name> or data.path=<file>.")
+    horizon = int(data.horizon or system.horizon)
+    fit_horizons(cfg, rt, horizon, f"system={system.name} with {horizon} steps per trajectory")
+    check_simulation_memory(cfg, system, [data.n_train, data.n_val, data.n_test], int(data.burn_in) + horizon + 1)
     cache_dir = resolve_path(cfg.paths.cache_dir, rt.start_dir) if data.cache else None
     return simulate_splits(system, system_spec(cfg), data.n_train, data.n_val, data.n_test, data.seed, data.dt,
                            data.horizon, data.gt_rtol, data.gt_atol, cache_dir, data.burn_in)
+
+
+def fit_horizons(cfg: DictConfig, rt: Runtime, steps: int, source: str) -> None:
+    """`eval.horizons` beyond the record (`steps` steps): refused when given explicitly, else the defaults that do
+    not fit are dropped with a note."""
+    horizons = [int(h) for h in cfg.eval.horizons]
+    beyond = [h for h in horizons if h > steps]
+    if not beyond:
+        return
+    if any(a.split("=", 1)[0].lstrip("+~") == "eval.horizons" for a in rt.overrides):
+        raise ConfigError(f"eval.horizons={horizons}: {beyond} go beyond the record ({source}: steps 1..{steps}). "
+                          f"Give horizons <= {steps}, or a longer record (data.horizon=...).")
+    cfg.eval.horizons = [h for h in horizons if h <= steps] or [steps]
+    log.warning(f"eval.horizons: default horizons {beyond} go beyond the record ({steps} steps); reporting "
+                f"{list(cfg.eval.horizons)}")
+
+
+def check_simulation_memory(cfg: DictConfig, system: System, sizes: list[int], n_times: int) -> None:
+    """Refuse, before simulating, data whose float64 arrays would not fit in memory (`memory_check=false` skips)."""
+    need = simulation_bytes(sizes, n_times, system.n_nodes, system.state_dim)
+    what = (f"simulating {' + '.join(map(str, sizes))} trajectories × {n_times} time points × {system.n_nodes:,} "
+            f"nodes × {system.state_dim} states of system={system.name} (float64)")
+    check_fits(need, what, "cpu", bool(cfg.get("memory_check", True)),
+               "fewer trajectories: data.n_train/n_val/n_test or n; a shorter data.horizon; a smaller system")
+
+
+def check_training_memory(cfg: DictConfig, rt: Runtime, model: Model, model_cfg: dict[str, Any],
+                          train: Trajectories) -> None:
+    """Refuse, before training, a step whose crude estimate (`mpsim.memory.training_bytes`) does not fit."""
+    window = cfg.trainer.get("window")
+    n_times = min(train.n_times, int(window) + 1) if window else train.n_times
+    widths = [v for k, v in model_cfg.items() if "hidden" in str(k) and isinstance(v, int) and not isinstance(v, bool)]
+    width = max([train.state_dim, *widths])
+    batch = min(int(cfg.trainer.batch_size), len(train))
+    itemsize = torch.finfo(rt.dtype).bits // 8
+    values = train.x.numel() + (0 if train.u is None else train.u.numel())
+    need = training_bytes(sum(p.numel() for p in model.parameters()), values, batch, n_times, train.n_nodes, width,
+                          itemsize)
+    what = (f"training ({batch} trajectories × {n_times} time points × {train.n_nodes:,} nodes × {width} features "
+            f"per step, {rt.dtype})")
+    check_fits(need, what, str(rt.device), bool(cfg.get("memory_check", True)),
+               "trainer.batch_size; trainer.window; a smaller model or system")
 
 
 def noisy_train(splits: Splits, std: torch.Tensor, scale: float, seed: int) -> Splits:
@@ -317,6 +371,8 @@ def load_init(cfg: DictConfig, rt: Runtime) -> dict[str, Any] | None:
     if not cfg.init:
         return None
     path = resolve_init(str(cfg.init), rt, cfg.paths.ckpt_dir)
-    ckpt = load_checkpoint(path)
+    # a checkpoint may name mpsim's classes, and those the user's own config names (e.g. model._target_=...)
+    allowed = config_targets(OmegaConf.to_container(cfg.model, resolve=True)) if cfg.get("model") is not None else set()
+    ckpt = load_checkpoint(path, allowed)
     log.info(f"init: {path}")
     return ckpt

@@ -25,7 +25,7 @@ from omegaconf import DictConfig
 from mpsim.commands.common import locate, resolve_path
 from mpsim.commands.console import print_summary
 from mpsim.commands.report_layouts import DEFAULT_TITLES, LAYOUT_FUNCS, run_facts, settings_caption
-from mpsim.errors import ConfigError
+from mpsim.errors import ConfigError, DataError
 from mpsim.files import atomic_write
 from mpsim.training.metrics import first_epoch_below
 
@@ -45,12 +45,34 @@ def collect(roots: list[Path], facts: bool = False) -> pd.DataFrame:
     return pd.DataFrame([_row(run, facts) for run in runs])
 
 
+def read_summary(path: Path) -> dict[str, Any]:
+    """A run's summary.json, or a `DataError` naming the file when it is not a JSON object."""
+    try:
+        summary = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise DataError(f"{path} is not valid JSON ({err}). The run did not finish writing it or it was edited: "
+                        "rerun that run, or move its directory out of the report's runs.") from None
+    if not isinstance(summary, dict):
+        raise DataError(f"{path} must hold a JSON object (a run summary); got a JSON {type(summary).__name__}. "
+                        "Rerun that run, or move its directory out of the report's runs.")
+    return summary
+
+
 def _row(run: Path, facts: bool = False) -> dict[str, Any]:
-    summary = json.loads((run / "summary.json").read_text())
+    summary = read_summary(run / "summary.json")
     row: dict[str, Any] = {"run": str(run)}
     overrides_path = run / ".hydra" / "overrides.yaml"
+    saved: Any = None
     if overrides_path.is_file():
-        for item in yaml.safe_load(overrides_path.read_text()) or []:
+        try:
+            saved = yaml.safe_load(overrides_path.read_text())
+        except yaml.YAMLError as err:
+            raise DataError(f"{overrides_path} is not valid YAML ({str(err).splitlines()[0]}). Restore it (a list of "
+                            "key=value overrides) or move the run out of the report's runs.") from None
+        if saved is not None and not isinstance(saved, list):
+            raise DataError(f"{overrides_path} must be a list of key=value overrides; got {type(saved).__name__}.")
+    if saved:
+        for item in saved:
             key, _, value = str(item).partition("=")
             row[key.lstrip("+~")] = value
     system = summary.get("system")

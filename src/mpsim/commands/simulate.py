@@ -9,7 +9,14 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from mpsim import plotting
-from mpsim.commands.common import Shape, build_model_for, build_system, load_init, setup_runtime
+from mpsim.commands.common import (
+    Shape,
+    build_model_for,
+    build_system,
+    check_simulation_memory,
+    load_init,
+    setup_runtime,
+)
 from mpsim.commands.console import fmt, print_summary
 from mpsim.data.io import save_csv, save_npz
 from mpsim.data.trajectories import Trajectories
@@ -40,6 +47,7 @@ def run_simulate(cfg: DictConfig, output_dir: str | Path | None = None, override
     if cfg.n < 1:
         raise ConfigError(f"n must be >= 1; got {cfg.n}.")
     system = build_system(cfg)
+    check_simulation_memory(cfg, system, [cfg.n], int(cfg.data.horizon or system.horizon) + 1)
     truth = system.generate(cfg.n, cfg.data.seed, dt=cfg.data.dt, horizon=cfg.data.horizon,
                             rtol=cfg.data.gt_rtol, atol=cfg.data.gt_atol)
     stem = rt.output_dir / cfg.out

@@ -17,7 +17,9 @@ from mpsim.commands.common import (
     Runtime,
     build,
     build_system,
+    check_training_memory,
     checkpoint_base,
+    is_multirun,
     load_init,
     model_and_data,
     noisy_train,
@@ -26,8 +28,8 @@ from mpsim.commands.common import (
 )
 from mpsim.commands.console import duration, fmt, print_summary
 from mpsim.commands.eval import evaluate_checkpoint, evaluate_model, horizon_rows
-from mpsim.errors import CheckpointError, ConfigError
-from mpsim.files import atomic_write, write_json
+from mpsim.errors import CheckpointError, ConfigError, OutputError
+from mpsim.files import atomic_write, child_path, keep_previous, safe_name, write_json
 from mpsim.training.checkpoint import load_checkpoint
 from mpsim.training.metrics import epochs_x_min_error
 
@@ -73,6 +75,7 @@ def run_train(cfg: DictConfig, output_dir: str | Path | None = None, overrides: 
         model_cfg, model, train.meta,
         {"mode": mode, "init": init_path, "mpsim_version": __version__},
     )
+    check_training_memory(cfg, rt, model, model_cfg, train)
     trainer = build(cfg.trainer, "trainer")
     trainer.fit(model, train, val, test, run_dir=rt.output_dir, seed=cfg.seed, checkpoint_base=base,
                 resume_state=None if last is None else last["trainer"])
@@ -85,7 +88,11 @@ def run_train(cfg: DictConfig, output_dir: str | Path | None = None, overrides: 
     trained = [r for r in history if r["epoch"] >= 1]
     table2 = epochs_x_min_error([r["epoch"] for r in trained], [r["test_error"] for r in trained])
     best_path = rt.output_dir / "checkpoints" / "best.ckpt"
-    exported = _export(best_path, cfg, rt, train.system_name) if trainer.best_epoch_ >= 1 else None
+    exported, previous, export_error = None, None, None
+    try:  # a failed export must not lose the run: the summary is written first, then the error is reported
+        exported, previous = _export(best_path, cfg, rt, train.system_name) if trainer.best_epoch_ >= 1 else (None, None)
+    except OutputError as err:
+        export_error = err
     summary: dict[str, Any] = {
         "task": "train",
         "mode": mode,
@@ -110,9 +117,14 @@ def run_train(cfg: DictConfig, output_dir: str | Path | None = None, overrides: 
         "run_dir": str(rt.output_dir),
         "checkpoint": str(best_path),
         "exported": None if exported is None else str(exported),
+        "export_replaced": None if previous is None else str(previous),
+        "export_error": None if export_error is None else str(export_error),
     }
     write_json(rt.output_dir / "summary.json", summary)
     _print(summary, train, model.report_lines())
+    if export_error is not None:
+        raise OutputError(f"{export_error} The run itself is complete: its model is {best_path} and its summary "
+                          f"{rt.output_dir / 'summary.json'}.")
     return summary
 
 
@@ -133,14 +145,26 @@ def _resume_checkpoint(cfg: DictConfig, rt: Runtime) -> dict | None:
     return state
 
 
-def _export(best: Path, cfg: DictConfig, rt: Runtime, name: str) -> Path | None:
-    """Copy best.ckpt to <paths.ckpt_dir>/<name>.ckpt atomically (so `init=<name>.ckpt` finds it)."""
-    if not cfg.export or not best.is_file():
-        return None
-    dest = resolve_path(cfg.paths.ckpt_dir, rt.start_dir) / f"{name}.ckpt"
+def _export(best: Path, cfg: DictConfig, rt: Runtime, name: str) -> tuple[Path | None, Path | None]:
+    """Copy best.ckpt to <paths.ckpt_dir>/<name>.ckpt atomically (so `init=<name>.ckpt` finds it).
+
+    No run silently replaces another run's model: a sweep job exports nothing (its model stays in its own run
+    directory), and a single run that replaces an existing export first keeps it as
+    ``<name>.<its modification time>.ckpt`` beside it. `name` comes from the data (e.g. a file's ``meta.system``)
+    and is reduced to ``[A-Za-z0-9_.-]``, so the export stays inside `paths.ckpt_dir`.
+
+    Returns:
+        (the exported file, where the model it replaced was kept), each None when there is none.
+    """
+    if not cfg.export or not best.is_file() or is_multirun():
+        return None, None
+    dest = child_path(resolve_path(cfg.paths.ckpt_dir, rt.start_dir), f"{safe_name(name)}.ckpt")
+    previous = keep_previous(dest) if dest.is_file() else None
     with open(best, "rb") as src:
         atomic_write(dest, lambda f: shutil.copyfileobj(src, f))
-    return dest
+    if previous is not None:
+        log.warning(f"replaced {dest}; the model it held is kept as {previous}")
+    return dest, previous
 
 
 def _print(s: dict[str, Any], train, model_lines: list[tuple[str, str]]) -> None:
@@ -167,4 +191,9 @@ def _print(s: dict[str, Any], train, model_lines: list[tuple[str, str]]) -> None
     rows.append(("run dir", s["run_dir"]))
     if s["exported"]:
         rows.append(("checkpoint", f"{s['exported']}  (use init={Path(s['exported']).name})"))
+        if s.get("export_replaced"):
+            rows.append(("", f"replaced an earlier export, kept as {s['export_replaced']}"))
+    elif s["best_epoch"] >= 1:
+        why = "a sweep job: its model stays in its run directory" if is_multirun() else "not exported"
+        rows.append(("checkpoint", f"{s['checkpoint']}  ({why}; use init={s['checkpoint']})"))
     print_summary(title, rows)

@@ -63,11 +63,12 @@ def load_npz(path: str | Path, edge_index: torch.Tensor | None = None) -> Trajec
             meta = json.loads(str(arrays["meta"]))
         except json.JSONDecodeError as err:
             raise DataError(f"{path}: array 'meta' is not valid JSON ({err}).") from None
+        meta = check_meta(meta, f"{path}: array 'meta'")
     for key in ("t", "x", "u", "node_features"):
-        if key in arrays and not np.issubdtype(arrays[key].dtype, np.number):
-            raise DataError(f"{path}: array '{key}' must be numeric; got dtype {arrays[key].dtype}.")
+        if key in arrays:
+            _check_real(arrays[key], key, path)
     if "edge_index" in arrays:
-        ei = torch.from_numpy(np.asarray(arrays["edge_index"])).long()
+        ei = _integer_ids(arrays["edge_index"], path)
     elif edge_index is not None:
         ei = edge_index
     else:
@@ -141,8 +142,7 @@ def load_csv(
         frame = pd.read_csv(path)
     except Exception as err:  # noqa: BLE001
         raise DataError(f"{path}: cannot parse as CSV ({type(err).__name__}: {err}).") from None
-    sidecar = path.with_suffix(".json")
-    meta: dict[str, Any] = json.loads(sidecar.read_text()) if sidecar.is_file() else {}
+    meta = _read_sidecar(path.with_suffix(".json"))
     control_columns = list(control_columns) or list(meta.pop("control_columns", []) or [])
     missing = [c for c in INDEX_COLUMNS if c not in frame.columns]
     if missing:
@@ -173,6 +173,13 @@ def load_csv(
         raise DataError(
             f"{path}: column 'node' must hold the ids 0..N-1 with none missing; found {len(node_ids)} distinct "
             f"ids from {node_ids.min()} to {node_ids.max()}. Renumber the nodes from 0."
+        )
+    missing_traj = frame["traj"].isna().to_numpy()
+    if missing_traj.any():
+        row = int(np.nonzero(missing_traj)[0][0])
+        raise DataError(
+            f"{path}: row {row + 2}, column 'traj' is empty ({int(missing_traj.sum())} such rows). Every row needs the "
+            "label of the trajectory it belongs to; fill it in or remove the row."
         )
     traj_codes, traj_labels = pd.factorize(frame["traj"], sort=True)
     b = len(traj_labels)
@@ -291,11 +298,106 @@ def load_trajectories(
 # ---- helpers -------------------------------------------------------------------------------------------
 def _build(path: Path, **kwargs: Any) -> Trajectories:
     # the container's own checks, reported against the file
+    x = kwargs["x"]
+    if x.dim() == 4 and 0 in x.shape:
+        axis = ["trajectories (B)", "time points (T)", "nodes (N)", "state variables (D)"][list(x.shape).index(0)]
+        raise DataError(f"{path}: `x` has shape {tuple(x.shape)}: zero {axis}. The file holds no data to learn from; "
+                        "x must be [B, T, N, D] with every size >= 1.")
     try:
         return Trajectories(**kwargs)
     except DataError as err:
         msg = str(err)
         raise DataError(msg.replace("trajectories:", f"{path}:", 1)) from None
+
+
+# keys of the metadata that mpsim reads, with the type each must have
+META_TYPES: dict[str, tuple[type, ...]] = {
+    "system": (str,),
+    "state_names": (list,),
+    "control_names": (list,),
+    "control_columns": (list,),
+    "node_feature_names": (list,),
+    "dt": (int, float),
+    "params": (dict,),
+    "periods": (list,),
+}
+
+
+def check_meta(meta: Any, where: str) -> dict[str, Any]:
+    """Metadata read from a file: a JSON object whose known keys (`META_TYPES`) have the right types.
+
+    Raises:
+        DataError: names the file (`where`), the key and the type expected.
+    """
+    if not isinstance(meta, dict):
+        raise DataError(f"{where} must be a JSON object ({{\"system\": ..., \"dt\": ...}}); got a JSON "
+                        f"{type(meta).__name__}. Wrap the values in an object with named keys.")
+    for key, kinds in META_TYPES.items():
+        value = meta.get(key)
+        if value is None:
+            continue
+        if not isinstance(value, kinds) or isinstance(value, bool):
+            names = " or ".join("number" if k in (int, float) else {str: "string", list: "list", dict: "object"}[k]
+                                for k in kinds if k is not int)
+            raise DataError(f"{where}: key '{key}' must be a {names}; got {json.dumps(value)[:80]}.")
+        if key in ("state_names", "control_names", "control_columns", "node_feature_names") and not all(
+            isinstance(v, str) for v in value
+        ):
+            raise DataError(f"{where}: key '{key}' must be a list of strings; got {json.dumps(value)[:80]}.")
+        if key == "dt" and not (np.isfinite(value) and value > 0):
+            raise DataError(f"{where}: key 'dt' must be a finite number > 0; got {value}.")
+    return meta
+
+
+def _read_sidecar(sidecar: Path) -> dict[str, Any]:
+    """`<stem>.json` beside a CSV (its metadata), or {} without one."""
+    if not sidecar.is_file():
+        return {}
+    try:
+        meta = json.loads(sidecar.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise DataError(f"{sidecar}: the metadata file beside the CSV is not valid JSON ({err}). Fix it, or delete "
+                        "it to load the CSV without metadata.") from None
+    return check_meta(meta, str(sidecar))
+
+
+def _check_real(array: np.ndarray, key: str, path: Path) -> None:
+    if np.iscomplexobj(array):
+        raise DataError(f"{path}: array '{key}' is complex ({array.dtype}); mpsim needs real numbers. Store the real "
+                        "and imaginary parts as separate state variables.")
+    if not np.issubdtype(array.dtype, np.number) or array.dtype == np.bool_:
+        raise DataError(f"{path}: array '{key}' must be numeric; got dtype {array.dtype}.")
+
+
+def _integer_ids(array: np.ndarray, path: Path) -> torch.Tensor:
+    """`edge_index` as int64; float ids are accepted only when they are whole numbers (never truncated)."""
+    array = np.asarray(array)
+    if np.issubdtype(array.dtype, np.integer):
+        return torch.from_numpy(array.astype(np.int64))
+    _check_real(array, "edge_index", path)
+    bad = ~np.isfinite(array) | (array != np.round(array))
+    if bad.any():
+        pos = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise DataError(f"{path}: array 'edge_index' holds node id {float(array[pos]):g} at {list(pos)}; node ids must be "
+                        "whole numbers. Save edge_index as an integer array (e.g. .astype(int)) with correct ids.")
+    return torch.from_numpy(array.astype(np.int64))
+
+
+def check_representable(data: Trajectories, dtype_name: str, source: str) -> None:
+    """Refuse values that overflow the model's precision (reported as overflow, not as NaN/inf later).
+
+    float32 holds magnitudes up to 3.4e38; normalisation squares values, so float64 data must stay below 1e150.
+    """
+    limit, why = (float(np.finfo(np.float32).max), "overflow float32 (largest 3.4e38)") if dtype_name == "float32" \
+        else (1e150, "overflow float64 when squared for the normalisation statistics")
+    for name, tensor in (("x", data.x), ("u", data.u)):
+        if tensor is None:
+            continue
+        peak = float(tensor.abs().max())
+        if peak > limit:
+            index = tuple(int(i) for i in torch.nonzero(tensor.abs() == peak)[0])
+            fix = "rescale the data (other units) or use dtype=float64" if dtype_name == "float32" else "rescale the data"
+            raise DataError(f"{source}: {name}{list(index)} = {peak:.3g}: values this large {why}. Fix: {fix}.")
 
 
 def _label(value: Any) -> str:

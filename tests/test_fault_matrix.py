@@ -1,0 +1,451 @@
+"""Fault matrix: every bad input ends with one clear message, its documented exit code, and nothing lost or
+half-written (issue 12). Also the outcomes that must hold when nothing is wrong: checkpoint exports that never
+destroy another run's model, file permissions, `--help` without torch.
+
+Cases run `mpsim.cli.main` in-process (one subprocess case checks that torch is not imported). Each case gets
+a fresh directory to start from; a module workspace holds a trained tiny lorenz3 checkpoint and its run.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import logging
+import os
+import shutil
+import stat
+import subprocess
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from hydra.core.global_hydra import GlobalHydra
+from hydra.core.hydra_config import HydraConfig
+
+from mpsim import cli
+from mpsim.training.checkpoint import save_checkpoint
+from tests.conftest import TINY_TRAIN
+
+EVAL = ["data.n_test=3", "data.horizon=5", "eval.plots=false"]
+NO_TORCH = "import sys; from mpsim.cli import main\n"
+
+
+# ---- running mpsim in-process ------------------------------------------------------------------------------
+@dataclass
+class Result:
+    code: int
+    out: str
+    err: str
+
+    def error_lines(self) -> list[str]:
+        return [ln for ln in self.err.splitlines() if ": error:" in ln]
+
+
+def _reset_hydra() -> None:
+    GlobalHydra.instance().clear()
+    HydraConfig.instance().cfg = None
+
+
+def run(args: list[str], cwd: Path, capsys, monkeypatch) -> Result:
+    """`mpsim <args>` started from `cwd`, in this process."""
+    monkeypatch.chdir(cwd)
+    monkeypatch.setattr(sys, "argv", ["mpsim", *args])
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
+    capsys.readouterr()
+    code = 0
+    try:
+        cli.main(list(args))
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    finally:
+        _reset_hydra()
+        for h in root.handlers:
+            if h not in handlers:
+                h.close()
+        root.handlers[:] = handlers
+        root.setLevel(level)
+    captured = capsys.readouterr()
+    return Result(code, captured.out, captured.err)
+
+
+def snapshot(*roots: Path) -> dict[Path, tuple[int, int]]:
+    """Every file under `roots` with (size, modification time)."""
+    return {p: (p.stat().st_size, p.stat().st_mtime_ns) for r in roots for p in r.rglob("*") if p.is_file()}
+
+
+# ---- shared workspace -----------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def ws(tmp_path_factory):
+    """A workspace where `mpsim train system=lorenz3` (tiny) has run: checkpoints/lorenz3.ckpt and its run dir."""
+    root = tmp_path_factory.mktemp("faults")
+    mp = pytest.MonkeyPatch()
+    try:
+        mp.chdir(root)
+        cli.main(["train", "system=lorenz3", *TINY_TRAIN])
+    except SystemExit as exc:
+        assert not exc.code, exc.code
+    finally:
+        _reset_hydra()
+        mp.undo()
+    assert (root / "checkpoints" / "lorenz3.ckpt").is_file()
+    return root
+
+
+def lorenz_run(ws: Path) -> Path:
+    (run_dir,) = (ws / "outputs" / "train").glob("*/*_lorenz3")
+    return run_dir
+
+
+def payload(ws: Path) -> dict:
+    """The lorenz3 checkpoint's content (to save altered copies)."""
+    return torch.load(ws / "checkpoints" / "lorenz3.ckpt", weights_only=True)
+
+
+def altered(ws: Path, d: Path, change: Callable[[dict], None], name: str = "bad.ckpt") -> Path:
+    """A copy of the lorenz3 checkpoint changed by `change`, saved with a valid checksum."""
+    p = payload(ws)
+    change(p)
+    return save_checkpoint(d / name, p)
+
+
+# ---- data files ---------------------------------------------------------------------------------------------
+def grid_rows(n_traj: int = 4, times=(0.0, 0.1, 0.2, 0.3), nodes: int = 2) -> list[list]:
+    return [[b, t, n, 0.1 * n + t + 0.01 * b, -t] for b in range(n_traj) for t in times for n in range(nodes)]
+
+
+def write_csv(d: Path, rows=None, sidecar: str | None = None, name: str = "m") -> Path:
+    path = d / f"{name}.csv"
+    pd.DataFrame(rows or grid_rows(), columns=["traj", "t", "node", "theta", "omega"]).to_csv(path, index=False)
+    pd.DataFrame([(0, 1), (1, 0)], columns=["src", "dst"]).to_csv(d / f"{name}_edges.csv", index=False)
+    if sidecar is not None:
+        (d / f"{name}.json").write_text(sidecar)
+    return path
+
+
+def write_npz(d: Path, name: str = "d.npz", **changes) -> Path:
+    rng = np.random.default_rng(0)
+    arrays = {"t": np.arange(6) * 0.1, "x": rng.normal(size=(6, 6, 2, 2)), "edge_index": np.array([[0, 1], [1, 0]]),
+              "meta": np.array(json.dumps({"system": "measured", "state_names": ["theta", "omega"]}))}
+    arrays.update(changes)
+    arrays = {k: v for k, v in arrays.items() if v is not None}
+    np.savez(d / name, **arrays)
+    return d / name
+
+
+def data_args(path: Path) -> list[str]:
+    return ["train", f"data.path={path}", *TINY_TRAIN[:2], "eval.horizons=[1,5]", "eval.plots=false"]
+
+
+# ---- the cases ------------------------------------------------------------------------------------------------
+@dataclass
+class Case:
+    """`args(ws, d)` builds the command line (and any input files in `d`); the run must end with `code`, one
+    `mpsim <cmd>: error:` line containing `match` (for failures), and no file changed, removed, or added
+    (outside the dataset cache)."""
+
+    args: Callable[[Path, Path], list[str]]
+    code: int
+    match: str
+    forbid: tuple[str, ...] = ()  # texts the output must not contain
+    allow_new: tuple[str, ...] = ("outputs/.cache/",)
+
+
+def _bytes_flipped(ws: Path, d: Path) -> list[str]:
+    """A checkpoint with 4 bytes overwritten inside a weight tensor's stored data."""
+    src = (ws / "checkpoints" / "lorenz3.ckpt").read_bytes()
+    state = payload(ws)["model"]["state_dict"]
+    name = max(state, key=lambda k: state[k].numel())
+    raw = state[name].contiguous().numpy().tobytes()
+    at = src.find(raw)
+    assert at > 0, "weight bytes not found in the file"
+    data = bytearray(src)
+    data[at + 8 : at + 12] = b"\x7f\x7f\x7f\x7f"
+    (d / "flipped.ckpt").write_bytes(bytes(data))
+    return ["eval", f"init={d / 'flipped.ckpt'}", "system=lorenz3", *EVAL]
+
+
+def _malicious(ws: Path, d: Path) -> list[str]:
+    effect = payload_effect(d / "pwned.txt")
+    altered(ws, d, lambda p: p["model"]["config"].__setitem__("effects", [effect]), "evil.ckpt")
+    return ["eval", f"init={d / 'evil.ckpt'}", "system=lorenz3", *EVAL]
+
+
+def payload_effect(target: Path) -> dict:
+    """A config node that writes `target` when `hydra.utils.instantiate` builds it."""
+    return {"_target_": "pathlib.Path.write_text", "self": {"_target_": "pathlib.Path", "_args_": [str(target)]},
+            "data": "pwned"}
+
+
+def _os_system(ws: Path, d: Path) -> list[str]:
+    def change(p):
+        p["model"]["config"] = {"_target_": "os.system", "_args_": [f"touch {d / 'pwned2'}"]}
+
+    altered(ws, d, change, "evil2.ckpt")
+    return ["eval", f"init={d / 'evil2.ckpt'}", "system=lorenz3", *EVAL]
+
+
+def _no_state_dim(ws, d):
+    return ["eval", f"init={altered(ws, d, lambda p: p['model'].pop('state_dim'))}", "system=lorenz3", *EVAL]
+
+
+def _nan_weight(ws, d):
+    def change(p):
+        first = next(iter(p["model"]["state_dict"]))
+        p["model"]["state_dict"][first].view(-1)[0] = float("nan")
+
+    return ["eval", f"init={altered(ws, d, change)}", "system=lorenz3", *EVAL]
+
+
+def _resume_other_lr(ws, d):
+    return ["train", f"resume={lorenz_run(ws)}", "trainer.lr=0.5"]
+
+
+def _replace_export(ws, d):
+    (d / "checkpoints").mkdir()
+    shutil.copy(ws / "checkpoints" / "lorenz3.ckpt", d / "checkpoints" / "pendulum2.ckpt")
+    return ["train", *TINY_TRAIN, "eval.plots=false"]
+
+
+CASES: dict[str, Case] = {
+    # -- config: typos get a did-you-mean in every group, never Hydra's "+key" advice
+    "typo_system_key": Case(lambda w, d: ["train", "system.n_node=4"], 2, "Did you mean system.n_nodes?", ("+system",)),
+    "typo_trainer_key": Case(lambda w, d: ["train", "trainer.lrr=1"], 2, "Did you mean trainer.lr?", ("+trainer",)),
+    "typo_data_key": Case(lambda w, d: ["train", "data.n_tran=5"], 2, "Did you mean data.n_train", ("+data",)),
+    "typo_eval_key": Case(lambda w, d: ["eval", "init=x", "eval.horizon=[1]"], 2, "Did you mean eval.horizons?"),
+    "typo_paths_key": Case(lambda w, d: ["train", "paths.ckpt_di=x"], 2, "Did you mean paths.ckpt_dir?"),
+    "typo_mode_key": Case(lambda w, d: ["train", "mode.nam=x"], 2, "Did you mean mode.name?"),
+    "typo_group": Case(lambda w, d: ["train", "traner.lr=1"], 2, "Did you mean trainer?"),
+    "typo_report_key": Case(lambda w, d: ["report", "titl=x"], 2, "Did you mean title?"),
+    "typo_model_param": Case(lambda w, d: ["train", "model.hiden=8"], 2, "Did you mean model.hidden"),
+    "param_not_in_yaml": Case(lambda w, d: ["train", "system=nbody", "system.mass=2"], 2, "+system.mass=<value>"),
+    "unknown_system": Case(lambda w, d: ["train", "system=lorenz4"], 2, "Could not find 'system/lorenz4'"),
+    "unknown_model": Case(lambda w, d: ["train", "model=mpnod"], 2, "Could not find 'model/mpnod'"),
+    "wrong_type": Case(lambda w, d: ["train", "trainer.max_epochs=many"], 2, "could not be converted to Integer"),
+    "wrong_type_target": Case(lambda w, d: ["train", "system=lorenz3", "system.coupling=strong", *TINY_TRAIN], 2,
+                              "expects float"),
+    "device_tpu": Case(lambda w, d: ["train", "device=tpu"], 2, "device=tpu is not supported"),
+    "threads_negative": Case(lambda w, d: ["train", "threads=-2"], 2, "threads=-2"),
+    "sigma_nan": Case(lambda w, d: ["train", "system=lorenz3", "system.sigma=nan"], 2,
+                      "system.sigma=nan is not a finite number"),
+    "noise_negative": Case(lambda w, d: ["train", "data.noise_std=-1"], 2, "data.noise_std=-1.0"),
+    "patience_negative": Case(lambda w, d: ["train", "trainer.early_stop_patience=-1"], 2,
+                              "trainer.early_stop_patience=-1"),
+    "lr_zero": Case(lambda w, d: ["train", "trainer.lr=0"], 2, "trainer.lr=0.0: must be > 0"),
+    "horizon_zero": Case(lambda w, d: ["train", "eval.horizons=[0,5]"], 2, "eval.horizons=[0, 5]"),
+    "horizon_beyond_record": Case(lambda w, d: ["train", *TINY_TRAIN[:-1], "eval.horizons=[1,5,50]"], 2,
+                                  "[50] go beyond the record"),
+    "simulate_n_zero": Case(lambda w, d: ["simulate", "n=0"], 2, "n=0"),
+    "sweep_bad_value": Case(lambda w, d: ["train", "-m", *TINY_TRAIN, "data.n_train=4,-1"], 2, "data.n_train=-1"),
+    "unknown_command": Case(lambda w, d: ["frobnicate"], 2, "unknown command 'frobnicate'"),
+    # -- output locations that cannot be written: refused before any work
+    "output_root_unwritable": Case(lambda w, d: ((d / "f").write_text("x"), ["train", f"paths.output_root={d}/f/o"])[1],
+                                   4, "is a file, not a directory"),
+    "ckpt_dir_unwritable": Case(lambda w, d: ((d / "f").write_text("x"), ["train", f"paths.ckpt_dir={d}/f/c"])[1],
+                                4, "paths.ckpt_dir="),
+    # -- resume
+    "resume_missing_dir": Case(lambda w, d: ["train", f"resume={d}/nowhere"], 2, "last.ckpt does not exist"),
+    "resume_other_lr": Case(_resume_other_lr, 2, "trainer.lr=0.5 (not set in the run)"),
+    "resume_true_no_run": Case(lambda w, d: ["train", "resume=true", "seed=7"], 2, "no earlier run"),
+    # -- checkpoints: data, never code
+    "init_missing": Case(lambda w, d: ["eval", "init=nowhere.ckpt", "system=lorenz3", *EVAL], 2, "no such checkpoint"),
+    "ckpt_empty": Case(lambda w, d: ((d / "e.ckpt").write_bytes(b""), ["eval", f"init={d / 'e.ckpt'}", *EVAL])[1], 2,
+                       "is empty (0 bytes)"),
+    "ckpt_truncated": Case(lambda w, d: ((d / "t.ckpt").write_bytes((w / "checkpoints/lorenz3.ckpt").read_bytes()[:300]),
+                                         ["eval", f"init={d / 't.ckpt'}", *EVAL])[1], 2, "cannot read checkpoint"),
+    "ckpt_foreign": Case(lambda w, d: (torch.save({"w": torch.zeros(2)}, d / "f.ckpt"),
+                                       ["eval", f"init={d / 'f.ckpt'}", *EVAL])[1], 2, "not an mpsim checkpoint"),
+    "ckpt_no_state_dim": Case(_no_state_dim, 2, "lacks 'model.state_dim'"),
+    "ckpt_bytes_flipped": Case(_bytes_flipped, 2, "does not match the checksum"),
+    "ckpt_nan_weight": Case(_nan_weight, 2, "holds NaN/inf"),
+    "ckpt_malicious_effect": Case(_malicious, 2, "'pathlib.Path.write_text' is not an mpsim class"),
+    "ckpt_os_system": Case(_os_system, 2, "'os.system' is not an mpsim class"),
+    "ckpt_mpsim_function": Case(lambda w, d: ["eval", f"init={altered(w, d, lambda p: p['model']['config'].__setitem__('effects', [{'_target_': 'mpsim.files.atomic_write', 'path': str(d / 'x'), 'write': None}]))}", *EVAL],
+                                2, "'mpsim.files.atomic_write' is not an mpsim class"),
+    "ckpt_interpolation": Case(lambda w, d: ["eval", f"init={altered(w, d, lambda p: p['model']['config'].__setitem__('aggregation', '${oc.env:HOME}'))}", *EVAL],
+                               2, "holds an interpolation"),
+    "ckpt_newer": Case(lambda w, d: ["eval", f"init={altered(w, d, lambda p: p.__setitem__('version', 99))}", *EVAL],
+                       2, "newer mpsim"),
+    "ckpt_other_system": Case(lambda w, d: ["eval", f"init={w / 'checkpoints/lorenz3.ckpt'}", "system=pendulum2", *EVAL],
+                              2, "was trained on lorenz3"),
+    # -- data files
+    "csv_empty_traj": Case(lambda w, d: data_args(write_csv(d, [[None if i == 5 and j == 0 else v for j, v in enumerate(r)]
+                                                                 for i, r in enumerate(grid_rows())])), 2,
+                           "row 7, column 'traj' is empty"),
+    "csv_nan_value": Case(lambda w, d: data_args(write_csv(d, [[*r[:3], float("nan") if i == 2 else r[3], r[4]]
+                                                               for i, r in enumerate(grid_rows())])), 2,
+                          "row 4, column 'theta' is empty"),
+    "csv_ragged": Case(lambda w, d: data_args(write_csv(d, grid_rows()[:-1])), 2, "ragged data"),
+    "csv_sidecar_malformed": Case(lambda w, d: data_args(write_csv(d, sidecar="{not json")), 2, "m.json: the metadata"),
+    "csv_sidecar_list": Case(lambda w, d: data_args(write_csv(d, sidecar="[1, 2]")), 2,
+                             "m.json must be a JSON object"),
+    "csv_sidecar_wrong_type": Case(lambda w, d: data_args(write_csv(d, sidecar='{"control_columns": "omega"}')), 2,
+                                   "key 'control_columns' must be a list"),
+    "npz_meta_list": Case(lambda w, d: data_args(write_npz(d, meta=np.array("[1, 2]"))), 2,
+                          "array 'meta' must be a JSON object"),
+    "npz_float_edge_ids": Case(lambda w, d: data_args(write_npz(d, edge_index=np.array([[0.0, 1.5], [1.0, 0.0]]))), 2,
+                               "node id 1.5"),
+    "npz_complex_states": Case(lambda w, d: data_args(write_npz(d, x=np.ones((6, 6, 2, 2)) * (1 + 1j))), 2,
+                               "array 'x' is complex"),
+    "npz_zero_nodes": Case(lambda w, d: data_args(write_npz(d, x=np.ones((6, 6, 0, 2)),
+                                                            edge_index=np.zeros((2, 0), dtype=int))), 2,
+                           "zero nodes (N)", ("diverged",)),
+    "npz_float32_overflow": Case(lambda w, d: data_args(write_npz(d, x=np.full((6, 6, 2, 2), 1e300))), 2,
+                                 "overflow float32", ("NaN",)),
+    "npz_missing_x": Case(lambda w, d: data_args(write_npz(d, x=None)), 2, "missing array(s) ['x']"),
+    "data_missing_file": Case(lambda w, d: data_args(d / "nothing.npz"), 2, "does not exist"),
+    "data_unknown_format": Case(lambda w, d: ((d / "d.txt").write_text("1"), data_args(d / "d.txt"))[1], 2,
+                                "unknown data format"),
+    # -- report
+    "report_corrupt_summary": Case(lambda w, d: ((d / "runs/a").mkdir(parents=True),
+                                                 (d / "runs/a/summary.json").write_text('{"task": "tr'),
+                                                 ["report", f"runs=[{d / 'runs'}]"])[2], 2,
+                                   "runs/a/summary.json is not valid JSON"),
+    "report_summary_list": Case(lambda w, d: ((d / "runs/b").mkdir(parents=True),
+                                              (d / "runs/b/summary.json").write_text("[1]"),
+                                              ["report", f"runs=[{d / 'runs'}]"])[2], 2,
+                                "runs/b/summary.json must hold a JSON object"),
+    # -- memory: estimated and refused before anything is allocated
+    "memory_simulate_nbody": Case(lambda w, d: ["simulate", "system=nbody", "system.n_particles=10000000"], 5,
+                                  "memory_check=false"),
+    "memory_train_nbody": Case(lambda w, d: ["train", "system=nbody", "system.n_particles=10000000", "model=deltagn"],
+                               5, "is available on cpu"),
+}
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_bad_input_ends_with_one_message(name, ws, tmp_path, capsys, monkeypatch):
+    case = CASES[name]
+    args = case.args(ws, tmp_path)
+    before = snapshot(tmp_path, ws)
+    res = run(args, tmp_path, capsys, monkeypatch)
+    assert res.code == case.code, (res.code, res.err[-2000:])
+    assert "Traceback" not in res.err
+    lines = res.error_lines() or [ln for ln in res.err.splitlines() if ln.startswith("mpsim")]
+    assert len(lines) == 1 and case.match in lines[0], res.err[-2000:]
+    for text in case.forbid:
+        assert text not in res.err, res.err
+    after = snapshot(tmp_path, ws)
+    changed = [p for p in before if after.get(p) != before[p]]
+    new = [p for p in after if p not in before and not any(a in str(p) for a in case.allow_new)]
+    assert not changed, changed  # nothing lost, nothing rewritten
+    assert not new, new  # nothing half-written, no half-made run directory
+    assert not (tmp_path / "pwned.txt").exists() and not (tmp_path / "pwned2").exists()
+
+
+def test_the_malicious_payload_is_live_without_the_allowlist(tmp_path):
+    """The payload of `ckpt_malicious_effect` does write a file when instantiated: the refusal above is real."""
+    from hydra.utils import instantiate
+
+    instantiate(payload_effect(tmp_path / "pwned.txt"))
+    assert (tmp_path / "pwned.txt").read_text() == "pwned"
+
+
+# ---- outcomes when nothing is wrong, and faults in the middle of a run ------------------------------------------
+def test_single_run_keeps_the_export_it_replaces(ws, tmp_path, capsys, monkeypatch):
+    args = _replace_export(ws, tmp_path)
+    old = (tmp_path / "checkpoints" / "pendulum2.ckpt").read_bytes()
+    res = run(args, tmp_path, capsys, monkeypatch)
+    assert res.code == 0, res.err
+    kept = [p for p in (tmp_path / "checkpoints").glob("pendulum2.*.ckpt")]
+    assert len(kept) == 1 and kept[0].read_bytes() == old
+    assert (tmp_path / "checkpoints" / "pendulum2.ckpt").read_bytes() != old
+    assert "replaced an earlier export, kept as" in res.out and kept[0].name in res.out
+
+
+def test_sweep_jobs_keep_their_models_in_their_run_directories(ws, tmp_path, capsys, monkeypatch):
+    res = run(["train", "-m", *TINY_TRAIN, "eval.plots=false", "seed=0,1"], tmp_path, capsys, monkeypatch)
+    assert res.code == 0, res.err
+    assert not (tmp_path / "checkpoints").exists()
+    bests = sorted((tmp_path / "outputs" / "multirun").rglob("best.ckpt"))
+    assert len(bests) == 2 and res.out.count("a sweep job: its model stays in its run directory") == 2
+    for best in bests:
+        assert f"use init={best}" in res.out
+
+
+def test_export_name_from_a_file_stays_inside_ckpt_dir(ws, tmp_path, capsys, monkeypatch):
+    meta = json.dumps({"system": "../../escaped", "state_names": ["theta", "omega"]})
+    (tmp_path / "work").mkdir()
+    path = write_npz(tmp_path / "work", meta=np.array(meta))
+    res = run(data_args(path), tmp_path / "work", capsys, monkeypatch)
+    assert res.code == 0, res.err
+    assert not list(tmp_path.glob("escaped*")) and not list((tmp_path / "work").glob("escaped*"))
+    assert [p.name for p in (tmp_path / "work" / "checkpoints").iterdir()] == ["escaped.ckpt"]
+
+
+def test_divergence_in_epoch_1_does_not_claim_a_best_checkpoint(ws, tmp_path, capsys, monkeypatch):
+    from mpsim.errors import DivergenceError
+    from mpsim.training.trainer import Trainer
+
+    def diverge(self, *args, **kwargs):
+        raise DivergenceError("training diverged in epoch 1, batch 0: test")
+
+    monkeypatch.setattr(Trainer, "_train_epoch", diverge)
+    res = run(["train", *TINY_TRAIN, "eval.plots=false"], tmp_path, capsys, monkeypatch)
+    assert res.code == 3
+    assert "no epoch finished" in res.err and "best checkpoint so far" not in res.err
+    assert not (tmp_path / "checkpoints").exists()  # nothing exported
+    (summary,) = (tmp_path / "outputs").rglob("summary.json")
+    assert json.loads(summary.read_text())["status"] == "diverged"
+
+
+def test_failed_export_still_writes_the_summary(ws, tmp_path, capsys, monkeypatch):
+    import mpsim.commands.train as train_cmd
+
+    def full_disk(src, dst):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(train_cmd.shutil, "copyfileobj", full_disk)
+    res = run(["train", *TINY_TRAIN, "eval.plots=false"], tmp_path, capsys, monkeypatch)
+    assert res.code == 4 and "the disk is full" in res.err and "Traceback" not in res.err
+    (summary,) = (tmp_path / "outputs").rglob("summary.json")
+    saved = json.loads(summary.read_text())
+    assert "disk is full" in saved["export_error"] and Path(saved["checkpoint"]).is_file()
+    assert not [p for p in tmp_path.rglob("*.tmp")]  # no temporary file left behind
+
+
+def test_full_disk_mid_command_leaves_nothing_half_written(ws, tmp_path, capsys, monkeypatch):
+    import mpsim.files as files
+
+    def full_disk(src, dst):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(files.os, "replace", full_disk)
+    res = run(["simulate", "n=2", "data.horizon=3"], tmp_path, capsys, monkeypatch)
+    assert res.code == 4 and "the disk is full" in res.err
+    assert not [p for p in tmp_path.rglob("*") if p.is_file()]  # no data, no temp file, no run directory
+
+
+@pytest.mark.parametrize("umask, mode", [(0o022, 0o644), (0o027, 0o640)])
+def test_output_files_honour_the_umask(tmp_path, capsys, monkeypatch, umask, mode):
+    old = os.umask(umask)
+    try:
+        res = run(["simulate", "n=2", "data.horizon=3", "format=both"], tmp_path, capsys, monkeypatch)
+    finally:
+        os.umask(old)
+    assert res.code == 0, res.err
+    written = [p for p in (tmp_path / "outputs").rglob("*") if p.suffix in (".npz", ".csv", ".json")]
+    assert len(written) >= 4
+    assert {stat.S_IMODE(p.stat().st_mode) for p in written} == {mode}
+
+
+def test_help_and_config_errors_do_not_import_torch(tmp_path):
+    code = NO_TORCH + (
+        "main(['--help'])\n"
+        "assert 'torch' not in sys.modules, 'help imported torch'\n"
+        "try:\n    main(['train', 'trainer.lrr=1'])\nexcept SystemExit as e:\n    assert e.code == 2\n"
+        "assert 'torch' not in sys.modules, 'a config error imported torch'\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "Did you mean trainer.lr?" in proc.stderr and "usage: mpsim" in proc.stdout
+    assert not list(tmp_path.iterdir())  # no run directory for a config error
+
+
+def test_the_matrix_is_large_enough():
+    assert len(CASES) >= 45
