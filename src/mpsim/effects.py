@@ -12,14 +12,17 @@ Coefficients are in the data's raw units per unit time.
 |---|---|
 | `LinearDamping(c)` | −c·s |
 | `QuadraticDrag(c)` | −c·s·abs(s) |
+| `DryFriction(c, ε)` | −c·tanh(s/ε)  (Coulomb friction, sign(s) smoothed over ε) |
 | `CubicStiffness(c)` | −c·s³ |
 | `Bias(c)` | c |
-| `PeriodicForcing(A, ω, φ)` | A·sin(ω t + φ) |
+| `PeriodicForcing(A, ω, φ)` | A·sin(ω t + φ)  (`random_phase=true`: A·sin(ω t + φ + φ_b), φ_b per trajectory) |
 | `DiffusiveCoupling(c)` | c·Σ_j A_ij (s_j − s_i) |
 | `SineCoupling(c)` | c·Σ_j A_ij sin(s_j − s_i)  (phase oscillators) |
+| `CosineCoupling(c)` | c·Σ_j A_ij cos(s_j − s_i)  (with `SineCoupling`: a phase lag α) |
 | `DelayedFeedback(c, τ)` | c·s(t − τ) |
 
-with s the source variable of node i and A the coupling graph.
+with s the source variable of node i and A the coupling graph. A phase lag in Kuramoto coupling is the pair
+`SineCoupling` + `CosineCoupling`: K·sin(s_j − s_i − α) = K cos α·sin(s_j − s_i) − K sin α·cos(s_j − s_i).
 """
 
 from __future__ import annotations
@@ -155,7 +158,7 @@ class Effect(nn.Module):
         }
 
     def extra_repr(self) -> str:
-        return f"target={self.target_ref}, source={self.source_ref}, coef={[round(float(c), 6) for c in self.coef]}"
+        return f"target={self.target_ref}, source={self.source_ref}, coef={[round(float(c), 6) for c in self.coef.detach()]}"
 
 
 class LinearDamping(Effect):
@@ -181,6 +184,43 @@ class QuadraticDrag(Effect):
 
     def _formula(self, s):
         return f"-{float(self.coef.detach()[0]):.4g}·{s}·|{s}|"
+
+
+class DryFriction(Effect):
+    """−c·tanh(s/ε): Coulomb (dry) friction of magnitude c, its sign(s) smoothed over the velocity scale ε.
+
+    Args:
+        coef: c, the friction force (per unit mass).
+        target: the state variable whose derivative receives the term (the velocity).
+        source: the state variable the term reads (default: the target).
+        scale: ε > 0, the smoothing scale in the source's units (fixed, not trained); smaller is sharper.
+        learnable: whether c is trained.
+    """
+
+    basis = ("-tanh(s/eps)",)
+
+    def __init__(
+        self,
+        coef: float = 0.0,
+        target: str | int = 0,
+        source: str | int | None = None,
+        scale: float = 0.01,
+        learnable: bool = True,
+    ) -> None:
+        super().__init__(coef, target, source, learnable)
+        if isinstance(scale, bool) or not isinstance(scale, int | float) or not scale > 0 or math.isinf(scale):
+            raise ConfigError(f"DryFriction.scale must be a finite number > 0 (the velocity over which sign(v) is "
+                              f"smoothed, e.g. scale=0.01); got {scale!r}.")
+        self.scale = float(scale)
+
+    def features(self, t, x, ctx):
+        return -torch.tanh(x[..., self.source : self.source + 1] / self.scale)
+
+    def _formula(self, s):
+        return f"-{float(self.coef.detach()[0]):.4g}·tanh({s}/{self.scale:g})"
+
+    def config(self) -> dict[str, Any]:
+        return {**super().config(), "scale": self.scale}
 
 
 class CubicStiffness(Effect):
@@ -238,13 +278,36 @@ class SineCoupling(Effect):
         return f"{float(self.coef.detach()[0]):+.4g}·Σ_j sin({s}_j − {s}_i)"
 
 
+class CosineCoupling(Effect):
+    """c·Σ_j A_ij cos(s_j − s_i): with `SineCoupling`, a phase lag (frustration) α in Kuramoto coupling."""
+
+    basis = ("sum_j cos(s_j - s_i)",)
+
+    def features(self, t, x, ctx):
+        s = x[..., self.source]  # [B, N]
+        b, n = s.shape
+        flat = s.reshape(b * n)
+        diff = torch.cos(flat[ctx.graph.src] - flat[ctx.graph.dst])  # [E'] sender − receiver
+        out = flat.new_zeros(b * n).index_add_(0, ctx.graph.dst, diff)
+        return out.reshape(b, n, 1)
+
+    def _formula(self, s):
+        return f"{float(self.coef.detach()[0]):+.4g}·Σ_j cos({s}_j − {s}_i)"
+
+
 class PeriodicForcing(Effect):
     """A·sin(ω t + φ): an external periodic drive with learnable amplitude, angular frequency and phase.
+
+    With `random_phase`, trajectory b of a batch is driven by A·sin(ω t + φ + φ_b), φ_b ~ U(0, 2π) drawn for
+    b = 0..B−1 from `torch.Generator().manual_seed(phase_seed)`: recordings that start at arbitrary times of
+    the same drive (A and ω shared). Meant for generating data; the B phases depend only on B and the seed.
 
     Args:
         amplitude, omega, phase: A, ω (rad per unit time), φ (rad).
         target: the driven state variable.
         learnable: whether A, ω and φ are trained.
+        random_phase: give every trajectory of a batch its own extra phase φ_b.
+        phase_seed: the seed of the φ_b draws.
     """
 
     basis = ("sin(wt)", "cos(wt)")
@@ -257,12 +320,20 @@ class PeriodicForcing(Effect):
         target: str | int = 0,
         source: str | int | None = None,
         learnable: bool = True,
+        random_phase: bool = False,
+        phase_seed: int = 0,
     ) -> None:
         a, b = amplitude * math.cos(phase), amplitude * math.sin(phase)  # A sin(ωt+φ) = a sin ωt + b cos ωt
         super().__init__([a, b], target, source, learnable)
         if omega <= 0:
             raise ConfigError(f"PeriodicForcing.omega must be > 0; got {omega}.")
+        if not isinstance(random_phase, bool):
+            raise ConfigError(f"PeriodicForcing.random_phase must be true or false; got {random_phase!r}.")
+        if isinstance(phase_seed, bool) or not isinstance(phase_seed, int) or phase_seed < 0:
+            raise ConfigError(f"PeriodicForcing.phase_seed must be an integer >= 0; got {phase_seed!r}.")
         self.log_omega = nn.Parameter(torch.tensor(math.log(omega), dtype=torch.float64), requires_grad=learnable)
+        self.random_phase, self.phase_seed = random_phase, int(phase_seed)
+        self._phases: dict[int, torch.Tensor] = {}
 
     @property
     def omega(self) -> float:
@@ -272,20 +343,34 @@ class PeriodicForcing(Effect):
         a, b = (float(c) for c in self.coef.detach())
         return math.hypot(a, b), math.atan2(b, a)
 
+    def trajectory_phases(self, n: int) -> torch.Tensor:
+        """[n] float64 φ_b of trajectories 0..n−1 (zeros without `random_phase`)."""
+        if not self.random_phase:
+            return torch.zeros(n, dtype=torch.float64)
+        if n not in self._phases:
+            gen = torch.Generator().manual_seed(self.phase_seed)
+            self._phases[n] = 2 * math.pi * torch.rand(n, generator=gen, dtype=torch.float64)
+        return self._phases[n]
+
     def features(self, t, x, ctx):
         # t: [] or broadcastable to [B, N] (per-sample times when the residual loop builds its library)
         phase = self.log_omega.exp().to(x) * torch.broadcast_to(torch.as_tensor(t).to(x), x.shape[:-1])
+        if self.random_phase:
+            phase = phase + self.trajectory_phases(x.shape[0]).to(x)[:, None]
         return torch.stack([torch.sin(phase), torch.cos(phase)], dim=-1)
 
     def _formula(self, s):
         amp, ph = self.amplitude_phase()
-        return f"{amp:.4g}·sin({self.omega:.4g}·t {ph:+.3f})"
+        return f"{amp:.4g}·sin({self.omega:.4g}·t {ph:+.3f}{' + φ_b' if self.random_phase else ''})"
 
     def config(self) -> dict[str, Any]:
         amp, ph = self.amplitude_phase()
         cfg = super().config()
         del cfg["coef"], cfg["source"]
-        return {**cfg, "amplitude": amp, "omega": self.omega, "phase": ph}
+        cfg = {**cfg, "amplitude": amp, "omega": self.omega, "phase": ph}
+        if self.random_phase:
+            cfg.update(random_phase=True, phase_seed=self.phase_seed)
+        return cfg
 
 
 class DelayedFeedback(Effect):
