@@ -57,7 +57,7 @@ NEIGHBOUR_SUFFIX = "_j"
 #: spec keys every spec may have; systems add their own (initial ranges, graph, ...)
 MODEL_KEYS = ("states", "equations", "params", "learnable", "kinematic", "nodes", "description")
 #: what a simulation also needs (`system=equations`); a model reads the same file and ignores them
-SYSTEM_KEYS = ("name", "graph", "graph_params", "edges", "directed", "init", "dt", "horizon")
+SYSTEM_KEYS = ("name", "graph", "graph_params", "edges", "directed", "init", "dt", "horizon", "integrator", "substep")
 
 
 def did_you_mean(name: str, choices: Sequence[str]) -> str:

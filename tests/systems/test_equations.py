@@ -90,3 +90,69 @@ def test_examples_cover_what_the_issue_lists():
     assert {p.stem for p in EXAMPLES.glob("*.yaml")} >= {
         "pendulum_inertia", "pendulums_linear_spring", "pendulums_bob_spring", "kuramoto_frequencies",
         "lorenz_network", "fitzhugh_nagumo"}
+
+
+OSCILLATOR = {"states": ["x", "v"], "equations": {"x": "v", "v": "-x"}, "nodes": 1}
+
+
+def test_semi_implicit_euler_is_the_symplectic_euler_map():
+    # v first (v1 = v0 - h x0), then x with the new v (x1 = x0 + h v1): one step is [[1 - h², h], [-h, 1]]
+    h, every, steps = 0.05, 4, 30
+    system = EquationsSystem({**OSCILLATOR, "nodes": 3}, integrator="semi_implicit_euler", substep=h)
+    x0 = torch.tensor([[[1.0, 0.0], [0.3, -0.7], [-2.0, 0.5]]], dtype=torch.float64)  # [1, 3, 2]
+    t = 0.1 + torch.arange(steps + 1, dtype=torch.float64) * every * h
+    data = system.simulate(x0, t)
+    step = torch.tensor([[1 - h * h, h], [-h, 1.0]], dtype=torch.float64)
+    expected = torch.stack([x0[0] @ torch.linalg.matrix_power(step, every * k).T for k in range(steps + 1)])
+    assert data.x.shape == (1, steps + 1, 3, 2)
+    assert torch.allclose(data.x[0], expected, atol=1e-12, rtol=0)
+    energy = (data.x**2).sum(-1)  # the symplectic map keeps the energy within O(h) of its start: no drift
+    assert float((energy - energy[:, :1]).abs().max()) < 2 * h * float(energy[:, 0].max())
+
+
+def test_semi_implicit_euler_includes_effects_and_uses_the_declared_kinematic_rows():
+    h = 0.01
+    damped = EquationsSystem(OSCILLATOR, integrator="semi_implicit_euler", substep=h,
+                             effects=[LinearDamping(0.5, target="v")])
+    x0 = torch.tensor([[[1.0, 0.0]]], dtype=torch.float64)
+    t = torch.arange(11, dtype=torch.float64) * 0.1
+    step = torch.tensor([[1 - h * h, h * (1 - 0.5 * h)], [-h, 1 - 0.5 * h]], dtype=torch.float64)  # v' = -x - 0.5v
+    expected = torch.stack([x0[0, 0] @ torch.linalg.matrix_power(step, 10 * k).T for k in range(11)])
+    assert torch.allclose(damped.simulate(x0, t).x[0, :, 0], expected, atol=1e-12, rtol=0)
+    # nothing kinematic: both rows in the first half step, i.e. explicit Euler [[1, h], [-h, 1]]
+    explicit = EquationsSystem({**OSCILLATOR, "kinematic": []}, integrator="semi_implicit_euler", substep=h)
+    forward = torch.tensor([[1.0, h], [-h, 1.0]], dtype=torch.float64)
+    expected = torch.stack([x0[0, 0] @ torch.linalg.matrix_power(forward, 10 * k).T for k in range(11)])
+    assert torch.allclose(explicit.simulate(x0, t).x[0, :, 0], expected, atol=1e-12, rtol=0)
+
+
+def test_dopri5_stays_the_default_and_generate_uses_the_chosen_integrator():
+    spec = {**OSCILLATOR, "init": {"x": [1.0, 1.0], "v": [0.0, 0.0]}, "dt": 0.1, "horizon": 20}
+    default = EquationsSystem(spec)
+    assert default.integrator == "dopri5" and default.substep is None
+    exact = default.generate(1, seed=0)
+    assert torch.allclose(exact.x[0, :, 0, 0], torch.cos(exact.t), atol=1e-8)
+    euler = EquationsSystem({**spec, "integrator": "semi_implicit_euler", "substep": 0.05}).generate(1, seed=0)
+    error = float((euler.x[0, :, 0, 0] - torch.cos(euler.t)).abs().max())
+    assert 1e-3 < error < 0.1  # an O(h) artefact, not the exact solution
+    assert euler.meta["params"]["spec"]["integrator"] == "semi_implicit_euler"  # part of the cache key
+
+
+def test_integrator_keys_are_checked():
+    with pytest.raises(ConfigError, match="'rk45' is not an integrator.*Choose one of dopri5, semi_implicit_euler"):
+        EquationsSystem(OSCILLATOR, integrator="rk45")
+    with pytest.raises(ConfigError, match="needs its step: set substep"):
+        EquationsSystem(OSCILLATOR, integrator="semi_implicit_euler")
+    with pytest.raises(ConfigError, match="system.substep must be a positive number"):
+        EquationsSystem(OSCILLATOR, integrator="semi_implicit_euler", substep=-0.1)
+    with pytest.raises(ConfigError, match="dopri5 chooses its own steps"):
+        EquationsSystem(OSCILLATOR, substep=0.01)
+    with pytest.raises(ConfigError, match="system.dt = 0.05 is not a whole multiple of system.substep = 0.003"):
+        EquationsSystem({**OSCILLATOR, "dt": 0.05}, integrator="semi_implicit_euler", substep=0.003)
+    system = EquationsSystem(OSCILLATOR, integrator="semi_implicit_euler", substep=0.02)
+    with pytest.raises(ConfigError, match=r"\(system.dt or data.dt\) = 0.05 is not a whole multiple"):
+        system.generate(1, seed=0, dt=0.05, horizon=3)
+    from mpsim.effects import DelayedFeedback
+    with pytest.raises(ConfigError, match="cannot integrate a DelayedFeedback"):
+        EquationsSystem(OSCILLATOR, integrator="semi_implicit_euler", substep=0.01,
+                        effects=[DelayedFeedback(0.1, delay=0.5, target="v", source="x")])

@@ -18,17 +18,28 @@ Extra spec keys (each may also be given under `system.`, which wins):
     init: {theta: [-1.5, 1.5], omega: [-1, 1]}   # uniform initial ranges per state (default [-1, 1])
     dt: 0.1                   # default sampling step
     horizon: 50               # default steps per trajectory
+    integrator: dopri5        # dopri5 (adaptive, default) | semi_implicit_euler (fixed step, as physics engines)
+    substep: 0.005            # semi_implicit_euler's step h; dt must be a whole number of steps
+
+`integrator: semi_implicit_euler` steps as rigid-body engines do (symplectic Euler): every dynamic row first,
+v_{k+1} = v_k + h·f_v(t_k, x_k, v_k), then the kinematic rows (`kinematic`, by default those whose equation is
+another state) with the updated state, x_{k+1} = x_k + h·f_x(t_k, x_k, v_{k+1}); the state is logged every dt.
+Such data carry the scheme's O(h) error, which a model integrated otherwise does not share: the artefact
+`mpsim diagnose` must not read as physics.
 """
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import torch
 
-from mpsim.equations import SYSTEM_KEYS, EquationField, check_nodes, parse_spec
+from mpsim.data.trajectories import Trajectories, grid_step
+from mpsim.effects import min_delay
+from mpsim.equations import SYSTEM_KEYS, EquationField, check_nodes, did_you_mean, parse_spec
 from mpsim.errors import ConfigError
 from mpsim.graphs.batch import BatchedGraph, batch_graph
 from mpsim.graphs.topology import make_topology
@@ -36,6 +47,7 @@ from mpsim.models.equations import merge_spec
 from mpsim.systems.base import System
 
 SAFE_NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
+INTEGRATORS = ("dopri5", "semi_implicit_euler")
 
 
 class EquationsSystem(System):
@@ -43,9 +55,12 @@ class EquationsSystem(System):
 
     Args:
         spec: the spec as a mapping (`system.spec=<file>` is loaded by the command layer).
-        name, n_nodes, graph, graph_params, edges, directed, init, dt, horizon: as the spec's keys of the same
-            meaning (`n_nodes` is the spec's `nodes`); given here they win over the spec's.
+        name, n_nodes, graph, graph_params, edges, directed, init, dt, horizon, integrator, substep: as the spec's
+            keys of the same meaning (`n_nodes` is the spec's `nodes`); given here they win over the spec's.
         effects: extra terms added to the dynamics.
+
+    Raises:
+        ConfigError: a key the simulation cannot use (one message: what, where, the fix).
     """
 
     def __init__(
@@ -61,9 +76,12 @@ class EquationsSystem(System):
         dt: float | None = None,
         horizon: int | None = None,
         effects: Sequence[Any] = (),
+        integrator: str | None = None,
+        substep: float | None = None,
     ) -> None:
         over = {"name": name, "nodes": n_nodes, "graph": graph, "graph_params": graph_params, "edges": edges,
-                "directed": directed, "init": init, "dt": dt, "horizon": horizon}
+                "directed": directed, "init": init, "dt": dt, "horizon": horizon, "integrator": integrator,
+                "substep": substep}
         raw = merge_spec(spec, over, "system")
         self.spec = parse_spec(raw, "system.spec", extra_keys=SYSTEM_KEYS)
         self.state_names = self.spec.states  # per instance: the spec names them
@@ -83,9 +101,51 @@ class EquationsSystem(System):
             if not isinstance(raw["horizon"], int) or raw["horizon"] < 1:
                 raise ConfigError(f"system.horizon must be a positive integer; got {raw['horizon']!r}.")
             self.horizon = int(raw["horizon"])
+        self.integrator, self.substep = self._integrator(raw.get("integrator"), raw.get("substep"))
+        if self.integrator == "semi_implicit_euler":
+            if raw.get("dt") is not None:
+                self._steps_per_interval(torch.tensor([0.0, self.dt], dtype=torch.float64), "system.dt")
+            if min_delay(self.effects) > 0:
+                raise ConfigError("system.integrator=semi_implicit_euler cannot integrate a DelayedFeedback effect "
+                                  "(it needs the state history); use system.integrator=dopri5.")
         self.values = dict(self.spec.params)
         self.raw = self.spec.raw
         self._graphs: dict[tuple, BatchedGraph] = {}
+
+    @staticmethod
+    def _integrator(name: Any, substep: Any) -> tuple[str, float | None]:
+        name = "dopri5" if name is None else name
+        if name not in INTEGRATORS:
+            raise ConfigError(f"system.integrator={name!r} is not an integrator.{did_you_mean(str(name), INTEGRATORS)}"
+                              f" Choose one of {', '.join(INTEGRATORS)}.")
+        if name == "dopri5":
+            if substep is not None:
+                raise ConfigError(f"system.substep={substep!r} is the step of integrator=semi_implicit_euler; dopri5 "
+                                  "chooses its own steps. Remove substep, or set integrator: semi_implicit_euler.")
+            return name, None
+        if substep is None:
+            raise ConfigError("system.integrator=semi_implicit_euler needs its step: set substep: <h> (e.g. 0.005; "
+                              "the sampling step dt must be a whole number of steps h).")
+        ok = isinstance(substep, int | float) and not isinstance(substep, bool) and math.isfinite(substep)
+        if not ok or substep <= 0:
+            raise ConfigError(f"system.substep must be a positive number (the Euler step h); got {substep!r}.")
+        return name, float(substep)
+
+    def _steps_per_interval(
+        self,
+        t: torch.Tensor,  # [T] output times
+        where: str = "the sampling step (system.dt or data.dt)",
+    ) -> list[int]:
+        """Euler steps of size `substep` between consecutive output times (each interval a whole number of them)."""
+        intervals = (t[1:] - t[:-1]).double()
+        steps = torch.round(intervals / self.substep)
+        bad = (steps < 1) | ((intervals - steps * self.substep).abs() > 1e-9 * torch.clamp(intervals.abs(), min=1.0))
+        if bool(bad.any()):
+            step = float(intervals[bad][0])
+            raise ConfigError(f"{where} = {step:g} is not a whole multiple of system.substep = {self.substep:g} "
+                              "(integrator=semi_implicit_euler logs the state every k Euler steps). Set dt to k·substep, "
+                              f"e.g. dt={max(1, round(step / self.substep)) * self.substep:g}, or change substep.")
+        return [int(k) for k in steps.tolist()]
 
     def _graph(self, raw: Mapping[str, Any]) -> tuple[torch.Tensor, int]:
         edges, kind = raw.get("edges"), raw.get("graph")
@@ -157,7 +217,39 @@ class EquationsSystem(System):
         values = {k: v.to(x) for k, v in self.values.items()}
         return self.field(t, x, values, graph)
 
+    def _simulate(self, x0, t, rtol, atol, method) -> Trajectories:
+        if self.integrator == "dopri5":
+            return super()._simulate(x0, t, rtol, atol, method)
+        x = semi_implicit_euler(self.rhs, self._kinematic_mask(x0), x0, t, self.substep, self._steps_per_interval(t))
+        return Trajectories(t=t, x=x, edge_index=self.edge_index, meta=self.meta(grid_step(t)))
+
+    def _kinematic_mask(self, x: torch.Tensor) -> torch.Tensor:  # x: [B, N, D]
+        """[D] bool: True on the kinematic rows (updated second, from the new dynamic rows)."""
+        return torch.tensor([s in self.spec.kinematic for s in self.spec.states], device=x.device)
+
     def sample_initial_states(self, n: int, generator: torch.Generator) -> torch.Tensor:
         r = torch.rand(n, self.n_nodes, self.spec.state_dim, generator=generator, dtype=torch.float64)
         lo, hi = self.ranges[:, 0], self.ranges[:, 1]
         return lo + (hi - lo) * r
+
+
+def semi_implicit_euler(
+    rhs,
+    kinematic: torch.Tensor,  # [D] bool: rows updated second, with the new dynamic rows
+    x0: torch.Tensor,  # [B, N, D] initial states
+    t: torch.Tensor,  # [T] output times
+    h: float,
+    steps: list[int],  # Euler steps between consecutive output times (T − 1 entries)
+) -> torch.Tensor:
+    """[B, T, N, D] symplectic Euler: each step v ← v + h·f_v(t, x, v), then x ← x + h·f_x(t, x, v_new).
+
+    `rhs(t, x) -> [B, N, D]` is the full right-hand side; each half step keeps only its own rows of it.
+    """
+    x, out = x0, [x0]
+    for i, n_steps in enumerate(steps):  # a loop in time only; every step is vectorised over B, N and D
+        for k in range(n_steps):
+            tk = t[i] + k * h
+            x = torch.where(kinematic, x, x + h * rhs(tk, x))
+            x = torch.where(kinematic, x + h * rhs(tk, x), x)
+        out.append(x)
+    return torch.stack(out, dim=1).contiguous()
