@@ -122,7 +122,12 @@ def _guard(command: str, func: Callable[[Any], dict], cfg: Any) -> dict | None:
     if isinstance(result, dict) and result.get("status") == "diverged" and not multirun:
         print(_divergence_message(command, result), file=sys.stderr)
         sys.exit(3)
-    return None if not multirun else {k: v for k, v in (result or {}).items() if isinstance(v, str | int | float)}
+    if not multirun:
+        return None
+    objective = (result or {}).get("objective")
+    if isinstance(objective, dict) and "value" in objective:  # train: the number a sweeper (Optuna) minimises
+        return objective["value"]
+    return {k: v for k, v in (result or {}).items() if isinstance(v, str | int | float)}
 
 
 def _hydra_command(command: str) -> Callable[[], None]:

@@ -115,6 +115,8 @@ class TrainConf(CommonConf):
     mode: ModeConf = field(default_factory=ModeConf)
     resume: Any = False  # true: continue the latest matching run; or a run directory
     export: bool = True  # copy the best checkpoint to <paths.ckpt_dir>/<system name>.ckpt
+    objective: str = "best_val_error"  # summary entry returned to Hydra sweepers (Optuna minimises it)
+    logger: Any = None  # {name: _target_ node}: conf/logger (csv, tensorboard, mlflow, several at once)
 
 
 @dataclass
@@ -169,6 +171,7 @@ class BenchConf:
     bench: Any = MISSING
     paths: PathsConf = field(default_factory=PathsConf)
     threads: int | None = 1
+    device: str = "cpu"  # cpu | cuda | auto: passed to suites that take a device
 
 
 def register_schemas() -> None:

@@ -5,12 +5,14 @@ and exports the best checkpoint as <paths.ckpt_dir>/<system name>.ckpt."""
 from __future__ import annotations
 
 import logging
+import math
 import shutil
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from mpsim import __version__, plotting
 from mpsim.commands.common import (
@@ -28,14 +30,21 @@ from mpsim.commands.common import (
 )
 from mpsim.commands.console import duration, fmt, print_summary
 from mpsim.commands.eval import evaluate_checkpoint, evaluate_model, horizon_rows
+from mpsim.config import check_target_node
 from mpsim.errors import CheckpointError, ConfigError, OutputError
 from mpsim.files import atomic_write, child_path, keep_previous, safe_name, write_json
+from mpsim.training import distributed
 from mpsim.training.checkpoint import load_checkpoint
+from mpsim.training.distributed import DistContext
+from mpsim.training.loggers import Logger, LoggerGroup, flatten
 from mpsim.training.metrics import epochs_x_min_error
 
 log = logging.getLogger(__name__)
 
 MODES = ("scratch", "finetune", "zeroshot")
+# summary.json entries that `objective=` may name (a dotted path goes inside a mapping: test.rmse, final.val_error)
+OBJECTIVES = ("best_val_error", "min_test_error", "epochs_x_min_error", "initial_test_error", "final", "test",
+              "min_test_error_epoch", "best_epoch", "epochs_run", "wall_time", "command_time")
 
 
 def resolve_mode(name: str, init: str | None) -> str:
@@ -50,19 +59,36 @@ def resolve_mode(name: str, init: str | None) -> str:
 
 
 def run_train(cfg: DictConfig, output_dir: str | Path | None = None, overrides: list[str] | None = None) -> dict:
-    """Run one training job; returns the summary (also written to summary.json)."""
+    """Run one training job; returns the summary (also written to summary.json), whose ``objective`` entry
+    holds the value named by `objective=` (what a Hydra sweeper such as Optuna minimises).
+
+    Under `torchrun` every process runs this; they train one model data-parallel (`mpsim.training.distributed`),
+    and rank 0 alone evaluates the result and writes files."""
     rt = setup_runtime(cfg, output_dir, overrides)
+    _check_objective(cfg.get("objective"))
+    ctx = distributed.setup(rt.device)
+    try:
+        return _run(cfg, replace(rt, device=ctx.device), ctx)
+    finally:
+        distributed.teardown(ctx)
+
+
+def _run(cfg: DictConfig, rt: Runtime, ctx: DistContext) -> dict:
     mode = resolve_mode(cfg.mode.name, cfg.init)
     if mode == "zeroshot":
-        return evaluate_checkpoint(cfg, rt, task="train")
+        return evaluate_checkpoint(cfg, rt, task="train") if ctx.is_main else {"task": "train", "rank": ctx.rank}
     t0 = time.perf_counter()
     last = _resume_checkpoint(cfg, rt)
     ckpt = load_init(cfg, rt) if last is None else None
     system = None if cfg.data.path and cfg.data.graph != "system" else build_system(cfg)
+    if not ctx.is_main:  # rank 0 simulates (and caches) the data first; the other ranks then read the cache
+        ctx.barrier()
     if last is None:
         model, model_cfg, splits = model_and_data(cfg, rt, system, ckpt, bool(cfg.mode.refit_normalisation))
     else:  # the interrupted run's own model (config, weights, normalisation)
         model, model_cfg, splits = model_and_data(cfg, rt, system, last, refit=False)
+    if ctx.is_main:
+        ctx.barrier()
     init_path = last.get("init") if last is not None else (None if ckpt is None else ckpt["path"])
     if cfg.data.noise_std > 0:
         splits = noisy_train(splits, model.state_std.detach().cpu().double(), cfg.data.noise_std, cfg.data.seed)
@@ -77,8 +103,13 @@ def run_train(cfg: DictConfig, output_dir: str | Path | None = None, overrides: 
     )
     check_training_memory(cfg, rt, model, model_cfg, train)
     trainer = build(cfg.trainer, "trainer")
+    loggers = build_loggers(cfg) if ctx.is_main else LoggerGroup()
+    loggers.start(rt.output_dir, flatten(OmegaConf.to_container(cfg, resolve=True)),
+                  [] if last is None else last["trainer"]["history"])
     trainer.fit(model, train, val, test, run_dir=rt.output_dir, seed=cfg.seed, checkpoint_base=base,
-                resume_state=None if last is None else last["trainer"])
+                resume_state=None if last is None else last["trainer"], on_epoch=loggers.log_epoch, dist=ctx)
+    if not ctx.is_main:  # rank 0 evaluates the trained model and writes the run's files
+        return {"task": "train", "rank": ctx.rank, "status": trainer.status_, "best_val_error": trainer.best_val_}
     history = trainer.history_
     plotting.learning_curves(history, rt.output_dir / "plots" / "learning_curves.png",
                              title=f"{train.system_name}: {mode}")
@@ -119,13 +150,55 @@ def run_train(cfg: DictConfig, output_dir: str | Path | None = None, overrides: 
         "exported": None if exported is None else str(exported),
         "export_replaced": None if previous is None else str(previous),
         "export_error": None if export_error is None else str(export_error),
+        "distributed": {"world_size": ctx.world_size, "backend": ctx.backend},
     }
+    summary["objective"] = {"name": cfg.objective, "value": objective_value(summary, cfg.objective)}
     write_json(rt.output_dir / "summary.json", summary)
+    loggers.finish(summary)
     _print(summary, train, model.report_lines())
     if export_error is not None:
         raise OutputError(f"{export_error} The run itself is complete: its model is {best_path} and its summary "
                           f"{rt.output_dir / 'summary.json'}.")
     return summary
+
+
+def build_loggers(cfg: DictConfig) -> LoggerGroup:
+    """The loggers of the `logger` group (one `_target_` node per key; null or empty: none)."""
+    loggers = []
+    for name, node in (cfg.get("logger") or {}).items():
+        if node is None:
+            continue
+        check_target_node(OmegaConf.to_container(node, resolve=True), f"logger.{name}")
+        logger = build(node, f"logger.{name}")
+        if not isinstance(logger, Logger):
+            raise ConfigError(f"logger.{name}._target_={node.get('_target_')} is not an mpsim.training.loggers.Logger.")
+        loggers.append(logger)
+    return LoggerGroup(loggers)
+
+
+def _check_objective(name: str | None) -> None:
+    if not name or name.split(".")[0] not in OBJECTIVES:
+        raise ConfigError(f"objective={name!r} is not a result of mpsim train; choose one of {', '.join(OBJECTIVES)} "
+                          "(a dotted name reads inside final/test, e.g. objective=test.rmse).")
+
+
+def objective_value(summary: dict[str, Any], name: str) -> float:
+    """The summary entry `name` (dotted: inside mappings) as a float; NaN when it is missing a value.
+
+    Raises:
+        ConfigError: `name` names no number in the summary.
+    """
+    value: Any = summary
+    for part in name.split("."):
+        if not isinstance(value, dict) or part not in value:
+            numbers = sorted(k for k, v in flatten(summary).items() if isinstance(v, int | float) and not isinstance(v, bool))
+            raise ConfigError(f"objective={name!r} is not in this run's summary; numbers it has: {', '.join(numbers)}.")
+        value = value[part]
+    if value is None:
+        return math.nan
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ConfigError(f"objective={name!r} is {value!r}, not a number.")
+    return float(value)
 
 
 def _resume_checkpoint(cfg: DictConfig, rt: Runtime) -> dict | None:

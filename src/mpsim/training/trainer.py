@@ -9,8 +9,6 @@ atomic `last.ckpt` that holds everything needed to continue exactly (`resume`).
 from __future__ import annotations
 
 import copy
-import csv
-import io
 import logging
 import math
 import time
@@ -23,9 +21,10 @@ from tqdm.auto import tqdm
 
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError, DivergenceError
-from mpsim.files import atomic_write
 from mpsim.models.base import Model
 from mpsim.training.checkpoint import save_checkpoint
+from mpsim.training.distributed import SINGLE, DistContext
+from mpsim.training.loggers import CSVLogger
 from mpsim.training.metrics import LOSSES, rollout_metrics
 
 log = logging.getLogger(__name__)
@@ -64,9 +63,16 @@ def predict(
     return torch.cat(preds), merged
 
 
-def rollout_error(model: Model, data: Trajectories, batch_size: int = 512) -> float:
-    """Normalised rollout RMSE of `model` on `data` over steps 1..T−1 (NaN if every trajectory diverged)."""
-    pred, _ = predict(model, data, batch_size)
+def rollout_error(model: Model, data: Trajectories, batch_size: int = 512, dist: DistContext = SINGLE) -> float:
+    """Normalised rollout RMSE of `model` on `data` over steps 1..T−1 (NaN if every trajectory diverged).
+
+    Under several processes (`dist`) each rolls out its part of the trajectories and the parts are gathered.
+    """
+    if dist.enabled:
+        pred, _ = predict(model, data.subset(dist.local_slice(len(data))), batch_size)
+        pred = dist.gather(pred, len(data))
+    else:
+        pred, _ = predict(model, data, batch_size)
     std = model.state_std.cpu().to(pred.dtype)
     periods = data.meta.get("periods")
     return rollout_metrics(pred, data.x.to(pred.dtype), std, data.t, periods=periods, first=model.context_steps)["rmse"]
@@ -144,6 +150,7 @@ class Trainer:
         checkpoint_base: dict[str, Any] | None = None,
         resume_state: dict[str, Any] | None = None,
         on_epoch: Callable[[dict[str, Any]], None] | None = None,
+        dist: DistContext = SINGLE,
     ) -> Trainer:
         """Train `model` in place; afterwards it holds the weights of the best validation epoch.
 
@@ -154,7 +161,10 @@ class Trainer:
             seed: seed of the batch shuffling.
             checkpoint_base: static checkpoint content (model config, system metadata, normalisation).
             resume_state: the ``trainer`` entry of a `last.ckpt` to continue from.
-            on_epoch: called with each epoch's metrics row.
+            on_epoch: called with each epoch's metrics row (default: write it to `metrics.csv` in `run_dir`;
+                the command layer passes its loggers here).
+            dist: this process's place in a data-parallel job (`mpsim.training.distributed`): each global
+                batch is split over the processes, gradients are all-reduced, and only rank 0 writes files.
 
         Sets:
             history_ (list of metric rows), best_epoch_, best_val_, status_ (complete, early_stopped,
@@ -162,8 +172,9 @@ class Trainer:
         """
         run_dir = Path(run_dir)
         self._ckpt_dir = run_dir / "checkpoints"
-        self._metrics_path = run_dir / "metrics.csv"
         self._base = dict(checkpoint_base or {})
+        self._dist = dist
+        self._loss_step = dist.wrap(model)
         device, dtype = model.state_mean.device, model.state_mean.dtype
         train_d = train.to(device, dtype)
         loss_fn = LOSSES[self.loss]
@@ -192,7 +203,11 @@ class Trainer:
                 f"resuming after epoch {resume_state['epoch']} (best val {self.best_val_:.4g} at epoch "
                 f"{self.best_epoch_})"
             )
-        else:  # epoch 0: the starting point (untrained, or the checkpoint being finetuned)
+        if on_epoch is None and dist.is_main:
+            csv_log = CSVLogger()
+            csv_log.start(run_dir, {}, self.history_)
+            on_epoch = csv_log.log_epoch
+        if resume_state is None:  # epoch 0: the starting point (untrained, or the checkpoint being finetuned)
             row = self._evaluate_row(model, val, test, 0, math.nan, opt, math.nan, 0.0, 0.0)
             self.best_val_ = row["val_error"] if row["val_error"] == row["val_error"] else math.inf
             self._record(row, on_epoch)
@@ -203,7 +218,7 @@ class Trainer:
             range(start_epoch, self.max_epochs + 1),
             initial=start_epoch - 1,
             total=self.max_epochs,
-            disable=not self.progress,
+            disable=not self.progress or not dist.is_main,
             desc="train",
             unit="epoch",
             dynamic_ncols=True,
@@ -255,17 +270,21 @@ class Trainer:
             steps = [steps[i] for i in torch.randperm(len(steps), generator=shuffle).tolist()]
         total, norms, count = 0.0, [], 0
         for k, (first, wstart) in enumerate(steps):
-            idx = order[first : first + self.batch_size]
+            # under several processes each takes its part of the global batch (`DistContext.shard`)
+            idx, weight = self._dist.shard(order[first : first + self.batch_size])
             batch = data.subset(idx.to(data.x.device))
             bt = t
             if wstart is not None:
                 batch = batch.time_slice(wstart, wstart + self.window + 1)
                 bt = t[wstart : wstart + self.window + 1]
-            loss, pred = model.training_loss(batch, bt, loss_fn, self.huber_delta)
-            if not torch.isfinite(loss):
+            loss, pred = self._loss_step(batch, bt, loss_fn, self.huber_delta)
+            n_local = len(idx) if weight > 0 else 0
+            # one sum over the ranks: the batch loss, and a NaN/inf on any rank stops every rank together
+            loss_sum, n_sum = self._dist.all_sum([float(loss.detach()) * n_local if n_local else 0.0, n_local])
+            if not math.isfinite(loss_sum):
                 raise DivergenceError(_divergence_message(pred, bt, epoch, k, idx))
             opt.zero_grad(set_to_none=True)
-            loss.backward()
+            (loss if weight == 1.0 else loss * weight).backward()
             clip = self.clip_norm if self.clip_norm and self.clip_norm > 0 else math.inf
             gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), clip)
             if not torch.isfinite(gnorm):
@@ -275,8 +294,8 @@ class Trainer:
                 )
             opt.step()
             model.after_step()
-            total += float(loss.detach()) * len(idx)
-            count += len(idx)
+            total += loss_sum
+            count += int(n_sum)
             norms.append(float(gnorm))
         return total / max(count, 1), sum(norms) / max(len(norms), 1)
 
@@ -285,8 +304,8 @@ class Trainer:
         if self.eval_window:
             val = val.time_slice(0, self.eval_window + 1)
             test = None if test is None else test.time_slice(0, self.eval_window + 1)
-        val_err = rollout_error(model, val, self.eval_batch_size)
-        test_err = rollout_error(model, test, self.eval_batch_size) if test is not None else math.nan
+        val_err = rollout_error(model, val, self.eval_batch_size, self._dist)
+        test_err = rollout_error(model, test, self.eval_batch_size, self._dist) if test is not None else math.nan
         return {
             "epoch": epoch,
             "train_loss": train_loss,
@@ -301,11 +320,6 @@ class Trainer:
     # ---- records -------------------------------------------------------------------------------------
     def _record(self, row: dict[str, Any], on_epoch) -> None:
         self.history_.append(row)
-        buf = io.StringIO()
-        writer = csv.DictWriter(buf, fieldnames=METRIC_COLUMNS)
-        writer.writeheader()
-        writer.writerows(self.history_)
-        atomic_write(self._metrics_path, lambda f: f.write(buf.getvalue()), mode="w")
         if on_epoch is not None:
             on_epoch(row)
 
@@ -322,10 +336,14 @@ class Trainer:
         }
 
     def _save_best(self, model: Model) -> None:
+        if not self._dist.is_main:
+            return
         metrics = {"epoch": self.best_epoch_, "val_error": self.best_val_}
         save_checkpoint(self._ckpt_dir / "best.ckpt", self._payload(model, metrics=metrics))
 
     def _save_last(self, model, opt, sched, shuffle, epoch, since_best) -> None:
+        if not self._dist.is_main:
+            return
         state = {
             "epoch": epoch,
             "model_state": model.state_dict(),

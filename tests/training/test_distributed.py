@@ -1,0 +1,122 @@
+"""Data-parallel training (DDP under torchrun): sharding arithmetic, rank-0-only files, and a 2-process CPU
+(gloo) run that follows the 1-process loss curve, interrupted and resumed on the way."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pandas as pd
+import pytest
+import torch
+
+from mpsim.__main__ import worker_args
+from mpsim.commands.train import run_train
+from mpsim.training.distributed import DistContext
+
+# float64 and fixed-step rk4: the 2-process run then differs from one process only by the summation order of
+# the gradient all-reduce (measured: ~1e-15 relative); 5 trajectories per batch of 12 gives uneven shards
+# (3 + 2, and 1 + 1 for the last batch) and 5 validation trajectories uneven evaluation shards
+TINY_DDP = ["trainer=quick", "trainer.progress=false", "trainer.max_epochs=8", "trainer.batch_size=5",
+            "data.n_train=12", "data.n_val=5", "data.n_test=4", "data.horizon=10", "solver=rk4", "dtype=float64",
+            "export=false", "eval.plots=false", "eval.horizons=[1,5,10]"]
+RTOL = 1e-6  # the stated tolerance of 2-process vs 1-process curves (float64)
+
+
+def test_shards_cover_the_batch_and_weights_restore_its_mean():
+    idx = torch.arange(10, 17)  # 7 items over 3 ranks: 3 + 2 + 2
+    parts = [DistContext(rank=r, world_size=3).shard(idx) for r in range(3)]
+    assert torch.equal(torch.cat([p for p, _ in parts]), idx)
+    # DDP averages the ranks' gradients: sum_r w_r * mean_r / P must be the mean over the whole batch
+    values = torch.rand(7, dtype=torch.float64)
+    means = [values[p - 10].mean() * w for p, w in parts]
+    assert torch.isclose(sum(means) / 3, values.mean())
+    # a batch smaller than the world: the idle rank runs one item with weight 0
+    part, weight = DistContext(rank=2, world_size=3).shard(idx[:2])
+    assert len(part) == 1 and weight == 0.0
+    assert DistContext().shard(idx) == (idx, 1.0)
+
+
+def test_non_zero_ranks_get_no_run_directory(monkeypatch):
+    args = ["train", "system=lorenz3"]
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", "0")
+    assert worker_args(args) == args
+    monkeypatch.setenv("RANK", "1")
+    out = worker_args(args)
+    assert out[:2] == args and {"hydra.output_subdir=null", "hydra/job_logging=none", "hydra.run.dir=."} <= set(out)
+    resumed = worker_args([*args, "resume=true"])  # the ranks read the resumed run's last.ckpt
+    assert "hydra.run.dir=." not in resumed and "hydra.output_subdir=null" in resumed
+
+
+def _torchrun(args: list[str]) -> list[str]:
+    return [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "mpsim",
+            "train", *args]
+
+
+ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+
+
+def _check_follows(ws, reference, one: dict, epochs: int) -> None:
+    """`ws` holds exactly one 2-process run, and its curve is the 1-process run's (`reference`)."""
+    (run,) = (ws / "outputs" / "train").glob("*/*")  # rank 1 made no run directory of its own
+    assert sorted(p.name for p in ws.iterdir()) == ["outputs"]  # nor any file where it started
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["distributed"] == {"world_size": 2, "backend": "gloo"}
+    cols = ["epoch", "train_loss", "val_error", "test_error", "lr"]
+    a = pd.read_csv(reference / "metrics.csv")[cols]
+    b = pd.read_csv(run / "metrics.csv")[cols]
+    assert len(a) == len(b) == epochs + 1
+    pd.testing.assert_frame_equal(a, b, check_exact=False, rtol=RTOL)
+    assert summary["best_val_error"] == pytest.approx(one["best_val_error"], rel=RTOL)
+    assert summary["test"]["rmse"] == pytest.approx(one["test"]["rmse"], rel=RTOL)
+
+
+def test_two_processes_follow_the_one_process_loss_curve(cfg_factory, tmp_path):
+    args = [*TINY_DDP, "trainer.max_epochs=4"]
+    one = run_train(cfg_factory("train", *args), output_dir=tmp_path / "one")
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    proc = subprocess.run(_torchrun([*args, f"paths.cache_dir={tmp_path}/cache"]), cwd=ws, env=ENV,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    _check_follows(ws, tmp_path / "one", one, 4)
+
+
+@pytest.mark.slow
+@pytest.mark.scaling
+def test_two_processes_resume_after_an_interrupt(cfg_factory, tmp_path):
+    one = run_train(cfg_factory("train", *TINY_DDP), output_dir=tmp_path / "one")
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    args = [*TINY_DDP, f"paths.cache_dir={tmp_path}/cache"]
+    proc = subprocess.Popen(_torchrun(args), cwd=ws, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, start_new_session=True)
+    deadline = time.time() + 120
+    while time.time() < deadline and proc.poll() is None:
+        metrics = list((ws / "outputs").rglob("metrics.csv"))
+        if metrics and len(metrics[0].read_text().splitlines()) >= 4:  # header + epochs 0..2
+            break
+        time.sleep(0.02)
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGTERM)  # torchrun and both ranks, mid-run
+    out, _ = proc.communicate(timeout=60)
+    if proc.returncode == 0:
+        pytest.skip("the 2-process run finished before it could be interrupted")
+    assert list((ws / "outputs").rglob("last.ckpt")), out
+    resumed = subprocess.run(_torchrun([*args, "resume=true"]), cwd=ws, env=ENV, capture_output=True, text=True,
+                             timeout=300)
+    assert resumed.returncode == 0, resumed.stdout + resumed.stderr
+    _check_follows(ws, tmp_path / "one", one, 8)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_training_on_a_gpu_matches_the_cpu(cfg_factory, tmp_path):
+    cpu = run_train(cfg_factory("train", *TINY_DDP, "device=cpu"), output_dir=tmp_path / "cpu")
+    gpu = run_train(cfg_factory("train", *TINY_DDP, "device=cuda"), output_dir=tmp_path / "gpu")
+    assert gpu["best_val_error"] == pytest.approx(cpu["best_val_error"], rel=1e-6)
