@@ -82,7 +82,7 @@ def test_lorenz3_then_finetune_zeroshot_eval_simulate(lorenz_ws):
 
 def test_trained_file_data_round_trip(lorenz_ws, tmp_path):
     # simulate → CSV → train on the file as measured data
-    run_cli(["simulate", "system=pendulum2", "format=csv", "n=9", "data.horizon=8"], tmp_path, check=True)
+    run_cli(["simulate", "system=pendulum2", "format=csv", "n=9", "data.horizon=10"], tmp_path, check=True)
     (sim,) = _runs(tmp_path, "simulate")
     run_cli(["train", f"data.path={sim / 'trajectories.csv'}", *TINY_TRAIN], tmp_path, check=True)
     summary = json.loads((_runs(tmp_path)[-1] / "summary.json").read_text())
