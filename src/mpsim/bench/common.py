@@ -29,12 +29,20 @@ def timeit(fn: Callable[[], Any], repeats: int = 5, warmup: int = 1, max_seconds
     times: list[float] = []
     start = time.perf_counter()
     for _ in range(repeats):
+        cuda_sync()
         t0 = time.perf_counter()
         fn()
+        cuda_sync()
         times.append(time.perf_counter() - t0)
         if time.perf_counter() - start > max_seconds:
             break
     return {"median_s": statistics.median(times), "min_s": min(times), "runs": len(times)}
+
+
+def cuda_sync() -> None:
+    """Wait for queued CUDA work (kernels run asynchronously: a timing must not stop before they finish)."""
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        torch.cuda.synchronize()
 
 
 def _rss_kib(field: str) -> int | None:

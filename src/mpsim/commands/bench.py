@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import inspect
 import logging
 import platform
 from pathlib import Path
 
 import pandas as pd
 import torch
+from hydra.utils import get_class
 from omegaconf import DictConfig
 
 from mpsim.bench.common import Suite
@@ -25,7 +27,7 @@ def run_bench(cfg: DictConfig, output_dir: str | Path | None = None, overrides: 
     _, out_dir = locate(output_dir)
     if cfg.threads:
         torch.set_num_threads(int(cfg.threads))
-    suite = build(cfg.bench, "bench")
+    suite = build(cfg.bench, "bench", **_device_arg(cfg))
     if not isinstance(suite, Suite):
         raise ConfigError(f"bench._target_={cfg.bench.get('_target_')} is not an mpsim.bench Suite.")
     machine = f"{platform.machine()}, {torch.get_num_threads()} torch thread(s), torch {torch.__version__}"
@@ -41,3 +43,18 @@ def run_bench(cfg: DictConfig, output_dir: str | Path | None = None, overrides: 
                                           "plots": plots, "machine": machine})
     print(text)
     return {"n_rows": len(rows), "bench": str(out_dir / "bench.md")}
+
+
+def _device_arg(cfg: DictConfig) -> dict[str, str]:
+    """`device=` for a suite that takes one; a CPU-only suite refuses any other device."""
+    device = str(cfg.get("device") or "cpu")
+    target = cfg.bench.get("_target_")
+    try:
+        params = inspect.signature(get_class(target)).parameters
+    except Exception:  # noqa: BLE001 - an unimportable target is reported by `build`
+        return {}
+    if "device" in params:
+        return {"device": device}
+    if device != "cpu":
+        raise ConfigError(f"bench={target} runs on the CPU only; drop device={device} (suites with a device: bench=ddp).")
+    return {}

@@ -125,7 +125,7 @@ class DistContext:
         if not self.enabled:
             return model.training_loss
         return torch.nn.parallel.DistributedDataParallel(
-            _TrainingLoss(model), device_ids=None, broadcast_buffers=True, static_graph=True
+            _TrainingLoss(model), device_ids=None, static_graph=True
         )
 
 
