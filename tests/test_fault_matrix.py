@@ -449,3 +449,13 @@ def test_help_and_config_errors_do_not_import_torch(tmp_path):
 
 def test_the_matrix_is_large_enough():
     assert len(CASES) >= 45
+
+
+def test_resume_uses_the_runs_own_overrides_and_keeps_its_record(ws, tmp_path, capsys, monkeypatch):
+    run_dir = tmp_path / "run"
+    shutil.copytree(lorenz_run(ws), run_dir)
+    record = {p.name: p.read_bytes() for p in (run_dir / ".hydra").iterdir()}
+    res = run(["train", f"resume={run_dir}"], tmp_path, capsys, monkeypatch)
+    assert res.code == 0, res.err
+    assert "mpsim train: lorenz3" in res.out  # the run's own system=lorenz3, not the default pendulum2
+    assert {p.name: p.read_bytes() for p in (run_dir / ".hydra").iterdir()} == record

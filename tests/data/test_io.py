@@ -122,3 +122,51 @@ def test_unknown_extension(tmp_path):
 def test_container_checks_time_grid():
     with pytest.raises(DataError, match="strictly increasing"):
         Trajectories(t=torch.tensor([0.0, 1.0, 1.0]), x=torch.zeros(1, 3, 1, 1), edge_index=torch.zeros(2, 0).long())
+
+
+def test_empty_traj_cell_is_named(tmp_path):
+    rows = _grid()
+    rows[3][0] = None
+    with pytest.raises(DataError, match=r"m.csv: row 5, column 'traj' is empty \(1 such rows\)"):
+        load_trajectories(_write(tmp_path, rows))
+
+
+@pytest.mark.parametrize("text, match", [("{oops", r"m.json: the metadata file beside the CSV is not valid JSON"),
+                                         ('["a"]', r"m.json must be a JSON object .* got a JSON list"),
+                                         ('{"dt": "fast"}', r"m.json: key 'dt' must be a number"),
+                                         ('{"control_columns": [1]}', r"key 'control_columns' must be a list of strings")])
+def test_bad_sidecar_json_is_named(tmp_path, text, match):
+    path = _write(tmp_path, _grid())
+    (tmp_path / "m.json").write_text(text)
+    with pytest.raises(DataError, match=match):
+        load_trajectories(path)
+
+
+def _npz(tmp_path, **arrays):
+    base = {"t": np.arange(3.0), "x": np.zeros((2, 3, 2, 1)), "edge_index": np.array([[0, 1], [1, 0]])}
+    np.savez(tmp_path / "a.npz", **{**base, **arrays})
+    return tmp_path / "a.npz"
+
+
+def test_npz_values_are_never_cast_silently(tmp_path):
+    with pytest.raises(DataError, match="array 'meta' must be a JSON object"):
+        load_trajectories(_npz(tmp_path, meta=np.array("[1]")))
+    with pytest.raises(DataError, match=r"node id 0.5 at \[1, 1\]"):
+        load_trajectories(_npz(tmp_path, edge_index=np.array([[0.0, 1.0], [1.0, 0.5]])))
+    assert load_trajectories(_npz(tmp_path, edge_index=np.array([[0.0, 1.0], [1.0, 0.0]]))).edge_index.tolist() == [
+        [0, 1], [1, 0]]
+    with pytest.raises(DataError, match="array 'x' is complex"):
+        load_trajectories(_npz(tmp_path, x=np.zeros((2, 3, 2, 1), dtype=complex)))
+    with pytest.raises(DataError, match=r"zero nodes \(N\)"):
+        load_trajectories(_npz(tmp_path, x=np.zeros((2, 3, 0, 1)), edge_index=np.zeros((2, 0), dtype=int)))
+
+
+def test_values_beyond_the_model_precision_are_reported_as_overflow(tmp_path):
+    from mpsim.data.io import check_representable
+
+    data = load_trajectories(_npz(tmp_path, x=np.full((2, 3, 2, 1), 1e300)))
+    with pytest.raises(DataError, match=r"x\[0, 0, 0, 0\] = 1e\+300: values this large overflow float32"):
+        check_representable(data, "float32", "a.npz")
+    with pytest.raises(DataError, match="overflow float64 when squared"):
+        check_representable(data, "float64", "a.npz")
+    check_representable(load_trajectories(_npz(tmp_path, x=np.full((2, 3, 2, 1), 1e30))), "float32", "a.npz")

@@ -51,3 +51,55 @@ def test_pickled_objects_are_not_loaded(tmp_path):
     torch.save({"format": "mpsim-checkpoint", "version": 1, "evil": object()}, tmp_path / "x.ckpt")
     with pytest.raises(CheckpointError):
         load_checkpoint(tmp_path / "x.ckpt")
+
+
+def test_checksum_detects_altered_content(tmp_path):
+    path = save_checkpoint(tmp_path / "a.ckpt", _payload(MPNODE(2)))
+    data = torch.load(path, weights_only=True)
+    assert len(data["checksum"]) == 64
+    first = next(iter(data["model"]["state_dict"]))
+    data["model"]["state_dict"][first].view(-1)[0] += 1.0  # one weight changed, the stored checksum kept
+    torch.save(data, path)
+    with pytest.raises(CheckpointError, match="does not match the checksum"):
+        load_checkpoint(path)
+
+
+def test_non_finite_weights_are_refused(tmp_path):
+    payload = _payload(MPNODE(2))
+    first = next(iter(payload["model"]["state_dict"]))
+    payload["model"]["state_dict"][first].view(-1)[0] = float("inf")
+    path = save_checkpoint(tmp_path / "a.ckpt", payload)
+    with pytest.raises(CheckpointError, match=rf"state_dict\['{first}'\] holds NaN/inf \(1 of"):
+        load_checkpoint(path)
+
+
+def test_incomplete_checkpoints_name_the_missing_key(tmp_path):
+    payload = _payload(MPNODE(2))
+    del payload["model"]["state_dim"]
+    path = save_checkpoint(tmp_path / "a.ckpt", payload)
+    with pytest.raises(CheckpointError, match="lacks 'model.state_dim'"):
+        load_checkpoint(path)
+    (tmp_path / "empty.ckpt").write_bytes(b"")
+    with pytest.raises(CheckpointError, match=r"is empty \(0 bytes\)"):
+        load_checkpoint(tmp_path / "empty.ckpt")
+
+
+def test_targets_outside_mpsim_need_the_users_own_config(tmp_path):
+    payload = _payload(MPNODE(2))
+    payload["model"]["config"]["effects"] = [{"_target_": "collections.OrderedDict"}]
+    path = save_checkpoint(tmp_path / "a.ckpt", payload)
+    with pytest.raises(CheckpointError, match=r"model.effects\[0\]._target_='collections.OrderedDict' is not an mpsim"):
+        load_checkpoint(path)
+    assert load_checkpoint(path, allowed_targets={"collections.OrderedDict"})["model"]["config"]["effects"]
+
+
+@pytest.mark.parametrize("target, ok", [("mpsim.models.MPNODE", True), ("mpsim.effects.LinearDamping", True),
+                                        ("mpsim.files.atomic_write", False), ("mpsim.training.checkpoint.torch", False),
+                                        ("mpsim..x", False), ("pathlib.Path", False), ("builtins.eval", False)])
+def test_only_mpsim_classes_are_allowed(target, ok):
+    from mpsim.training.checkpoint import check_config_targets, is_mpsim_class
+
+    assert is_mpsim_class(target) is ok
+    if not ok:
+        with pytest.raises(CheckpointError, match="is not an mpsim class"):
+            check_config_targets({"_target_": "mpsim.models.MPNODE", "effects": [{"_target_": target}]}, "x")
