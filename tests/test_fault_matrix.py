@@ -440,10 +440,12 @@ def test_help_and_config_errors_do_not_import_torch(tmp_path):
         "assert 'torch' not in sys.modules, 'help imported torch'\n"
         "try:\n    main(['train', 'trainer.lrr=1'])\nexcept SystemExit as e:\n    assert e.code == 2\n"
         "assert 'torch' not in sys.modules, 'a config error imported torch'\n"
+        "main(['train', '--cfg', 'job'])\n"
+        "assert 'torch' not in sys.modules, '--cfg job imported torch'\n"
     )
     proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
-    assert "Did you mean trainer.lr?" in proc.stderr and "usage: mpsim" in proc.stdout
+    assert "Did you mean trainer.lr?" in proc.stderr and "usage: mpsim" in proc.stdout and "_target_" in proc.stdout
     assert not list(tmp_path.iterdir())  # no run directory for a config error
 
 

@@ -133,15 +133,17 @@ def _guard(command: str, func: Callable[[Any], dict], cfg: Any) -> dict | None:
 def _hydra_command(command: str) -> Callable[[], None]:
     """The `@hydra.main` wrapper of `mpsim <command>` around `mpsim.commands.<command>.run_<command>`."""
 
-    def wrapper() -> None:
+    def task(cfg: Any) -> Any:
         import importlib
 
+        # imported here, so that `mpsim <command> --help` and `--cfg job` answer without importing torch
+        func = getattr(importlib.import_module(f"mpsim.commands.{command}"), f"run_{command}")
+        return _guard(command, func, cfg)
+
+    def wrapper() -> None:
         import hydra
 
-        func = getattr(importlib.import_module(f"mpsim.commands.{command}"), f"run_{command}")
-        hydra.main(version_base="1.3", config_path="conf", config_name=command)(
-            lambda cfg: _guard(command, func, cfg)
-        )()
+        hydra.main(version_base="1.3", config_path="conf", config_name=command)(task)()
 
     return wrapper
 
