@@ -26,7 +26,7 @@ def test_one_gpu_process_runs_the_step():
 
 @pytest.mark.slow
 def test_two_processes_do_the_work_of_one():
-    bench = DDPBench(cases=["mpnode"], processes=[1, 2], mpnode_batch=6, mpnode_steps=5, steps=2, warmup=1)
+    bench = DDPBench(cases=["mpnode"], processes=[1, 2], mpnode_batch=6, mpnode_steps=5, steps=2, repeats=2, warmup=1)
     one, two = bench.run()
     assert (one["processes"], one["backend"], two["processes"], two["backend"]) == (1, "none", 2, "gloo")
     assert two["final_loss"] == pytest.approx(one["final_loss"], rel=1e-4)  # float32, summation order only

@@ -20,6 +20,7 @@ speedup says so.
 from __future__ import annotations
 
 import math
+import statistics
 import tempfile
 import time
 from collections.abc import Sequence
@@ -44,7 +45,9 @@ class DDPBench(Suite):
     nbody_graph: N-body graph (``knn`` or ``hierarchical``).
     mpnode_batch: Lorenz10 trajectories per global batch.
     mpnode_steps: rollout steps per trajectory.
-    steps: timed optimiser steps per case.
+    steps: optimiser steps per timed window.
+    repeats: timed windows per case; ``step_s`` is the fastest window's time per step (the machine is shared:
+        the slower windows measure the neighbours' load as much as the code), ``median_step_s`` the median.
     warmup: untimed steps first.
     threads: torch threads per process.
     device: ``cpu``, ``cuda`` (one GPU per process) or ``auto``.
@@ -62,6 +65,7 @@ class DDPBench(Suite):
         mpnode_batch: int = 32,
         mpnode_steps: int = 50,
         steps: int = 5,
+        repeats: int = 3,
         warmup: int = 1,
         threads: int = 1,
         device: str = "cpu",
@@ -69,12 +73,13 @@ class DDPBench(Suite):
         unknown = [c for c in cases if c not in CASES]
         if unknown or not cases:
             raise ConfigError(f"bench.cases={list(cases)}: choose from {', '.join(CASES)}.")
-        if min(processes) < 1 or steps < 1:
-            raise ConfigError(f"need bench.processes >= 1 and bench.steps >= 1; got {list(processes)}, {steps}.")
+        if min(processes) < 1 or steps < 1 or repeats < 1:
+            raise ConfigError(f"need bench.processes, bench.steps and bench.repeats >= 1; got {list(processes)}, "
+                              f"{steps}, {repeats}.")
         self.cases, self.processes = list(cases), sorted(set(int(p) for p in processes))
         self.nbody_n, self.nbody_batch, self.nbody_graph = nbody_n, nbody_batch, nbody_graph
         self.mpnode_batch, self.mpnode_steps = mpnode_batch, mpnode_steps
-        self.steps, self.warmup, self.threads = steps, warmup, threads
+        self.steps, self.repeats, self.warmup, self.threads = steps, repeats, warmup, threads
         if device == "auto":
             device = "cuda" if torch.cuda.is_available() else "cpu"
         if device.startswith("cuda") and not torch.cuda.is_available():
@@ -99,7 +104,7 @@ class DDPBench(Suite):
     def _measure(self, case: str, processes: int) -> dict[str, Any]:
         spec = {"case": case, "nbody_n": self.nbody_n, "nbody_batch": self.nbody_batch,
                 "nbody_graph": self.nbody_graph, "mpnode_batch": self.mpnode_batch,
-                "mpnode_steps": self.mpnode_steps, "steps": self.steps, "warmup": self.warmup,
+                "mpnode_steps": self.mpnode_steps, "steps": self.steps, "repeats": self.repeats, "warmup": self.warmup,
                 "threads": self.threads, "device": self.device}
         ctx = mp.get_context("spawn")
         queue = ctx.SimpleQueue()
@@ -109,10 +114,11 @@ class DDPBench(Suite):
                                start_method="spawn")
         result = queue.get()
         batch = self.nbody_batch if case == "nbody" else self.mpnode_batch
-        step_s = result["seconds"] / self.steps
+        step_s = min(result["seconds"]) / self.steps
         return {"case": case, "processes": processes, "device": self.device, "backend": result["backend"],
                 "global_batch": batch, "size": f"N={self.nbody_n}" if case == "nbody" else
-                f"Lorenz10, {self.mpnode_steps} steps", "step_s": step_s, "samples_per_s": batch / step_s,
+                f"Lorenz10, {self.mpnode_steps} steps", "step_s": step_s,
+                "median_step_s": statistics.median(result["seconds"]) / self.steps, "samples_per_s": batch / step_s,
                 "final_loss": result["loss"]}
 
     def summarise(self, rows: list[dict[str, Any]]) -> list[str]:
@@ -201,12 +207,14 @@ def _worker(rank: int, world: int, spec: dict[str, Any], init: str, queue: Any) 
     loss = math.nan
     for _ in range(spec["warmup"]):
         loss = step()
-    sync()
-    t0 = time.perf_counter()
-    for _ in range(spec["steps"]):
-        loss = step()
-    sync()
-    seconds = time.perf_counter() - t0
+    seconds = []
+    for _ in range(spec["repeats"]):
+        sync()
+        t0 = time.perf_counter()
+        for _ in range(spec["steps"]):
+            loss = step()
+        sync()
+        seconds.append(time.perf_counter() - t0)
     # the last step's loss over the whole global batch: the same number for any process count
     (total,) = ctx.all_sum([loss * len(idx) if weight > 0 else 0.0])
     if rank == 0:
