@@ -61,12 +61,12 @@ def _torchrun(args: list[str]) -> list[str]:
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
 
 
-def _check_follows(ws, reference, one: dict, epochs: int) -> None:
+def _check_follows(ws, reference, one: dict, epochs: int, backend: str = "gloo") -> None:
     """`ws` holds exactly one 2-process run, and its curve is the 1-process run's (`reference`)."""
     (run,) = (ws / "outputs" / "train").glob("*/*")  # rank 1 made no run directory of its own
     assert sorted(p.name for p in ws.iterdir()) == ["outputs"]  # nor any file where it started
     summary = json.loads((run / "summary.json").read_text())
-    assert summary["distributed"] == {"world_size": 2, "backend": "gloo"}
+    assert summary["distributed"] == {"world_size": 2, "backend": backend}
     cols = ["epoch", "train_loss", "val_error", "test_error", "lr"]
     a = pd.read_csv(reference / "metrics.csv")[cols]
     b = pd.read_csv(run / "metrics.csv")[cols]
@@ -120,3 +120,16 @@ def test_training_on_a_gpu_matches_the_cpu(cfg_factory, tmp_path):
     cpu = run_train(cfg_factory("train", *TINY_DDP, "device=cpu"), output_dir=tmp_path / "cpu")
     gpu = run_train(cfg_factory("train", *TINY_DDP, "device=cuda"), output_dir=tmp_path / "gpu")
     assert gpu["best_val_error"] == pytest.approx(cpu["best_val_error"], rel=1e-6)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(torch.cuda.device_count() < 2, reason="needs 2 CUDA GPUs")
+def test_two_gpus_follow_the_one_process_loss_curve(cfg_factory, tmp_path):
+    args = [*TINY_DDP, "trainer.max_epochs=4"]
+    one = run_train(cfg_factory("train", *args, "device=cpu"), output_dir=tmp_path / "one")
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    proc = subprocess.run(_torchrun([*args, "device=cuda", f"paths.cache_dir={tmp_path}/cache"]), cwd=ws, env=ENV,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    _check_follows(ws, tmp_path / "one", one, 4, backend="nccl")
