@@ -20,9 +20,10 @@ from mpsim.training.distributed import DistContext
 
 # float64 and fixed-step rk4: the 2-process run then differs from one process only by the summation order of
 # the gradient all-reduce (measured: ~1e-15 relative); 5 trajectories per batch of 12 gives uneven shards
-# (3 + 2, and 1 + 1 for the last batch) and 5 validation trajectories uneven evaluation shards
+# (3 + 2, and 1 + 1 for the last batch), 5 validation trajectories uneven evaluation shards, and 1 test
+# trajectory an empty evaluation shard on rank 1
 TINY_DDP = ["trainer=quick", "trainer.progress=false", "trainer.max_epochs=8", "trainer.batch_size=5",
-            "data.n_train=12", "data.n_val=5", "data.n_test=4", "data.horizon=10", "solver=rk4", "dtype=float64",
+            "data.n_train=12", "data.n_val=5", "data.n_test=1", "data.horizon=10", "solver=rk4", "dtype=float64",
             "export=false", "eval.plots=false", "eval.horizons=[1,5,10]"]
 RTOL = 1e-6  # the stated tolerance of 2-process vs 1-process curves (float64)
 

@@ -69,7 +69,11 @@ def rollout_error(model: Model, data: Trajectories, batch_size: int = 512, dist:
     Under several processes (`dist`) each rolls out its part of the trajectories and the parts are gathered.
     """
     if dist.enabled:
-        pred, _ = predict(model, data.subset(dist.local_slice(len(data))), batch_size)
+        part = dist.local_slice(len(data))  # empty on some ranks when there are fewer trajectories than ranks
+        if part.stop > part.start:
+            pred, _ = predict(model, data.subset(part), batch_size)
+        else:
+            pred = data.x[:0].to(model.state_mean.dtype)
         pred = dist.gather(pred, len(data))
     else:
         pred, _ = predict(model, data, batch_size)
