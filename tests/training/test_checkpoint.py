@@ -103,3 +103,12 @@ def test_only_mpsim_classes_are_allowed(target, ok):
     if not ok:
         with pytest.raises(CheckpointError, match="is not an mpsim class"):
             check_config_targets({"_target_": "mpsim.models.MPNODE", "effects": [{"_target_": target}]}, "x")
+
+
+def test_a_model_config_is_required_only_to_build_a_model(tmp_path):
+    payload = _payload(MPNODE(2))
+    del payload["model"]["config"]  # e.g. a Trainer used as a library, without a checkpoint base
+    path = save_checkpoint(tmp_path / "a.ckpt", payload)
+    assert load_checkpoint(path)["model"]["state_dim"] == 2
+    with pytest.raises(CheckpointError, match="lacks 'model.config'"):
+        load_checkpoint(path, need_config=True)

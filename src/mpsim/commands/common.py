@@ -373,6 +373,6 @@ def load_init(cfg: DictConfig, rt: Runtime) -> dict[str, Any] | None:
     path = resolve_init(str(cfg.init), rt, cfg.paths.ckpt_dir)
     # a checkpoint may name mpsim's classes, and those the user's own config names (e.g. model._target_=...)
     allowed = config_targets(OmegaConf.to_container(cfg.model, resolve=True)) if cfg.get("model") is not None else set()
-    ckpt = load_checkpoint(path, allowed)
+    ckpt = load_checkpoint(path, allowed, need_config=True)
     log.info(f"init: {path}")
     return ckpt

@@ -69,13 +69,15 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
     return atomic_write(path, lambda f: torch.save(payload, f))
 
 
-def load_checkpoint(path: str | Path, allowed_targets: Iterable[str] = ()) -> dict[str, Any]:
+def load_checkpoint(path: str | Path, allowed_targets: Iterable[str] = (), need_config: bool = False) -> dict[str, Any]:
     """Load a checkpoint safely (`weights_only=True`) and check it (module docstring) before it is used.
 
     Args:
         path: the file.
         allowed_targets: `_target_` names besides mpsim's own classes that its model config may use (those the
             user named in the config or on the command line).
+        need_config: require `model.config` (to build a model from it; a `Trainer` used as a library may write
+            checkpoints without one).
 
     Raises:
         CheckpointError: missing, empty, unreadable, not an mpsim checkpoint, incomplete, altered, non-finite
@@ -107,15 +109,16 @@ def load_checkpoint(path: str | Path, allowed_targets: Iterable[str] = ()) -> di
         raise CheckpointError(
             f"{path} was written by a newer mpsim (checkpoint version {payload['version']} > {VERSION}); upgrade mpsim."
         )
-    check_structure(payload, path)
+    check_structure(payload, path, need_config)
     _verify_checksum(payload, path)
     _check_finite(payload, path)
-    check_config_targets(payload["model"]["config"], f"{path}: model.config", allowed_targets)
+    if "config" in payload["model"]:
+        check_config_targets(payload["model"]["config"], f"{path}: model.config", allowed_targets)
     payload["path"] = str(path)
     return payload
 
 
-def check_structure(payload: dict[str, Any], path: str | Path) -> None:
+def check_structure(payload: dict[str, Any], path: str | Path, need_config: bool = True) -> None:
     """The keys and types every command reads from a checkpoint (one message naming the first that is wrong)."""
     fix = "The file is incomplete or was not written by mpsim; retrain to write a new one."
     for key in ("model", "normalisation", "system"):
@@ -125,6 +128,8 @@ def check_structure(payload: dict[str, Any], path: str | Path) -> None:
             raise CheckpointError(f"{path}: '{key}' must be a mapping; got {type(payload[key]).__name__}. {fix}")
     model = payload["model"]
     for key, kind in (("config", dict), ("state_dict", dict), ("state_dim", int)):
+        if key not in model and key == "config" and not need_config:
+            continue
         if key not in model:
             raise CheckpointError(f"{path} lacks 'model.{key}'. {fix}")
         if not isinstance(model[key], kind) or isinstance(model[key], bool):
@@ -132,7 +137,7 @@ def check_structure(payload: dict[str, Any], path: str | Path) -> None:
     if model["state_dim"] < 1 or not isinstance(model.get("control_dim", 0), int) or model.get("control_dim", 0) < 0:
         raise CheckpointError(f"{path}: model.state_dim={model['state_dim']!r}, model.control_dim="
                               f"{model.get('control_dim', 0)!r} are not sizes (>= 1, >= 0). {fix}")
-    if not isinstance(model["config"].get("_target_"), str):
+    if "config" in model and not isinstance(model["config"].get("_target_"), str):
         raise CheckpointError(f"{path}: 'model.config' has no '_target_' naming the model class. {fix}")
     bad = [k for k, v in model["state_dict"].items() if not isinstance(k, str) or not isinstance(v, torch.Tensor)]
     if bad:
