@@ -7,12 +7,14 @@ from hydra.errors import ConfigCompositionException
 from hydra.utils import instantiate
 
 import mpsim
+from mpsim.commands.common import inline_specs
 from mpsim.config import check_targets
 from mpsim.errors import ConfigError
 from mpsim.models.base import Model
 from mpsim.systems.base import System
 
 CONF = Path(mpsim.__file__).parent / "conf"
+EXAMPLE_SPEC = Path(__file__).resolve().parents[1] / "examples" / "equations" / "pendulums_linear_spring.yaml"
 
 
 def _options(group):
@@ -21,7 +23,9 @@ def _options(group):
 
 @pytest.mark.parametrize("name", _options("system"))
 def test_every_system_builds(cfg_factory, name):
-    cfg = cfg_factory("train", f"system={name}")
+    spec = [f"system.spec={EXAMPLE_SPEC}", "system.name=equations"] if name == "equations" else []
+    cfg = cfg_factory("train", f"system={name}", *spec)
+    inline_specs(cfg)
     check_targets(cfg)
     system = instantiate(cfg.system)
     assert isinstance(system, System) and system.name == name
@@ -30,7 +34,8 @@ def test_every_system_builds(cfg_factory, name):
 
 @pytest.mark.parametrize("name", _options("model"))
 def test_every_model_builds(cfg_factory, name):
-    cfg = cfg_factory("train", f"model={name}")
+    cfg = cfg_factory("train", f"model={name}", *([f"model.spec={EXAMPLE_SPEC}"] if name == "equations" else []))
+    inline_specs(cfg)
     solver = instantiate(cfg.solver)
     assert isinstance(instantiate(cfg.model, state_dim=2, control_dim=0, solver=solver), Model)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -15,33 +16,36 @@ def test_hidden_damping_found_added_and_error_drops(tmp_path):
     run_cli(["train", "experiment=pendulum_damped", "trainer.max_epochs=15", *SMALL[:-1]], tmp_path, check=True)
     proc = run_cli(["diagnose", "experiment=pendulum_damped", "init=pendulum2_damped.ckpt", "fix=true",
                     "trainer.max_epochs=10", *SMALL], tmp_path, check=True)
-    assert "effects found" in proc.stdout
+    assert "effects named" in proc.stdout
     (run,) = [p.parent for p in (tmp_path / "outputs" / "diagnose").rglob("diagnosis.json")]
     result = json.loads((run / "diagnosis.json").read_text())
-    (found,) = result["effects_found"]
+    assert result["verdict"] == "effects named" and result["exit_code"] == 0
+    (found,) = result["effects_named"]
     assert found["label"] == "domega/dt: LinearDamping(omega)"
-    assert found["vs_truth"]["relative_error"]["coef"] < 0.1
+    assert found["vs_truth"]["relative_error"]["coef"] < 0.05
+    lo, hi = found["interval"]["coef"]
+    assert lo <= found["values"]["coef"] <= hi  # the interval is the reported coefficient's
+    assert result["screen"]["searched_rows"] == ["omega"]  # θ̇ = ω is kinematic: not searched
     (fixed,) = result["fixed_effects"]
-    assert fixed["vs_truth"]["relative_error"]["coef"] < 0.1
+    assert fixed["vs_truth"]["relative_error"]["coef"] < 0.05
     assert result["after"]["rollout_rmse"] * 10 <= result["before"]["rollout_rmse"]
-    # one round: the damping is added, and the finetuned model, diagnosed again, lacks nothing (its own damping
-    # coefficient is refit as the model's parameter, not found a second time)
+    # one round: the damping is added, and the fixed model, diagnosed again, lacks nothing
     (only,) = result["rounds"]
-    assert only["added"] == found["label"] and only["then_found"] == []
-    assert result["effects_named"] == [found["label"]] and result["not_confirmed"] == []
-    for name in ("diagnosis.md", "plots/residual.png", "plots/explained_variance.png", "plots/before_after.png",
-                 "fix/round1/checkpoints/best.ckpt"):
+    assert only["added"] == [found["label"]] and only["then"]["named"] == []
+    for name in ("diagnosis.md", "plots/residual.png", "plots/explained_variance.png", "plots/before_after.png"):
         assert (run / name).is_file(), name
+    assert result["fixed_checkpoint"] and Path(result["fixed_checkpoint"]).is_file()
 
 
-def test_clean_data_gives_no_effect_found(tmp_path):
+def test_clean_data_gives_nothing_missing(tmp_path):
     clean = ["experiment=pendulum_damped", "system.effects=[]", "system.name=pendulum2_clean"]
     run_cli(["train", *clean, "trainer.max_epochs=15", *SMALL[:-1]], tmp_path, check=True)
-    proc = run_cli(["diagnose", *clean, "init=pendulum2_clean.ckpt", "fix=true", *SMALL], tmp_path, check=True)
-    assert "no effect found" in proc.stdout and "why" in proc.stdout
+    proc = run_cli(["diagnose", *clean, "init=pendulum2_clean.ckpt", "fix=true", *SMALL], tmp_path)
+    assert proc.returncode == 10, proc.stderr  # the verdict's own exit code
+    assert "nothing missing" in proc.stdout
     (run,) = [p.parent for p in (tmp_path / "outputs" / "diagnose").rglob("diagnosis.json")]
     result = json.loads((run / "diagnosis.json").read_text())
-    assert result["verdict"] == "no effect found" and result["effects_found"] == [] and result["after"] is None
+    assert result["verdict"] == "nothing missing" and result["effects_named"] == [] and result["after"] is None
 
 
 def test_diagnose_needs_a_checkpoint(tmp_path):

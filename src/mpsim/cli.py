@@ -96,7 +96,7 @@ def _divergence_message(command: str, result: dict[str, Any]) -> str:
             "Lower trainer.lr or trainer.clip_norm.")
 
 
-def _guard(command: str, func: Callable[[Any], dict], cfg: Any) -> dict | None:
+def _guard(command: str, func: Callable[[Any], dict], cfg: Any) -> dict | float | None:
     """Run a command; turn user errors into one message and an exit code."""
     from hydra.core.hydra_config import HydraConfig
 
@@ -122,6 +122,9 @@ def _guard(command: str, func: Callable[[Any], dict], cfg: Any) -> dict | None:
     if isinstance(result, dict) and result.get("status") == "diverged" and not multirun:
         print(_divergence_message(command, result), file=sys.stderr)
         sys.exit(3)
+    code = result.get("exit_code") if isinstance(result, dict) else None
+    if code and not multirun:  # a verdict with its own exit code (mpsim diagnose), after every file is written
+        sys.exit(int(code))
     if not multirun:
         return None
     objective = (result or {}).get("objective")

@@ -29,6 +29,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
+from mpsim.diagnose.params import DiagnoseParams
 from mpsim.errors import ConfigError
 
 
@@ -70,6 +71,7 @@ class TrainerConf:
     progress: bool = True
     window: int | None = None
     eval_window: int | None = None
+    optimizer: str = "adam"  # adam | lbfgs (white-box models: lr 1, full batches; see trainer=whitebox)
 
 
 @dataclass
@@ -141,21 +143,6 @@ class ReportConf:
     target: Any = None  # test error for `epochs_to_target`: a number, or max_min (the level every run reached)
     columns: list[str] = field(default_factory=list)  # metrics to show (default: all)
     layout: str | None = None  # table2 | table1 | curves | message_size: a built-in MP-NODE paper layout
-
-
-@dataclass
-class DiagnoseParams:
-    kinds: list[str] = field(default_factory=lambda: ["Bias", "LinearDamping", "QuadraticDrag", "CubicStiffness",
-                                                      "DiffusiveCoupling", "SineCoupling", "PeriodicForcing",
-                                                      "DelayedFeedback"])
-    delays: list[float] | None = None
-    n_boot: int = 100
-    min_gain: float = 0.05
-    null_factor: float = 3.0
-    min_inclusion: float = 0.8
-    vpt_threshold: float = 0.3
-    fix_lr_factor: float = 0.1
-    rounds: int = 3
 
 
 @dataclass

@@ -170,7 +170,7 @@ class LinearDamping(Effect):
         return -x[..., self.source : self.source + 1]
 
     def _formula(self, s):
-        return f"-{float(self.coef.detach()[0]):.4g}·{s}"
+        return f"{_minus(self.coef)}·{s}"
 
 
 class QuadraticDrag(Effect):
@@ -183,7 +183,7 @@ class QuadraticDrag(Effect):
         return -s * s.abs()
 
     def _formula(self, s):
-        return f"-{float(self.coef.detach()[0]):.4g}·{s}·|{s}|"
+        return f"{_minus(self.coef)}·{s}·|{s}|"
 
 
 class DryFriction(Effect):
@@ -217,7 +217,7 @@ class DryFriction(Effect):
         return -torch.tanh(x[..., self.source : self.source + 1] / self.scale)
 
     def _formula(self, s):
-        return f"-{float(self.coef.detach()[0]):.4g}·tanh({s}/{self.scale:g})"
+        return f"{_minus(self.coef)}·tanh({s}/{self.scale:g})"
 
     def config(self) -> dict[str, Any]:
         return {**super().config(), "scale": self.scale}
@@ -232,7 +232,7 @@ class CubicStiffness(Effect):
         return -x[..., self.source : self.source + 1].pow(3)
 
     def _formula(self, s):
-        return f"-{float(self.coef.detach()[0]):.4g}·{s}³"
+        return f"{_minus(self.coef)}·{s}³"
 
 
 class Bias(Effect):
@@ -405,6 +405,12 @@ class DelayedFeedback(Effect):
 
     def config(self) -> dict[str, Any]:
         return {**super().config(), "delay": self.delay}
+
+
+def _minus(coef: torch.Tensor) -> str:  # coef: [K] the first entry is c of a term −c·φ
+    """"−c" with one clean sign: −0.3 for c = 0.3, +0.02 for c = −0.02 (never "--0.02")."""
+    c = float(coef.detach()[0])
+    return f"-{c:.4g}" if c >= 0 else f"+{-c:.4g}"
 
 
 def total(effects: Sequence[Effect], t: torch.Tensor, x: torch.Tensor, ctx: EffectContext) -> torch.Tensor:

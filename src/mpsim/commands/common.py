@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -16,7 +17,7 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from mpsim.config import check_targets, validate_values
 from mpsim.data.dataset import Splits, add_noise, fit_normalisation, simulate_splits, split_trajectories
@@ -69,6 +70,7 @@ def locate(output_dir: str | Path | None = None) -> tuple[Path, Path]:
 
 def setup_runtime(cfg: DictConfig, output_dir: str | Path | None = None, overrides: list[str] | None = None) -> Runtime:
     """Check `_target_` nodes, seed, set threads and pick device/dtype; return where things go."""
+    inline_specs(cfg)
     validate_values(cfg)
     check_targets(cfg)
     start_dir, output_dir = locate(output_dir)
@@ -97,6 +99,24 @@ def setup_runtime(cfg: DictConfig, output_dir: str | Path | None = None, overrid
         output_dir=output_dir,
         overrides=hydra_overrides() if overrides is None else list(overrides),
     )
+
+
+def inline_specs(cfg: DictConfig) -> None:
+    """`system.spec=<file>` / `model.spec=<file>` (model=equations, system=equations): replace the file name by
+    the file's content, so that checkpoints, dataset cache keys and summaries carry the equations themselves."""
+    from mpsim.equations import load_spec_file
+
+    start_dir = Path(HydraConfig.get().runtime.cwd) if HydraConfig.initialized() else Path.cwd()
+    for key in ("system", "model"):
+        node = cfg.get(key)
+        if not isinstance(node, DictConfig) or not isinstance(node.get("spec"), str):
+            continue
+        path = resolve_path(node.spec, start_dir)
+        content = load_spec_file(path)
+        with open_dict(cfg):
+            node.spec = content
+            if key == "system" and "name" in node and node.name is None and not content.get("name"):
+                node.name = re.sub(r"[^A-Za-z0-9_.-]", "_", path.stem)
 
 
 def resolve_path(path: str | Path, start_dir: Path) -> Path:

@@ -121,7 +121,10 @@ def _run(cfg: DictConfig, rt: Runtime, ctx: DistContext) -> dict:
     best_path = rt.output_dir / "checkpoints" / "best.ckpt"
     exported, previous, export_error = None, None, None
     try:  # a failed export must not lose the run: the summary is written first, then the error is reported
-        exported, previous = _export(best_path, cfg, rt, train.system_name) if trainer.best_epoch_ >= 1 else (None, None)
+        # the best epoch may be 0 (e.g. a white-box model already at its optimum); a run that diverged before
+        # improving on its start exports nothing
+        usable = trainer.best_epoch_ >= 1 or trainer.status_ != "diverged"
+        exported, previous = _export(best_path, cfg, rt, train.system_name) if usable else (None, None)
     except OutputError as err:
         export_error = err
     summary: dict[str, Any] = {

@@ -219,6 +219,8 @@ def load_csv(
         ei = load_edges(edge_path, n, traj_labels)
     elif edge_index is not None:
         ei = edge_index
+    elif n == 1:  # one node has no neighbours: no edge list needed
+        ei = torch.zeros(2, 0, dtype=torch.long)
     else:
         raise DataError(
             f"{path}: no graph: expected an edge list {edge_path.name} beside it. Pass data.edges=<edges.csv> "

@@ -16,20 +16,14 @@ import torch
 
 from mpsim import effects as fx
 from mpsim.data.trajectories import Trajectories
+from mpsim.diagnose.params import DEFAULT_KINDS as _KINDS
 from mpsim.effects import EffectContext
 
-#: effect kinds of the default library, by class name
-DEFAULT_KINDS = (
-    "Bias",
-    "LinearDamping",
-    "QuadraticDrag",
-    "CubicStiffness",
-    "DiffusiveCoupling",
-    "SineCoupling",
-    "PeriodicForcing",
-    "DelayedFeedback",
-)
-NEEDS_GRAPH = ("DiffusiveCoupling", "SineCoupling")
+#: effect kinds of the default library, by class name (one list: `mpsim.diagnose.params`)
+DEFAULT_KINDS = tuple(_KINDS)
+NEEDS_GRAPH = ("DiffusiveCoupling", "SineCoupling", "CosineCoupling")
+#: dry friction's smoothing scale, as a share of its source's standard deviation in the data
+DRY_SCALE = 0.01
 
 
 @dataclass
@@ -69,8 +63,9 @@ class Candidate:
         cfg["coef"] = coef[0]
         if self.source is not None:
             cfg["source"] = state_names[self.source]
-        if "delay" in self.params:
-            cfg["delay"] = self.params["delay"]
+        for key in ("delay", "scale"):
+            if key in self.params:
+                cfg[key] = self.params[key]
         return cfg
 
     def make_effect(self, coef: list[float], target: int, state_names: list[str]) -> fx.Effect:
@@ -134,6 +129,12 @@ def build_library(
             for omega in sorted(set((omegas or {}).values())):
                 effect = cls(0.0, omega=omega, target=0).bind(data.state_names)
                 out.append(Candidate(kind, None, {"omega": omega}, _step_average(evaluate_effect(effect, data))))
+        elif kind == "DryFriction":
+            spread = data.x.double().reshape(-1, d).std(0)
+            for s in range(d):
+                scale = max(DRY_SCALE * float(spread[s]), 1e-9)
+                effect = cls(0.0, target=0, source=s, scale=scale).bind(data.state_names)
+                out.append(Candidate(kind, s, {"scale": scale}, _step_average(evaluate_effect(effect, data))))
         elif kind == "DelayedFeedback":
             dt = float(data.t[1] - data.t[0])
             for tau in delays or []:

@@ -72,6 +72,7 @@ class Diagnosis:
     parameter_shifts: dict[str, float] = field(default_factory=dict)  # refit of the model's own parameters
     represented: list[str] = field(default_factory=list)  # effect kinds the model can express itself
     not_considered: list[str] = field(default_factory=list)  # kinds that cannot be told apart from model error
+    searched: list[str] = field(default_factory=list)  # state rows searched (the dynamic rows by default)
 
     @property
     def accepted(self) -> list[Finding]:
@@ -91,6 +92,7 @@ class Diagnosis:
             "parameter_shifts": self.parameter_shifts,
             "represented_by_model": self.represented,
             "not_considered": self.not_considered,
+            "searched_rows": self.searched,
         }
 
 
@@ -268,6 +270,7 @@ def find_effects(
     null_factor: float = 3.0,
     min_inclusion: float = 0.8,
     seed: int = 0,
+    targets: list[int] | None = None,
 ) -> Diagnosis:
     """Trace the residual of `model` on `data` (held-in trajectories) to named effects.
 
@@ -282,6 +285,7 @@ def find_effects(
             the largest part any candidate explains on the null data.
         min_inclusion: smallest bootstrap inclusion frequency.
         seed: seed of the bootstrap and of the null data's noise.
+        targets: state rows searched for effects (default: all; `dynamic_rows` leaves out kinematic ones).
     """
     dt = float(data.t[1] - data.t[0])
     delays = [m * dt for m in (1, 2, 4, 8)] if delays is None else delays
@@ -299,8 +303,13 @@ def find_effects(
     findings: list[Finding] = []
     explained: dict[str, list[float]] = {c.label(names): [0.0] * data.state_dim for c in library}
     residual_rms = []
+    searched = list(range(data.state_dim)) if targets is None else list(targets)
     for d in range(data.state_dim):
         y, groups, base_d = _rows(library, res, d, keep, base)
+        if d not in searched:  # a kinematic row (θ̇ = ω): its residual is reported, never searched
+            flat = _project(y, groups, base_d)[0].reshape(-1)
+            residual_rms.append(math.sqrt(float(flat.pow(2).sum()) / max(flat.numel(), 1)))
+            continue
         sel, alone, freq, intervals = _fit_target(y, groups, base_d, n_boot, seed)
         residual_rms.append(math.sqrt(sel.total / max(y.numel(), 1)))
         for g, c in enumerate(library):
@@ -327,7 +336,7 @@ def find_effects(
             ))
     diag = Diagnosis(findings, list(names), residual_rms, null_rms, null_level, explained, omegas,
                      [float(v) for v in noise], res, spectra, represented=list(represented),
-                     not_considered=list(undecidable))
+                     not_considered=list(undecidable), searched=[names[d] for d in searched])
     while diag.accepted and not _joint_refit(diag, library, res, keep, base, n_shared, model):
         pass  # an effect whose coefficient was not stable was dropped: refit the others
     while diag.accepted and not _confirm_by_integration(diag, library, model, data, base, min_gain):
@@ -360,7 +369,7 @@ def _confirm_by_integration(diag: Diagnosis, library: list[Candidate], model: Mo
     which falls below its threshold, once the stronger effects are part of the model was such an echo — it is
     rejected and False is returned (the caller refits the rest and calls again)."""
     labels = {c.label(diag.state_names): i for i, c in enumerate(library)}
-    order = sorted(diag.accepted, key=lambda f: f.explained_rms / max(f.threshold, 1e-300), reverse=True)
+    order = sorted(diag.accepted, key=lambda f: f.gain, reverse=True)  # share of its own row's residual
     trial = copy.deepcopy(model)
     trial.shift_parameters(diag.parameter_shifts)  # the joint refit's correction of the model's own parameters
     dtype = model.state_mean.dtype

@@ -85,6 +85,23 @@ class PhysicsModel(Model):
             self.raw[n] = nn.Parameter(torch.tensor(math.log(value) if n in self.positive else value))
         self.declared = {n: float(getattr(system, n)) for n in names}
 
+    @property
+    def kinematic_states(self) -> list[str]:
+        """States whose declared equation is another state (θ̇ = ω), found by evaluating the equations at random
+        states: they carry no physics, and the residual loop does not search them by default."""
+        if not hasattr(self, "_kinematic"):
+            names = list(self.system.state_names)
+            x = torch.randn(4, self.system.n_nodes, len(names), dtype=torch.float64,
+                            generator=torch.Generator().manual_seed(0))
+            try:
+                with torch.no_grad():
+                    f = self.system.dynamics(torch.tensor(0.0, dtype=torch.float64), x)
+                self._kinematic = [names[d] for d in range(len(names))
+                                   if any(j != d and torch.equal(f[..., d], x[..., j]) for j in range(len(names)))]
+            except Exception:  # noqa: BLE001 - equations that need controls or more context: declare none
+                self._kinematic = []
+        return self._kinematic
+
     def parameters_now(self) -> dict[str, torch.Tensor]:
         """{name: current value tensor} of the learnable physical parameters."""
         return {n: (p.exp() if n in self.positive else p) for n, p in self.raw.items()}

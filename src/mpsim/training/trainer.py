@@ -27,6 +27,8 @@ from mpsim.training.distributed import SINGLE, DistContext
 from mpsim.training.loggers import CSVLogger
 from mpsim.training.metrics import LOSSES, rollout_metrics
 
+OPTIMIZERS = ("adam", "lbfgs")
+
 log = logging.getLogger(__name__)
 
 METRIC_COLUMNS = ("epoch", "train_loss", "val_error", "test_error", "lr", "grad_norm", "epoch_time", "wall_time")
@@ -106,6 +108,8 @@ class Trainer:
             (null: whole trajectories) — for chaotic systems, whose long rollouts decorrelate from any model.
         eval_batch_size: trajectories per batch when evaluating.
         progress: show a progress bar.
+        optimizer: ``adam`` (neural models) or ``lbfgs`` (quasi-Newton with a strong-Wolfe line search, for the
+            few smooth parameters of white-box models such as `model=equations`; use lr 1 and full batches).
     """
 
     def __init__(
@@ -125,7 +129,11 @@ class Trainer:
         progress: bool = True,
         window: int | None = None,
         eval_window: int | None = None,
+        optimizer: str = "adam",
     ) -> None:
+        if optimizer not in OPTIMIZERS:
+            raise ConfigError(f"trainer.optimizer={optimizer!r} is unknown; choose one of {', '.join(OPTIMIZERS)}.")
+        self.optimizer = optimizer
         if loss not in LOSSES:
             raise ConfigError(f"trainer.loss={loss!r} is unknown; choose one of {sorted(LOSSES)}.")
         if max_epochs < 0 or batch_size < 1 or lr <= 0:
@@ -182,7 +190,11 @@ class Trainer:
         device, dtype = model.state_mean.device, model.state_mean.dtype
         train_d = train.to(device, dtype)
         loss_fn = LOSSES[self.loss]
-        opt = torch.optim.Adam(model.parameters(), lr=self.lr, weight_decay=self.weight_decay)
+        if self.optimizer == "lbfgs":  # a few smooth parameters (white-box models): quasi-Newton with line search
+            opt = torch.optim.LBFGS(model.parameters(), lr=self.lr, max_iter=10, history_size=20,
+                                    line_search_fn="strong_wolfe")
+        else:
+            opt = torch.optim.Adam(model.parameters(), lr=self.lr, weight_decay=self.weight_decay)
         sched = torch.optim.lr_scheduler.ReduceLROnPlateau(
             opt, mode="min", factor=self.plateau_factor, patience=self.plateau_patience, min_lr=self.min_lr
         )
@@ -215,6 +227,7 @@ class Trainer:
             row = self._evaluate_row(model, val, test, 0, math.nan, opt, math.nan, 0.0, 0.0)
             self.best_val_ = row["val_error"] if row["val_error"] == row["val_error"] else math.inf
             self._record(row, on_epoch)
+            self._save_best(model)  # epoch 0 is a candidate: best.ckpt exists even if training never beats it
             self._save_last(model, opt, sched, shuffle, 0, since_best)
 
         t_start = time.perf_counter()
@@ -296,12 +309,31 @@ class Trainer:
                     f"epoch {epoch}, batch {k}: the gradient became {float(gnorm)} (trajectories "
                     f"{_ids(idx)}). Lower trainer.lr or trainer.clip_norm."
                 )
-            opt.step()
+            if isinstance(opt, torch.optim.LBFGS):
+                opt.step(self._closure(loss, batch, bt, loss_fn, weight, opt))
+            else:
+                opt.step()
             model.after_step()
             total += loss_sum
             count += int(n_sum)
             norms.append(float(gnorm))
         return total / max(count, 1), sum(norms) / max(len(norms), 1)
+
+    def _closure(self, loss, batch, t, loss_fn, weight, opt):
+        """LBFGS re-evaluates the loss along its line search; its first call reuses the loss (and gradient)
+        just computed."""
+        first = [True]
+
+        def closure() -> torch.Tensor:
+            if first[0]:
+                first[0] = False
+                return loss.detach()
+            opt.zero_grad(set_to_none=True)
+            value, _ = self._loss_step(batch, t, loss_fn, self.huber_delta)
+            (value if weight == 1.0 else value * weight).backward()
+            return value.detach()
+
+        return closure
 
     def _evaluate_row(self, model, val, test, epoch, train_loss, opt, grad_norm, epoch_time, wall) -> dict:
         model.eval()

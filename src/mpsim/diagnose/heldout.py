@@ -1,0 +1,262 @@
+"""Acceptance by held-out prediction, and the three verdicts.
+
+The one-step screen (`find_effects`) proposes candidates; here each one is *tested*: added to the model with
+its coefficients fitted by multiple shooting on held-in data (the model's own white-box parameters refit
+alongside), and named only if it lowers the held-out multi-step error by more than the same fit achieves on
+null data (the model's own simulation plus the data's noise level) plus `margin` paired standard errors.
+Without a candidate the model is refit the same way (its own parameters only), so an effect never gets the
+credit for a plain refit.
+
+Verdicts (each with its numbers; distinct exit codes):
+
+| verdict | when | exit |
+|---|---|---|
+| effects named | named effects remove ≥ `min_explained` of the held-out error above the null level | 0 |
+| nothing missing | the refit model's held-out error is at the null level (or below `tolerance`) | 10 |
+| unexplained structured residual | above the null level and no candidate (set) explains it | 11 |
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from mpsim.data.trajectories import Trajectories
+from mpsim.diagnose.library import Candidate
+from mpsim.diagnose.loop import Diagnosis, Finding
+from mpsim.diagnose.params import DiagnoseParams
+from mpsim.diagnose.shooting import (
+    horizon_from_data,
+    null_data,
+    own_parameters,
+    shooting_fit,
+    window_error,
+    with_effect,
+)
+from mpsim.equations import did_you_mean
+from mpsim.errors import ConfigError
+from mpsim.models.base import Model
+
+EFFECTS_NAMED, NOTHING_MISSING, UNEXPLAINED = "effects named", "nothing missing", "unexplained structured residual"
+EXIT_CODES = {EFFECTS_NAMED: 0, NOTHING_MISSING: 10, UNEXPLAINED: 11}
+#: among candidates that predict held-out data equally well, the simplest kind is named (a delayed copy of a
+#: state imitates damping within a step; a drive needs three numbers)
+COMPLEXITY = {"Bias": 0, "LinearDamping": 0, "DryFriction": 1, "QuadraticDrag": 1, "CubicStiffness": 1,
+              "DiffusiveCoupling": 1, "SineCoupling": 1, "CosineCoupling": 1, "PeriodicForcing": 2,
+              "DelayedFeedback": 3}
+
+
+def dynamic_rows(model: Model, data: Trajectories, targets: list[str] | None) -> list[int]:
+    """State rows to search: `targets` if given, else every row except the kinematic ones (declared by the
+    model — `model=equations` specs, white-box models whose equation for a state is another state — or by the
+    data's metadata `kinematic: [...]`)."""
+    names = list(data.state_names)
+    if targets:
+        for name in targets:
+            if name not in names:
+                raise ConfigError(f"diagnose.targets names {name!r}, which is not a state.{did_you_mean(name, names)} "
+                                  f"States: {names}.")
+        return [names.index(n) for n in targets]
+    kinematic = set(getattr(model, "kinematic_states", None) or []) | set(data.meta.get("kinematic") or [])
+    rows = [d for d, n in enumerate(names) if n not in kinematic]
+    return rows or list(range(len(names)))
+
+
+@dataclass
+class Trial:
+    """One candidate tested on held-out data."""
+
+    label: str
+    kind: str
+    screened: bool  # passed the one-step screen (only screened candidates can be named)
+    effect: dict[str, Any]  # Hydra config with the multiple-shooting coefficients
+    values: dict[str, float]  # the reported parameters (coef; or amplitude, omega, phase of a drive)
+    interval: dict[str, tuple[float, float]]  # their 95 % intervals (cluster-robust Gauss–Newton, delta method)
+    error_before: float  # held-out multi-step MSE (normalised) of the model it was added to
+    error_after: float
+    gain: float  # mean paired held-out MSE reduction
+    gain_se: float
+    null_gain: float  # the same fit's gain on null data
+    accepted: bool
+    reason: str
+
+    def as_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+@dataclass
+class Judgement:
+    """The held-out verdict and everything it rests on."""
+
+    verdict: str
+    horizon: int
+    error_given: float  # held-out multi-step MSE of the model as given
+    error_refit: float  # ... after refitting its own parameters by multiple shooting
+    error_null: float  # ... of the refit model on null data (its own simulation plus the noise level)
+    error_final: float  # ... with the named effects
+    explained: float  # share of (refit − null) removed by the named effects
+    trials: list[Trial] = field(default_factory=list)
+    model: Model | None = None  # the refit model with the named effects (never worse on held-out data)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def exit_code(self) -> int:
+        return EXIT_CODES[self.verdict]
+
+    @property
+    def named(self) -> list[Trial]:
+        return [t for t in self.trials if t.accepted] if self.verdict == EFFECTS_NAMED else []
+
+    def as_dict(self) -> dict[str, Any]:
+        out = {k: v for k, v in self.__dict__.items() if k not in ("model", "trials")}
+        out["trials"] = [t.as_dict() for t in self.trials]
+        out["named"] = [t.label for t in self.named]
+        return out
+
+
+def _fit_with(model: Model, effect, train: Trajectories, horizon: int, iters: int):
+    """(model + effect with the effect's and the model's own parameters fitted by multiple shooting, fit)."""
+    trial = with_effect(model, effect)
+    free = [p for p in trial.effects[-1].parameters() if p.requires_grad] + own_parameters(trial)
+    return trial, shooting_fit(trial, train, horizon, free, iters)
+
+
+def judge(
+    model: Model,
+    diag: Diagnosis,
+    library: list[Candidate],
+    train: Trajectories,
+    test: Trajectories,
+    params: DiagnoseParams,
+    seed: int = 0,
+) -> Judgement:
+    """Test the screened candidates (strongest share of their row first) on held-out prediction; name the
+    ones that pass, greedily, and return the verdict with the model that carries them."""
+    horizon = params.horizon or horizon_from_data(model, train, params.vpt_threshold)
+    noise = torch.tensor(diag.noise_std, dtype=torch.float64)
+    given = float(window_error(model, test, horizon).mean())
+    base = copy.deepcopy(model)
+    shooting_fit(base, train, horizon, own_parameters(base), params.shooting_iters)
+    e_base = window_error(base, test, horizon)
+    if not float(e_base.mean()) <= given:  # the refit never makes the starting point worse
+        base, e_base = copy.deepcopy(model), window_error(model, test, horizon)
+    null_train = null_data(base, train, noise, seed + 11)
+    null_test = null_data(base, test, noise, seed + 12)
+    e_null = window_error(base, null_test, horizon)
+    labels = {c.label(diag.state_names): c for c in library}
+    floor = max(params.structured_factor * float(e_null.mean()), params.tolerance**2)
+    if float(e_base.mean()) <= floor:  # at the null level: nothing to test
+        return Judgement(NOTHING_MISSING, horizon, given, float(e_base.mean()), float(e_null.mean()),
+                         float(e_base.mean()), 0.0, [], base, [])
+    # the screen ranks (BIC-selected, screened ones first, then by share of their row); held-out data decide.
+    # Each candidate is first tried alone on the refit model; the best passing one (the simplest kind among
+    # those as good within their standard errors) is added, and the rest are tried again on top of it.
+    queue = sorted(diag.findings, key=lambda f: (not f.accepted, -f.gain))[: params.max_candidates]
+    queue = [(f, labels[f.label.split(": ", 1)[1]]) for f in queue if f.label.split(": ", 1)[1] in labels]
+    current, e_current, trials = base, e_base, []
+    pending = queue
+    while pending:
+        tried = [(f, c, *_trial(current, e_current, base, e_null, c, f, train, test, null_train, null_test,
+                                horizon, params, diag.state_names)) for f, c in pending]
+        passing = [t for t in tried if t[2].accepted]
+        trials += [t[2] for t in tried if not t[2].accepted]
+        if not passing:
+            break
+        best_err = min(t[2].error_after for t in passing)
+        close = [t for t in passing if t[2].error_after <= best_err + params.margin * t[2].gain_se]
+        chosen = min(close, key=lambda t: (COMPLEXITY.get(t[2].kind, 1), t[2].error_after))
+        trials.append(chosen[2])
+        current, e_current = chosen[3], chosen[4]
+        # the others that passed alone are tried again on top of the chosen one
+        pending = [(t[0], t[1]) for t in passing if t is not chosen]
+    refit, final = float(e_base.mean()), float(e_current.mean())
+    excess = max(refit - float(e_null.mean()), 1e-300)
+    explained = (refit - final) / excess if any(t.accepted for t in trials) else 0.0
+    notes = []
+    if any(t.accepted for t in trials) and (final <= floor or explained >= params.min_explained):
+        verdict = EFFECTS_NAMED
+    elif refit <= floor:
+        verdict = NOTHING_MISSING
+        for t in trials:
+            if t.accepted:  # below the null level nothing is named, however it scored
+                t.accepted, t.reason = False, "the model is already at the null level: " + t.reason
+        current = base
+    else:
+        verdict = UNEXPLAINED
+        for t in trials:
+            if t.accepted:
+                t.accepted = False
+                t.reason = (f"helps on held-out data but leaves {1 - explained:.0%} of the error above the null level "
+                            f"unexplained (needs ≥ {params.min_explained:.0%}): a partial fit, not a finding")
+        notes.append(_best_text(trials, refit, float(e_null.mean())))
+        current = base
+    return Judgement(verdict, horizon, given, refit, float(e_null.mean()), float(e_current.mean()) if verdict ==
+                     EFFECTS_NAMED else refit, explained, trials, current, notes)
+
+
+def reported(effect, values: list[float], stderr: list[float]) -> tuple[dict[str, float], dict[str, tuple]]:
+    """The parameters a report shows for a fitted effect, with 95 % intervals around exactly these values: the
+    coefficient(s), or for a drive its amplitude, angular frequency and phase (delta method from a, b, log ω)."""
+    if type(effect).__name__ == "PeriodicForcing" and len(values) >= 3:
+        a, b, log_w = values[:3]
+        sa, sb, sw = stderr[:3]
+        amp, omega = math.hypot(a, b), math.exp(log_w)
+        se_amp = math.hypot(a * sa, b * sb) / max(amp, 1e-300)
+        se_phase = math.hypot(b * sa, a * sb) / max(amp**2, 1e-300)
+        vals = {"amplitude": amp, "omega": omega, "phase": math.atan2(b, a)}
+        ses = {"amplitude": se_amp, "omega": omega * sw, "phase": se_phase}
+    else:
+        basis = list(getattr(effect, "basis", ())) or ["coef"]
+        keys = ["coef"] if len(values) == 1 else [f"coef[{i}]" for i in range(len(values))]
+        del basis
+        vals = dict(zip(keys, values, strict=True))
+        ses = dict(zip(keys, stderr, strict=True))
+    return vals, {k: (v - 1.96 * ses[k], v + 1.96 * ses[k]) for k, v in vals.items()}
+
+
+def _best_text(trials: list[Trial], refit: float, null: float) -> str:
+    if not trials:
+        return "no candidate was left to test"
+    best = min(trials, key=lambda t: t.error_after)
+    left = (best.error_after - null) / max(refit - null, 1e-300)
+    return (f"best candidate {best.label}: held-out MSE {refit:.3g} → {best.error_after:.3g} (null level {null:.3g}); "
+            f"it would leave {max(left, 0):.0%} of the excess")
+
+
+def _trial(current, e_current, base, e_null, cand: Candidate, finding: Finding, train, test, null_train, null_test,
+           horizon, params: DiagnoseParams, names) -> tuple[Trial, Model, torch.Tensor]:
+    effect = cand.make_effect(list(finding.coef), finding.target, names)
+    trial, fit = _fit_with(current, effect, train, horizon, params.shooting_iters)
+    e_after = window_error(trial, test, horizon)
+    diff = (e_current - e_after)
+    finite = torch.isfinite(diff)
+    gain = float(diff[finite].mean()) if finite.any() else -math.inf
+    se = float(diff[finite].std() / math.sqrt(max(int(finite.sum()), 1))) if int(finite.sum()) > 1 else math.inf
+    if current is not base:  # null data of the model the candidate is added to (its integrator included)
+        noise = (null_train.x - null_train.x).new_zeros(null_train.state_dim)  # clean: the comparison is paired
+        null_train, null_test = null_data(current, null_train, noise, 21), null_data(current, null_test, noise, 22)
+        e_null = window_error(current, null_test, horizon)
+    null_trial, _ = _fit_with(current, cand.make_effect(list(finding.coef), finding.target, names), null_train,
+                              horizon, max(5, params.shooting_iters // 3))
+    null_gain = float((e_null - window_error(null_trial, null_test, horizon)).mean())
+    fitted = trial.effects[-1]
+    k = len(fit.values) - sum(p.numel() for p in own_parameters(trial))
+    values, interval = reported(fitted, fit.values[:k], fit.stderr[:k])
+    checks = [
+        (fit.converged and math.isfinite(gain), "the multiple-shooting fit diverged"),
+        (gain > max(null_gain, 0.0) + params.margin * se,
+         f"held-out MSE gain {gain:.3g} ± {se:.2g} is not above the null fit's gain {max(null_gain, 0):.3g} + "
+         f"{params.margin:g} standard errors"),
+    ]
+    failed = [why for ok, why in checks if not ok]
+    reason = "; ".join(failed) if failed else (f"lowers the held-out MSE {float(e_current.mean()):.3g} → "
+                                               f"{float(e_after.mean()):.3g}, above the null fit's gain")
+    out = Trial(label=finding.label, kind=finding.kind, screened=finding.accepted, effect=fitted.config(),
+                values=values, interval=interval, error_before=float(e_current.mean()),
+                error_after=float(e_after.mean()), gain=gain, gain_se=se, null_gain=null_gain,
+                accepted=not failed, reason=reason)
+    return out, trial, e_after

@@ -1,0 +1,57 @@
+"""The residual loop's settings: one object (the `diagnose:` config group's schema and the library's argument)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+#: effect kinds of the default candidate library, by class name in `mpsim.effects`
+DEFAULT_KINDS = ["Bias", "LinearDamping", "QuadraticDrag", "CubicStiffness", "DryFriction", "DiffusiveCoupling",
+                 "SineCoupling", "CosineCoupling", "PeriodicForcing", "DelayedFeedback"]
+
+
+@dataclass
+class DiagnoseParams:
+    """Settings of `mpsim diagnose` (every field is a `diagnose.<name>=` override).
+
+    Screen (one-step residual regression, fast):
+        kinds: effect kinds in the candidate library.
+        delays: delays of DelayedFeedback candidates (null: 1, 2, 4, 8 sampling steps).
+        targets: state rows searched (null: the dynamic rows — every row except the kinematic ones the model,
+            e.g. a `model=equations` spec, or the data's metadata declare: θ̇ = ω carries no physics).
+        n_boot, min_gain, null_factor, min_inclusion: a screened candidate must be selected by BIC, explain
+            ≥ min_gain of its row's residual and ≥ null_factor × what any candidate explains on null data, and
+            be selected in ≥ min_inclusion of bootstrap resamples over trajectories.
+    Acceptance (held-out prediction):
+        max_candidates: screened candidates tested on held-out data, strongest share of their row first.
+        margin: a candidate is named only if its held-out multi-step error gain exceeds the gain the same fit
+            achieves on null data plus `margin` standard errors (paired over held-out trajectories).
+        min_explained: the named effects must remove this share of the held-out error above the null level;
+            otherwise the verdict is *unexplained structured residual* (a partial fit is not a finding).
+        structured_factor, tolerance: the residual is at the null level ("nothing missing") when the held-out
+            multi-step MSE is ≤ structured_factor × its value on null data, or its RMSE ≤ tolerance (normalised).
+        shooting_iters: L-BFGS iterations of each multiple-shooting fit.
+        horizon: steps of the shooting and evaluation windows (null: from the data — the model's own
+            valid prediction time on held-in data, the whole record when it never loses track).
+        vpt_threshold: valid prediction time: until the normalised rollout error exceeds this.
+    Fix (fix=true):
+        fix_lr_factor: the finetune runs at trainer.lr × this (it starts near the optimum).
+        rounds: effects added one per round (the strongest), each followed by a finetune and a new diagnosis.
+    """
+
+    kinds: list[str] = field(default_factory=lambda: list(DEFAULT_KINDS))
+    delays: list[float] | None = None
+    targets: list[str] | None = None
+    n_boot: int = 100
+    min_gain: float = 0.05
+    null_factor: float = 3.0
+    min_inclusion: float = 0.8
+    max_candidates: int = 3
+    margin: float = 2.0
+    min_explained: float = 0.8
+    structured_factor: float = 2.0
+    tolerance: float = 1.0e-3
+    shooting_iters: int = 25
+    horizon: int | None = None
+    vpt_threshold: float = 0.3
+    fix_lr_factor: float = 0.1
+    rounds: int = 3

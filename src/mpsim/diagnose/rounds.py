@@ -1,0 +1,148 @@
+"""The residual loop as a library: screen → held-out judgement → (fix) add, finetune, diagnose again.
+
+`run_loop` is what `mpsim diagnose` calls; the command layer only reads the config, supplies the finetune
+(a trainer run that writes checkpoints) and writes the reports. The loop never hands back a model that is
+worse on held-out data than the one it was given: a fix that does not help is reported as rejected, with its
+numbers.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from mpsim.data.dataset import Splits
+from mpsim.data.trajectories import Trajectories
+from mpsim.diagnose.heldout import EFFECTS_NAMED, EXIT_CODES, Judgement, dynamic_rows, judge
+from mpsim.diagnose.library import build_library
+from mpsim.diagnose.loop import Diagnosis, find_effects, valid_prediction_time
+from mpsim.diagnose.params import DiagnoseParams
+from mpsim.diagnose.residual import one_step_residual
+from mpsim.diagnose.shooting import window_error
+from mpsim.errors import DivergenceError
+from mpsim.models.base import Model
+from mpsim.training.metrics import rollout_metrics
+from mpsim.training.trainer import predict
+
+#: finetune(model with the named effects, round number) -> (finetuned model, its checkpoint path)
+Finetune = Callable[[Model, int], tuple[Model, str]]
+#: save(model, round number) -> checkpoint path of a model kept without finetuning
+Save = Callable[[Model, int], str]
+
+
+def holdout_metrics(model: Model, test: Trajectories, horizons: list[int], vpt_threshold: float) -> dict[str, Any]:
+    """Held-out one-step error, rollout RMSE at fixed horizons and valid prediction time (normalised units)."""
+    std = model.state_std.detach().cpu().double()
+    step = one_step_residual(model, test)
+    one_step = ((step.pred - test.x[:, 1:].double()) / std).pow(2)
+    pred, _ = predict(model, test)
+    roll = rollout_metrics(pred.double(), test.x.double(), std, test.t, horizons)
+    finite = one_step[torch.isfinite(one_step)]
+    return {
+        "one_step_rmse": float(finite.mean().sqrt()) if finite.numel() else math.nan,
+        "rollout_rmse": roll["rmse"],
+        "horizons": roll["horizons"],
+        "valid_prediction_time": valid_prediction_time(pred.double(), test.x.double(), std, test.t, vpt_threshold),
+        "n_diverged": roll["n_diverged"],
+        "per_step_rmse": roll["per_step_rmse"],
+    }
+
+
+def screen(model: Model, data: Trajectories, params: DiagnoseParams, seed: int) -> tuple[Diagnosis, list]:
+    """The one-step screen on held-in data, over the dynamic rows, and the candidate library it used."""
+    rows = dynamic_rows(model, data, params.targets)
+    delays = list(params.delays) if params.delays else None
+    diag = find_effects(model, data, tuple(params.kinds), delays, params.n_boot, params.min_gain, params.null_factor,
+                        params.min_inclusion, seed, rows)
+    dt = float(data.t[1] - data.t[0])
+    library = build_library(data, diag.omegas, delays or [m * dt for m in (1, 2, 4, 8)],
+                            tuple(k for k in params.kinds if k not in diag.represented + diag.not_considered))
+    return diag, library
+
+
+@dataclass
+class LoopResult:
+    """What the loop found, did and measured."""
+
+    diagnosis: Diagnosis  # the first screen
+    judgement: Judgement  # the first held-out judgement
+    verdict: str
+    before: dict[str, Any]  # held-out metrics of the model as given
+    after: dict[str, Any] | None = None  # ... of the model handed back (fix=true)
+    rounds: list[dict[str, Any]] = field(default_factory=list)
+    model: Model | None = None  # the model handed back (the given one when nothing was fixed)
+    checkpoint: str | None = None  # its checkpoint (fix=true and something was added)
+    rejected: list[dict[str, Any]] = field(default_factory=list)  # fixes that did not help, with their numbers
+
+    @property
+    def exit_code(self) -> int:
+        return EXIT_CODES[self.verdict]
+
+
+def run_loop(
+    model: Model,
+    splits: Splits,
+    params: DiagnoseParams,
+    horizons: list[int],
+    seed: int = 0,
+    finetune: Finetune | None = None,
+    save: Save | None = None,
+    log: Callable[[str], None] = lambda _: None,
+) -> LoopResult:
+    """Diagnose `model` on `splits.train` (held-in), judge candidates on `splits.test` (held-out); with
+    `finetune`/`save` given (fix=true), add what is named, finetune, and diagnose again, up to `params.rounds`."""
+    train, test = splits.train, splits.test
+    diag, library = screen(model, train, params, seed)
+    judgement = judge(model, diag, library, train, test, params, seed)
+    before = holdout_metrics(model, test, horizons, params.vpt_threshold)
+    result = LoopResult(diag, judgement, judgement.verdict, before, model=model)
+    if finetune is None or save is None or judgement.verdict != EFFECTS_NAMED:
+        return result
+    current, current_err = model, float(window_error(model, test, judgement.horizon).mean())
+    j = judgement
+    for k in range(1, params.rounds + 1):
+        names = [t.label for t in j.named]
+        log(f"round {k}: adding {'; '.join(names)} and finetuning")
+        fitted = j.model
+        try:
+            tuned, tuned_path = finetune(copy.deepcopy(fitted), k)
+        except DivergenceError as err:
+            raise DivergenceError(f"the fix of round {k} ({'; '.join(names)}) diverged while finetuning: {err}") from None
+        options = [("finetuned", tuned, tuned_path), ("multiple-shooting fit", fitted, None)]
+        scored = [(name, m, path, float(window_error(m, test, j.horizon).mean())) for name, m, path in options]
+        finite = [s for s in scored if math.isfinite(s[3])]
+        if not finite:
+            raise DivergenceError(f"the fix of round {k} ({'; '.join(names)}): every held-out rollout of the fixed "
+                                  "model diverged (NaN/inf).")
+        name, best, path, err = min(finite, key=lambda s: s[3])
+        entry = {"round": k, "added": names, "added_effects": [t.effect for t in j.named],
+                 "heldout_mse": {s[0]: s[3] for s in scored}, "heldout_mse_before": current_err, "kept": name}
+        if not err < current_err:
+            entry["kept"] = "nothing (rejected)"
+            result.rejected.append({**entry, "why": f"held-out multi-step MSE {current_err:.4g} → {err:.4g}: the "
+                                                    "fix does not help, the model is returned unchanged"})
+            result.rounds.append(entry)
+            break
+        path = path or save(best, k)
+        current, current_err, result.checkpoint = best, err, path
+        entry["checkpoint"] = path
+        entry["effects_after"] = [e.describe() for e in best.effects]
+        log(f"round {k}: diagnosing the fixed model")
+        diag_k, library_k = screen(best, train, params, seed)
+        j = judge(best, diag_k, library_k, train, test, params, seed)
+        entry["then"] = {"verdict": j.verdict, "named": [t.label for t in j.named]}
+        result.rounds.append(entry)
+        if j.verdict != EFFECTS_NAMED:
+            break
+    result.model = current
+    if current is not model:
+        result.after = holdout_metrics(current, test, horizons, params.vpt_threshold)
+        if result.after["n_diverged"]:
+            raise DivergenceError(f"the fixed model's held-out rollouts diverged on {result.after['n_diverged']} "
+                                  "trajectories; it is not handed back.")
+    return result
