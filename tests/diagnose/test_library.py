@@ -1,8 +1,10 @@
 import math
 
+import pytest
 import torch
 
 from mpsim.diagnose.library import build_library, delayed, dominant_frequency, refine_frequency
+from mpsim.data.trajectories import Trajectories
 from mpsim.systems import CoupledPendulums
 
 
@@ -35,3 +37,24 @@ def test_periodogram_and_refinement_find_the_drive_frequency():
     assert abs(w0 - omega) < 2 * math.pi / 3.0  # within a frequency bin of the 3 s record
     w = refine_frequency(r.mean(dim=(0, 2)), t, w0, 2 * math.pi / 3.0)
     assert abs(w - omega) / omega < 0.01
+
+
+def test_a_drive_with_a_phase_per_recording_is_found_by_the_incoherent_periodogram():
+    from mpsim.diagnose.library import PhasedDrive, incoherent_frequency, phased_columns
+
+    g = torch.Generator().manual_seed(0)
+    t_mid = torch.linspace(0.025, 9.975, 200, dtype=torch.float64)
+    phases = 2 * math.pi * torch.rand(24, generator=g, dtype=torch.float64)
+    r = 1.5 * torch.sin(3.1 * t_mid[None, :] + phases[:, None])[..., None].expand(24, 200, 2)
+    r = r + 0.3 * torch.randn(r.shape, generator=g, dtype=torch.float64)
+    assert incoherent_frequency(r, t_mid) == pytest.approx(3.1, rel=0.01)
+    # the phase-coherent periodogram of the average residual sees the drive cancel out
+    coherent, _, _ = dominant_frequency(r, t_mid)
+    assert abs(coherent - 3.1) > 0.05 or float(r.mean(dim=(0, 2)).std()) < 0.3
+    data = Trajectories(t=torch.linspace(0, 10, 11, dtype=torch.float64), x=torch.zeros(3, 11, 2, 1),
+                        edge_index=torch.zeros(2, 0, dtype=torch.long), meta={"state_names": ["v"]})
+    cols = phased_columns(data, 3.1)  # [B, T-1, N, 2B]: recording b's sin/cos only in its own rows
+    assert cols.shape == (3, 10, 2, 6) and float(cols[0, :, :, 2:].abs().max()) == 0.0
+    drive = PhasedDrive(1.5, 3.1, phases[:3].tolist(), target=0).bind(["v"])
+    out = drive.features(torch.tensor(1.0, dtype=torch.float64), torch.zeros(3, 2, 1, dtype=torch.float64), None)
+    assert torch.allclose(out[:, 0, 0], torch.sin(3.1 + phases[:3]))

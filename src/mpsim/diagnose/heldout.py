@@ -136,6 +136,7 @@ def judge(
 ) -> Judgement:
     """Test the screened candidates (strongest share of their row first) on held-out prediction; name the
     ones that pass, greedily, and return the verdict with the model that carries them."""
+    train = train.subset(slice(0, params.fit_trajectories))  # a handful of parameters: a few records suffice
     horizon = params.horizon or horizon_from_data(model, train, params.vpt_threshold)
     noise = torch.tensor(diag.noise_std, dtype=torch.float64)
     given = float(window_error(model, test, horizon).mean())
@@ -171,6 +172,9 @@ def judge(
         chosen = min(close, key=lambda t: (COMPLEXITY.get(t[2].kind, 1), t[2].error_after))
         trials.append(chosen[2])
         current, e_current = chosen[3], chosen[4]
+        if chosen[2].kind == "PeriodicForcing" and "phases" in chosen[2].effect:
+            e_current = torch.full_like(e_base, chosen[2].error_after)  # measured after the warm-up window
+            break  # its phases belong to the held-in recordings: nothing more is added on top of it
         # the others that passed alone are tried again on top of the chosen one
         pending = [(t[0], t[1]) for t in passing if t is not chosen]
     refit, final = float(e_base.mean()), float(e_current.mean())
@@ -201,7 +205,11 @@ def judge(
 def reported(effect, values: list[float], stderr: list[float]) -> tuple[dict[str, float], dict[str, tuple]]:
     """The parameters a report shows for a fitted effect, with 95 % intervals around exactly these values: the
     coefficient(s), or for a drive its amplitude, angular frequency and phase (delta method from a, b, log ω)."""
-    if type(effect).__name__ == "PeriodicForcing" and len(values) >= 3:
+    if type(effect).__name__ == "PhasedDrive":  # amplitude, log ω, then one phase per recording
+        amp, omega = values[0], math.exp(values[1])
+        vals = {"amplitude": amp, "omega": omega}
+        ses = {"amplitude": stderr[0], "omega": omega * stderr[1]}
+    elif type(effect).__name__ == "PeriodicForcing" and len(values) >= 3:
         a, b, log_w = values[:3]
         sa, sb, sw = stderr[:3]
         amp, omega = math.hypot(a, b), math.exp(log_w)
@@ -227,11 +235,43 @@ def _best_text(trials: list[Trial], refit: float, null: float) -> str:
             f"it would leave {max(left, 0):.0%} of the excess")
 
 
+def phased_heldout(current: Model, trial: Model, data: Trajectories, horizon: int, iters: int):
+    """([B] MSE without, [B] MSE with a per-recording drive, the model with it) on `data` after a warm-up window.
+
+    The drive's amplitude and frequency come from `trial` (fitted on held-in recordings); each recording's
+    phase is estimated from its first quarter (at most one horizon): a least-squares fit of the one-step
+    residual on sin ωt, cos ωt gives a start, multiple shooting over the warm-up window refines it. Both
+    errors are measured on the rest of the record only."""
+    from mpsim.diagnose.library import PhasedDrive
+    from mpsim.diagnose.residual import one_step_residual
+
+    drive = trial.effects[-1]
+    warm = max(2, min(horizon, (data.n_times - 1) // 4))
+    head, tail = data.time_slice(0, warm + 1), data.time_slice(warm, data.n_times)
+    res = one_step_residual(current, head)
+    r = res.r[..., drive.target].mean(dim=2).nan_to_num()  # [B, warm]
+    w = drive.omega
+    x = torch.stack([torch.sin(w * res.t_mid), torch.cos(w * res.t_mid)], dim=1)  # [warm, 2]
+    ab = torch.linalg.lstsq(x, r.T).solution  # [2, B]: A cos φ, A sin φ
+    phases = torch.atan2(ab[1], ab[0]).tolist()
+    amp = float(drive.coef.detach()[0])
+    test_drive = PhasedDrive(amp, w, phases, target=drive.target, learnable=True)
+    test_drive.bind(getattr(drive, "state_names", None) or [str(i) for i in range(data.state_dim)])
+    model = with_effect(current, test_drive)
+    shooting_fit(model, head, warm, [model.effects[-1].phases], iters)
+    return window_error(current, tail, horizon), window_error(model, tail, horizon), model
+
+
 def _trial(current, e_current, base, e_null, cand: Candidate, finding: Finding, train, test, null_train, null_test,
            horizon, params: DiagnoseParams, names) -> tuple[Trial, Model, torch.Tensor]:
-    effect = cand.make_effect(list(finding.coef), finding.target, names)
+    phased = bool(cand.params.get("phased"))
+    coef = list(finding.coef)[: 2 * len(train)] if phased else list(finding.coef)  # the fit's recordings only
+    effect = cand.make_effect(coef, finding.target, names)
     trial, fit = _fit_with(current, effect, train, horizon, params.shooting_iters)
-    e_after = window_error(trial, test, horizon)
+    if phased:  # phases belong to recordings: held-out ones get theirs from a warm-up window
+        e_current, e_after, _ = phased_heldout(current, trial, test, horizon, params.shooting_iters)
+    else:
+        e_after = window_error(trial, test, horizon)
     diff = (e_current - e_after)
     finite = torch.isfinite(diff)
     gain = float(diff[finite].mean()) if finite.any() else -math.inf
@@ -240,9 +280,13 @@ def _trial(current, e_current, base, e_null, cand: Candidate, finding: Finding, 
         noise = (null_train.x - null_train.x).new_zeros(null_train.state_dim)  # clean: the comparison is paired
         null_train, null_test = null_data(current, null_train, noise, 21), null_data(current, null_test, noise, 22)
         e_null = window_error(current, null_test, horizon)
-    null_trial, _ = _fit_with(current, cand.make_effect(list(finding.coef), finding.target, names), null_train,
+    null_trial, _ = _fit_with(current, cand.make_effect(coef, finding.target, names), null_train,
                               horizon, max(5, params.shooting_iters // 3))
-    null_gain = float((e_null - window_error(null_trial, null_test, horizon)).mean())
+    if phased:
+        before, after, _ = phased_heldout(current, null_trial, null_test, horizon, max(5, params.shooting_iters // 3))
+        null_gain = float((before - after).mean())
+    else:
+        null_gain = float((e_null - window_error(null_trial, null_test, horizon)).mean())
     fitted = trial.effects[-1]
     k = len(fit.values) - sum(p.numel() for p in own_parameters(trial))
     values, interval = reported(fitted, fit.values[:k], fit.stderr[:k])

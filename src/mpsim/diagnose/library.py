@@ -46,7 +46,7 @@ class Candidate:
         src = "" if self.source is None else state_names[self.source]
         extra = ""
         if "omega" in self.params:
-            extra = f"ω={self.params['omega']:.4g}"
+            extra = f"ω={self.params['omega']:.4g}" + (", a phase per recording" if self.params.get("phased") else "")
         if "delay" in self.params:
             extra = f"τ={self.params['delay']:.4g}"
         inside = ", ".join(p for p in (src, extra) if p)
@@ -56,6 +56,11 @@ class Candidate:
     def effect_config(self, coef: list[float], target: int, state_names: list[str]) -> dict[str, Any]:
         """The Hydra config of this effect with fitted coefficients (for `model.effects`)."""
         cfg: dict[str, Any] = {"_target_": f"mpsim.effects.{self.kind}", "target": state_names[target]}
+        if self.params.get("phased"):  # one (a, b) pair per recording: a shared amplitude, a phase each
+            pairs = torch.tensor(coef, dtype=torch.float64).reshape(-1, 2)
+            return {"_target_": "mpsim.diagnose.library.PhasedDrive", "target": state_names[target],
+                    "amplitude": float(pairs.norm(dim=1).mean()), "omega": self.params["omega"],
+                    "phases": torch.atan2(pairs[:, 1], pairs[:, 0]).tolist()}
         if self.kind == "PeriodicForcing":
             a, b = coef
             cfg.update(amplitude=math.hypot(a, b), phase=math.atan2(b, a), omega=self.params["omega"])
@@ -71,9 +76,109 @@ class Candidate:
     def make_effect(self, coef: list[float], target: int, state_names: list[str]) -> fx.Effect:
         """The effect object with fitted coefficients, bound to the data's state names."""
         cfg = self.effect_config(coef, target, state_names)
-        effect = getattr(fx, self.kind)(**{k: v for k, v in cfg.items() if k != "_target_"})
+        cls = PhasedDrive if self.params.get("phased") else getattr(fx, self.kind)
+        effect = cls(**{k: v for k, v in cfg.items() if k != "_target_"})
         effect.bind(state_names)
         return effect
+
+
+class PhasedDrive(fx.Effect):
+    """A·sin(ω t + φ_b): a drive with one amplitude and frequency but its own phase in every recording b.
+
+    Recordings start at arbitrary times, so a real drive rarely shares its phase across them. The phase belongs
+    to the recording, not to the model: rollouts must batch the recordings in the order of `phases` (the
+    residual loop fits the phases of held-in records, and estimates those of held-out records from a warm-up
+    window). It is a diagnosis term, not an effect a model can carry to new data.
+
+    Args:
+        amplitude, omega: A and ω (rad per unit time), shared.
+        phases: φ_b, one per recording.
+        target: the driven state variable.
+    """
+
+    basis = ("sin(wt+phi_b)",)
+
+    def __init__(
+        self,
+        amplitude: float = 0.0,
+        omega: float = 1.0,
+        phases: list[float] | None = None,
+        target: str | int = 0,
+        source: str | int | None = None,
+        learnable: bool = True,
+    ) -> None:
+        super().__init__(amplitude, target, source, learnable)
+        self.log_omega = torch.nn.Parameter(torch.tensor(math.log(omega), dtype=torch.float64), requires_grad=learnable)
+        self.phases = torch.nn.Parameter(torch.tensor(list(phases or [0.0]), dtype=torch.float64),
+                                         requires_grad=learnable)
+
+    @property
+    def omega(self) -> float:
+        return float(self.log_omega.detach().exp())
+
+    def features(self, t, x, ctx):
+        b = x.shape[0]
+        if self.phases.numel() != b:
+            raise ValueError(f"PhasedDrive has {self.phases.numel()} phases but the batch has {b} recordings.")
+        tt = torch.broadcast_to(torch.as_tensor(t).to(x), x.shape[:-1])  # [B, N]
+        return torch.sin(self.log_omega.exp().to(x) * tt + self.phases.to(x)[:, None])[..., None]
+
+    def _formula(self, s):
+        return f"{float(self.coef.detach()[0]):.4g}·sin({self.omega:.4g}·t + φ_recording)"
+
+    def config(self) -> dict[str, Any]:
+        cfg = super().config()
+        del cfg["source"]
+        amp = cfg.pop("coef")
+        return {**cfg, "amplitude": amp, "omega": self.omega, "phases": [float(p) for p in self.phases.detach()]}
+
+
+def incoherent_frequency(
+    r: torch.Tensor,  # [B, T−1, N] residual of one state variable
+    t_mid: torch.Tensor,  # [T−1] step midpoints
+    pad: int = 16,
+) -> float:
+    """Angular frequency of the peak of the *mean per-recording* periodogram: a drive whose phase differs
+    between recordings cancels in the average residual but not in the average of the recordings' powers."""
+    signal = r.double().mean(dim=2)
+    signal = signal - signal.mean(dim=1, keepdim=True)
+    n = signal.shape[1]
+    dt = float((t_mid[-1] - t_mid[0]) / max(n - 1, 1))
+    window = torch.hann_window(n, periodic=False, dtype=torch.float64)
+    power = torch.fft.rfft(signal * window, n=pad * n, dim=1).abs().pow(2).mean(dim=0)
+    freqs = 2 * math.pi * torch.fft.rfftfreq(pad * n, d=dt, dtype=torch.float64)
+    lowest = 2 * pad
+    omega0 = float(freqs[lowest + int(torch.argmax(power[lowest:]))])
+    span = 2 * math.pi / float(t_mid[-1] - t_mid[0])
+
+    def rss(omega: float) -> float:  # sin, cos and an offset per recording, one ω for all
+        x = torch.stack([torch.sin(omega * t_mid), torch.cos(omega * t_mid), torch.ones_like(t_mid)], dim=1)
+        sol = torch.linalg.lstsq(x, signal.T).solution
+        return float((signal.T - x @ sol).pow(2).sum())
+
+    grid = torch.linspace(max(omega0 - span, 1e-6), omega0 + span, 81, dtype=torch.float64)
+    values = torch.tensor([rss(float(w)) for w in grid])  # 81 small fits
+    k = int(torch.argmin(values))
+    lo, hi = float(grid[max(k - 1, 0)]), float(grid[min(k + 1, len(grid) - 1)])
+    for _ in range(30):  # ternary search on the bracket
+        a, b = lo + (hi - lo) / 3, hi - (hi - lo) / 3
+        if rss(a) < rss(b):
+            hi = b
+        else:
+            lo = a
+    return 0.5 * (lo + hi)
+
+
+def phased_columns(data: Trajectories, omega: float) -> torch.Tensor:
+    """[B, T−1, N, 2B] step-averaged sin ωt and cos ωt in the two columns of recording b, zero elsewhere."""
+    b, n_t, n, _ = data.x.shape
+    t = data.t.double()
+    waves = torch.stack([torch.sin(omega * t), torch.cos(omega * t)], dim=-1)  # [T, 2]
+    cols = torch.zeros(b, n_t, n, 2 * b, dtype=torch.float64)
+    idx = torch.arange(b)
+    cols[idx, :, :, 2 * idx] = waves[None, :, None, 0].expand(b, n_t, n)
+    cols[idx, :, :, 2 * idx + 1] = waves[None, :, None, 1].expand(b, n_t, n)
+    return _step_average(cols)
 
 
 def _step_average(values: torch.Tensor) -> torch.Tensor:  # values: [B, T, N, K]
@@ -105,6 +210,7 @@ def build_library(
     omegas: dict[int, float] | None = None,
     delays: list[float] | None = None,
     kinds: tuple[str, ...] = DEFAULT_KINDS,
+    phased: dict[int, float] | None = None,
 ) -> list[Candidate]:
     """Evaluate every candidate's basis on `data`.
 
@@ -112,6 +218,8 @@ def build_library(
         data: the observed trajectories (uniform time grid for delays).
         omegas: {target index: angular frequency} of forcing candidates (from the residual periodogram);
             one forcing candidate per distinct frequency.
+        phased: {target index: angular frequency} of drives with a phase per recording (from the mean
+            per-recording periodogram); one candidate per distinct frequency.
         delays: delays of the feedback candidates (multiples of the sampling step).
         kinds: effect class names to include.
     """
@@ -129,6 +237,9 @@ def build_library(
             for omega in sorted(set((omegas or {}).values())):
                 effect = cls(0.0, omega=omega, target=0).bind(data.state_names)
                 out.append(Candidate(kind, None, {"omega": omega}, _step_average(evaluate_effect(effect, data))))
+            if len(data) > 1:
+                for omega in sorted(set((phased or {}).values())):
+                    out.append(Candidate(kind, None, {"omega": omega, "phased": True}, phased_columns(data, omega)))
         elif kind == "DryFriction":
             spread = data.x.double().reshape(-1, d).std(0)
             for s in range(d):

@@ -25,6 +25,7 @@ from mpsim.diagnose.library import (
     delayed,
     dominant_frequency,
     evaluate_effect,
+    incoherent_frequency,
     refine_frequency,
 )
 from mpsim.diagnose.residual import Residual, one_step_residual
@@ -73,6 +74,7 @@ class Diagnosis:
     represented: list[str] = field(default_factory=list)  # effect kinds the model can express itself
     not_considered: list[str] = field(default_factory=list)  # kinds that cannot be told apart from model error
     searched: list[str] = field(default_factory=list)  # state rows searched (the dynamic rows by default)
+    phased_omegas: dict[int, float] = field(default_factory=dict)  # drive frequencies with a phase per recording
 
     @property
     def accepted(self) -> list[Finding]:
@@ -152,6 +154,15 @@ def _forcing_omegas(res: Residual, data: Trajectories) -> tuple[dict[int, float]
         else:
             kept.append(omegas[d])
     return omegas, spectra
+
+
+def _phased_omegas(res: Residual, data: Trajectories, targets: list[int] | None) -> dict[int, float]:
+    """Per searched state variable, the frequency of a drive whose phase may differ between recordings."""
+    finite = torch.isfinite(res.r).flatten(1).all(dim=1)
+    rows = range(data.state_dim) if targets is None else targets
+    if int(finite.sum()) < 2:
+        return {}
+    return {d: incoherent_frequency(res.r[finite, :, :, d], res.t_mid) for d in rows}
 
 
 def _project(y: torch.Tensor, groups: list[torch.Tensor], base: torch.Tensor | None):
@@ -292,13 +303,14 @@ def find_effects(
     res = one_step_residual(model, data)
     keep = torch.isfinite(res.r).flatten(1).all(dim=1)
     omegas, spectra = _forcing_omegas(res, data) if "PeriodicForcing" in kinds else ({}, {})
+    phased = _phased_omegas(res, data, targets) if "PeriodicForcing" in kinds else {}
     represented = tuple(k for k in kinds if k in model.represents)
     undecidable = tuple(k for k in kinds if k in model.indistinguishable)
     kinds = tuple(k for k in kinds if k not in represented and k not in undecidable)
-    library = build_library(data, omegas, delays, kinds)
+    library = build_library(data, omegas, delays, kinds, phased)
     base, n_shared = nuisance_columns(model, data, represented)
     noise = noise_level(data.x, res.r * res.dt[None, :, None, None])
-    null_rms, null_level = _null_check(model, data, omegas, delays, kinds, represented, noise, seed)
+    null_rms, null_level = _null_check(model, data, omegas, delays, kinds, represented, noise, seed, phased)
     names = data.state_names
     findings: list[Finding] = []
     explained: dict[str, list[float]] = {c.label(names): [0.0] * data.state_dim for c in library}
@@ -336,7 +348,7 @@ def find_effects(
             ))
     diag = Diagnosis(findings, list(names), residual_rms, null_rms, null_level, explained, omegas,
                      [float(v) for v in noise], res, spectra, represented=list(represented),
-                     not_considered=list(undecidable), searched=[names[d] for d in searched])
+                     not_considered=list(undecidable), searched=[names[d] for d in searched], phased_omegas=phased)
     while diag.accepted and not _joint_refit(diag, library, res, keep, base, n_shared, model):
         pass  # an effect whose coefficient was not stable was dropped: refit the others
     while diag.accepted and not _confirm_by_integration(diag, library, model, data, base, min_gain):
@@ -464,7 +476,7 @@ def _joint_refit(diag: Diagnosis, library: list[Candidate], res: Residual, keep:
     return True
 
 
-def _null_check(model, data, omegas, delays, kinds, represented, sigma, seed) -> tuple[list[float], list[float]]:
+def _null_check(model, data, omegas, delays, kinds, represented, sigma, seed, phased=None):
     """Run the pipeline on data simulated from the model itself plus the estimated measurement noise.
 
     Returns:
@@ -477,7 +489,7 @@ def _null_check(model, data, omegas, delays, kinds, represented, sigma, seed) ->
                         node_features=data.node_features, meta=data.meta)
     res = one_step_residual(model, null)
     keep = torch.isfinite(res.r).flatten(1).all(dim=1)
-    library = build_library(null, omegas, delays, kinds)
+    library = build_library(null, omegas, delays, kinds, phased)
     base, _ = nuisance_columns(model, null, represented)
     rms, level = [], []
     for d in range(data.state_dim):

@@ -30,6 +30,8 @@ class DiagnoseParams:
         structured_factor, tolerance: the residual is at the null level ("nothing missing") when the held-out
             multi-step MSE is ≤ structured_factor × its value on null data, or its RMSE ≤ tolerance (normalised).
         shooting_iters: L-BFGS iterations of each multiple-shooting fit.
+        fit_trajectories: held-in trajectories the multiple-shooting fits use (the first this many; more cost
+            time roughly in proportion, and a handful of parameters needs few).
         horizon: steps of the shooting and evaluation windows (null: from the data — the model's own
             valid prediction time on held-in data, the whole record when it never loses track).
         vpt_threshold: valid prediction time: until the normalised rollout error exceeds this.
@@ -51,6 +53,7 @@ class DiagnoseParams:
     structured_factor: float = 2.0
     tolerance: float = 1.0e-3
     shooting_iters: int = 25
+    fit_trajectories: int = 16
     horizon: int | None = None
     vpt_threshold: float = 0.3
     fix_lr_factor: float = 0.1

@@ -70,36 +70,43 @@ def _base_cols(base: torch.Tensor | None, y: torch.Tensor) -> torch.Tensor:
     return y.new_zeros(y.numel(), 0) if base is None else base
 
 
-def stepwise_bic(
-    y: torch.Tensor,  # [n] residual samples
-    groups: list[torch.Tensor],  # each [n, k_g] basis columns of one candidate
-    max_terms: int = 6,
-    base: torch.Tensor | None = None,  # [n, q] columns always in the fit (never selected or named)
+def _gram_fit(gram: torch.Tensor, xty: torch.Tensor, yty: float, cols: list[int]) -> tuple[torch.Tensor, float]:
+    """(coefficients, RSS) of the least-squares fit on columns `cols`, from the Gram matrix XᵀX [P, P], Xᵀy [P]
+    and yᵀy: a small rank-revealing solve on scaled columns, whatever the number of rows."""
+    if not cols:
+        return gram.new_zeros(0), yty
+    idx = torch.as_tensor(cols)
+    g, c = gram[idx][:, idx], xty[idx]
+    scale = g.diagonal().clamp(min=1e-300).sqrt()
+    sol = torch.linalg.lstsq(g / scale[:, None] / scale[None, :], (c / scale)[:, None], driver="gelsd").solution[:, 0]
+    sol = sol / scale
+    return sol, max(float(yty - 2 * sol @ c + sol @ g @ sol), 0.0)
+
+
+def _stepwise_gram(
+    gram: torch.Tensor, xty: torch.Tensor, yty: float, n: int, spans: list[list[int]], base: list[int], max_terms: int
 ) -> Selection:
-    """Forward stepwise selection: add the group that lowers the residual sum of squares most while the
-    BIC = n·log(RSS/n) + p·log(n) keeps decreasing."""
-    n = y.numel()
-    base = _base_cols(base, y)
-    _, total = _lstsq(base, y)
+    """Forward stepwise BIC selection on precomputed normal equations (`spans`: each group's column indices)."""
+    _, total = _gram_fit(gram, xty, yty, base)
     if total <= 0 or n == 0:
         return Selection([], {}, {}, 0.0, [], max(total, 0.0))
     chosen: list[int] = []
     rss = total
-    bic = n * math.log(rss / n) + base.shape[1] * math.log(n)
+    bic = n * math.log(rss / n) + len(base) * math.log(n)
     path, gains = [bic], {}
     while len(chosen) < max_terms:
         best = None
-        for g in range(len(groups)):
+        for g in range(len(spans)):
             if g in chosen:
                 continue
-            x = torch.cat([base, *[groups[i] for i in [*chosen, g]]], dim=1)
-            _, r = _lstsq(x, y)
+            cols = base + [c for i in [*chosen, g] for c in spans[i]]
+            _, r = _gram_fit(gram, xty, yty, cols)
             if best is None or r < best[1]:
                 best = (g, r)
         if best is None:
             break
         g, r = best
-        p = base.shape[1] + sum(groups[i].shape[1] for i in [*chosen, g])
+        p = len(base) + sum(len(spans[i]) for i in [*chosen, g])
         new_bic = n * math.log(max(r, 1e-300) / n) + p * math.log(n)
         if new_bic >= bic:
             break
@@ -109,13 +116,38 @@ def stepwise_bic(
         path.append(bic)
     coef: dict[int, list[float]] = {}
     if chosen:
-        sol, rss = _lstsq(torch.cat([base, *[groups[i] for i in chosen]], dim=1), y)
-        at = base.shape[1]
+        sol, rss = _gram_fit(gram, xty, yty, base + [c for i in chosen for c in spans[i]])
+        at = len(base)
         for g in chosen:
-            k = groups[g].shape[1]
+            k = len(spans[g])
             coef[g] = [float(v) for v in sol[at : at + k]]
             at += k
     return Selection(chosen, coef, gains, 1 - rss / total, path, total)
+
+
+def _design(groups: list[torch.Tensor], base: torch.Tensor | None) -> tuple[torch.Tensor, list[list[int]], list[int]]:
+    """(all columns side by side, each group's column indices, the base's column indices)."""
+    parts = ([] if base is None else [base]) + list(groups)
+    q = 0 if base is None else base.shape[-1]
+    spans, at = [], q
+    for g in groups:
+        spans.append(list(range(at, at + g.shape[-1])))
+        at += g.shape[-1]
+    return torch.cat(parts, dim=-1), spans, list(range(q))
+
+
+def stepwise_bic(
+    y: torch.Tensor,  # [n] residual samples
+    groups: list[torch.Tensor],  # each [n, k_g] basis columns of one candidate
+    max_terms: int = 6,
+    base: torch.Tensor | None = None,  # [n, q] columns always in the fit (never selected or named)
+) -> Selection:
+    """Forward stepwise selection: add the group that lowers the residual sum of squares most while the
+    BIC = n·log(RSS/n) + p·log(n) keeps decreasing. The fits run on the normal equations (one pass over the
+    rows), so the cost does not grow with the number of samples per step."""
+    x, spans, base_cols = _design(groups, base)
+    gram, xty, yty = x.T @ x, x.T @ y, float(y @ y)
+    return _stepwise_gram(gram, xty, yty, y.numel(), spans, base_cols, max_terms)
 
 
 def explained_alone(y: torch.Tensor, groups: list[torch.Tensor], base: torch.Tensor | None = None) -> list[float]:
@@ -139,22 +171,25 @@ def bootstrap(
     Returns:
         ({group: inclusion frequency}, {selected group: [(2.5 %, 97.5 %) interval per coefficient]}).
     """
-    b = y.shape[0]
+    b, m = y.shape[0], y.shape[1]
     gen = torch.Generator().manual_seed(seed)
     counts = [0] * len(groups)
     draws: dict[int, list[list[float]]] = {g: [] for g in selected}
+    x, spans, base_cols = _design(list(groups), base)  # [B, m, P]
+    grams = torch.einsum("bmp,bmq->bpq", x, x)  # per-trajectory normal equations: a resample is a weighted sum
+    xtys = torch.einsum("bmp,bm->bp", x, y)
+    ytys = y.pow(2).sum(dim=1)
+    chosen_cols = base_cols + [c for g in selected for c in spans[g]]
     for _ in range(n_boot):  # resamples, not a loop over data elements
-        idx = torch.randint(0, b, (b,), generator=gen)
-        yb = y[idx].reshape(-1)
-        gb = [g[idx].reshape(yb.numel(), -1) for g in groups]
-        bb = None if base is None else base[idx].reshape(yb.numel(), -1)
-        for g in stepwise_bic(yb, gb, max_terms, bb).groups:
+        w = torch.bincount(torch.randint(0, b, (b,), generator=gen), minlength=b).to(x.dtype)  # multiplicities
+        gram, xty, yty = torch.einsum("b,bpq->pq", w, grams), w @ xtys, float(w @ ytys)
+        for g in _stepwise_gram(gram, xty, yty, b * m, spans, base_cols, max_terms).groups:
             counts[g] += 1
         if selected:
-            sol, _ = _lstsq(torch.cat([_base_cols(bb, yb), *[gb[g] for g in selected]], dim=1), yb)
-            at = 0 if bb is None else bb.shape[1]
+            sol, _ = _gram_fit(gram, xty, yty, chosen_cols)
+            at = len(base_cols)
             for g in selected:
-                k = groups[g].shape[-1]
+                k = len(spans[g])
                 draws[g].append([float(v) for v in sol[at : at + k]])
                 at += k
     freq = {g: counts[g] / n_boot for g in range(len(groups))}

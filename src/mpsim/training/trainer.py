@@ -321,17 +321,22 @@ class Trainer:
 
     def _closure(self, loss, batch, t, loss_fn, weight, opt):
         """LBFGS re-evaluates the loss along its line search; its first call reuses the loss (and gradient)
-        just computed."""
+        just computed. Under several processes it returns the global batch loss (the weighted sum over ranks),
+        so every rank's line search takes the same step."""
         first = [True]
+
+        def global_loss(value: torch.Tensor) -> torch.Tensor:
+            (total,) = self._dist.all_sum([float(value.detach()) * weight])
+            return value.new_tensor(total).detach()
 
         def closure() -> torch.Tensor:
             if first[0]:
                 first[0] = False
-                return loss.detach()
+                return global_loss(loss)
             opt.zero_grad(set_to_none=True)
             value, _ = self._loss_step(batch, t, loss_fn, self.huber_delta)
             (value if weight == 1.0 else value * weight).backward()
-            return value.detach()
+            return global_loss(value)
 
         return closure
 
