@@ -119,19 +119,21 @@ def test_cli_discovery_diagnosis_and_rediscovery(tmp_path):
     before = json.loads((tmp_path / "d2" / "diagnosis.json").read_text())
     # the cubic term on x and nothing else: the y-residual echoes of what the degree-2 x equation absorbed are
     # refuted once the loop's trial model carries the refit of the model's own coefficients
-    (found,) = before["effects_found"]
+    assert before["verdict"] == "effects named"
+    (found,) = before["effects_named"]
     assert found["label"] == "dx/dt: CubicStiffness(x)"
-    assert found["coef"][0] == pytest.approx(C_TRUE, rel=0.05)
+    assert found["values"]["coef"] == pytest.approx(C_TRUE, rel=0.05)
 
     run_cli(["train", *common, "model.extra_terms=[x**3]", "system.name=lorenz1_cubic_x3",
              f"hydra.run.dir={tmp_path}/x3"], tmp_path, timeout=1200, check=True)
     coefs = json.loads((tmp_path / "x3" / "summary.json").read_text())["model"]["coefficients"]
     for (eq, term), value in {**LORENZ, ("x", "x^3"): -C_TRUE}.items():
         assert coefs[eq][term] == pytest.approx(value, rel=0.02), (eq, term, coefs[eq])
-    run_cli(["diagnose", *common, "init=lorenz1_cubic_x3.ckpt", "diagnose.n_boot=30", f"hydra.run.dir={tmp_path}/d3"],
-            tmp_path, timeout=1200, check=True)
+    proc = run_cli(["diagnose", *common, "init=lorenz1_cubic_x3.ckpt", "diagnose.n_boot=30",
+                    f"hydra.run.dir={tmp_path}/d3"], tmp_path, timeout=1200)
+    assert proc.returncode == 10, proc.stderr  # nothing missing
     after = json.loads((tmp_path / "d3" / "diagnosis.json").read_text())
-    assert after["verdict"] == "no effect found"
-    rms_before, rms_after = before["diagnosis"]["residual_rms"], after["diagnosis"]["residual_rms"]
+    assert after["verdict"] == "nothing missing"
+    rms_before, rms_after = before["screen"]["residual_rms"], after["screen"]["residual_rms"]
     assert rms_after[0] ** 2 < 1e-4 * rms_before[0] ** 2  # residual variance of x on the held-in data
     assert after["before"]["one_step_rmse"] < 0.01 * before["before"]["one_step_rmse"]  # held-out

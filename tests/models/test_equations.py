@@ -151,3 +151,20 @@ def test_command_line_round_trip_keeps_the_spec_in_the_checkpoint(cfg_factory, t
                                "data.n_test=2", "data.horizon=30", "eval.horizons=[1,10]", "eval.plots=false"),
                    output_dir=tmp_path / "eval")
     assert out["test"]["rmse"] < 1e-2
+
+
+def test_batched_one_step_equals_step_by_step_with_time_and_effects():
+    from mpsim.effects import PeriodicForcing
+    from mpsim.models.base import Model
+
+    spec = {"states": ["x", "v"], "equations": {"x": "v", "v": "-k*x + 0.3*sin(2*t) + c*sum_nbr(x_j - x)"},
+            "params": {"k": 2.0, "c": 0.5}}
+    model = EquationsModel(2, spec=spec, effects=[PeriodicForcing(0.5, 3.0, 0.2, target=1)],
+                           solver=ODESolver("dopri5", rtol=1e-10, atol=1e-12)).double()
+    model.bind_effects(["x", "v"])
+    x = torch.randn(3, 12, 4, 2, dtype=torch.float64)
+    t = torch.arange(12, dtype=torch.float64) * 0.1 + 0.7  # absolute times: the drive's phase must follow them
+    ei = torch.tensor([[0, 1, 2, 3, 1, 2], [1, 2, 3, 0, 0, 1]])
+    batched, stepwise = model.one_step(x, t, ei), Model.one_step(model, x, t, ei)
+    assert batched.shape == (3, 11, 4, 2)
+    assert torch.allclose(batched, stepwise, atol=1e-8)

@@ -264,6 +264,8 @@ def phased_heldout(current: Model, trial: Model, data: Trajectories, horizon: in
 
 def _trial(current, e_current, base, e_null, cand: Candidate, finding: Finding, train, test, null_train, null_test,
            horizon, params: DiagnoseParams, names) -> tuple[Trial, Model, torch.Tensor]:
+    # the error the given model (own parameters refit) had above the null level: what effects may explain
+    excess = max(float(window_error(base, test, horizon).mean()) - float(e_null.mean()), 0.0)
     phased = bool(cand.params.get("phased"))
     coef = list(finding.coef)[: 2 * len(train)] if phased else list(finding.coef)  # the fit's recordings only
     effect = cand.make_effect(coef, finding.target, names)
@@ -295,6 +297,9 @@ def _trial(current, e_current, base, e_null, cand: Candidate, finding: Finding, 
         (gain > max(null_gain, 0.0) + params.margin * se,
          f"held-out MSE gain {gain:.3g} ± {se:.2g} is not above the null fit's gain {max(null_gain, 0):.3g} + "
          f"{params.margin:g} standard errors"),
+        (gain >= params.min_gain * excess,
+         f"removes {gain / max(excess, 1e-300):.1%} of the held-out error the model had above the null level, below "
+         f"{params.min_gain:.0%}: too small to be an effect (an integrator artefact or a detail of another term)"),
     ]
     failed = [why for ok, why in checks if not ok]
     reason = "; ".join(failed) if failed else (f"lowers the held-out MSE {float(e_current.mean()):.3g} → "

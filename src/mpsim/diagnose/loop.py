@@ -174,6 +174,10 @@ def _project(y: torch.Tensor, groups: list[torch.Tensor], base: torch.Tensor | N
     return flat[0].reshape(y.shape), [f.reshape(g.shape) for f, g in zip(flat[1:], groups, strict=True)]
 
 
+#: groups rerun in each bootstrap resample: the selected ones plus this many of the strongest others
+BOOT_GROUPS = 8
+
+
 def _fit_target(y: torch.Tensor, groups: list[torch.Tensor], base: torch.Tensor | None, n_boot: int, seed: int):
     """Selection, explained shares and bootstrap on the residual left after the nuisance fit (the bootstrap
     resamples trajectories of the projected data: the nuisance fit itself is not redone per resample)."""
@@ -185,8 +189,13 @@ def _fit_target(y: torch.Tensor, groups: list[torch.Tensor], base: torch.Tensor 
     if base is not None:  # the nuisance columns count as parameters of every model in the BIC
         sel.bic_path = [v + base.shape[-1] * math.log(flat_y.numel()) for v in sel.bic_path]
     alone = explained_alone(flat_y, flat_g)
-    freq, intervals = bootstrap(y.reshape(b, -1), [g.reshape(b, -1, g.shape[-1]) for g in groups], sel.groups,
-                                n_boot, seed)
+    # the bootstrap reruns the selection among the selected groups and the strongest others (a group that
+    # explains little alone and was not selected is not selected in resamples either)
+    keep = sorted(set(sel.groups) | set(sorted(range(len(groups)), key=lambda g: -alone[g])[:BOOT_GROUPS]))
+    sub_freq, sub_int = bootstrap(y.reshape(b, -1), [groups[g].reshape(b, -1, groups[g].shape[-1]) for g in keep],
+                                  [keep.index(g) for g in sel.groups], n_boot, seed)
+    freq = {g: 0.0 for g in range(len(groups))} | {keep[i]: v for i, v in sub_freq.items()}
+    intervals = {keep[i]: v for i, v in sub_int.items()}
     return sel, alone, freq, intervals
 
 
