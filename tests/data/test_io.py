@@ -170,3 +170,14 @@ def test_values_beyond_the_model_precision_are_reported_as_overflow(tmp_path):
     with pytest.raises(DataError, match="overflow float64 when squared"):
         check_representable(data, "float64", "a.npz")
     check_representable(load_trajectories(_npz(tmp_path, x=np.full((2, 3, 2, 1), 1e30))), "float32", "a.npz")
+
+
+def test_one_node_csv_needs_no_edge_list(tmp_path):
+    rows = [{"traj": r, "t": 0.1 * k, "node": 0, "theta": 0.1 * k + r, "omega": 1.0} for r in range(2) for k in range(5)]
+    pd.DataFrame(rows).to_csv(tmp_path / "one.csv", index=False)
+    data = load_trajectories(tmp_path / "one.csv")
+    assert data.x.shape == (2, 5, 1, 2) and data.edge_index.shape == (2, 0)
+    rows = [{**r, "node": n} for r in rows for n in (0, 1)]  # two nodes and no edge list: still refused
+    pd.DataFrame(rows).to_csv(tmp_path / "two.csv", index=False)
+    with pytest.raises(DataError, match="no graph"):
+        load_trajectories(tmp_path / "two.csv")
