@@ -99,7 +99,7 @@ def test_sensitivities_match_finite_differences_and_shifts_apply():
     now = {k: v.detach() for k, v in now.items()}
     assert float(now["k"]) == pytest.approx(1.25) and now["c"].tolist() == pytest.approx([0.5, 0.5, 1.5])
     model.shift_parameters({"c[0]": -1.0})  # would make a positive constant negative: not applied
-    assert float(model.parameters_now()["c"][0]) == pytest.approx(0.5)
+    assert float(model.parameters_now()["c"][0].detach()) == pytest.approx(0.5)
 
 
 def test_learnable_effects_train_beside_the_spec(tmp_path):

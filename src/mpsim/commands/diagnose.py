@@ -133,10 +133,10 @@ def _summary(cfg, ckpt, splits, result: LoopResult, truths) -> dict[str, Any]:
         fixed = [{"effect": e.config(), "describe": e.describe(), "vs_truth": _compare(e.config(), truths)}
                  for e in result.model.effects]
     verdict = result.verdict
+    verdict_note = ""
     if cfg.fix and verdict == EFFECTS_NAMED and result.after is None:
-        verdict_note = "named, but every fix was rejected on held-out data (the model is returned unchanged)"
-    else:
-        verdict_note = ""
+        verdict_note = (result.rejected[0]["why"] if result.rejected else "no fix was kept") + \
+            "; the model is returned unchanged"
     return {
         "task": "diagnose",
         "init": ckpt["path"],

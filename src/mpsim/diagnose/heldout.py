@@ -141,7 +141,7 @@ def judge(
     noise = torch.tensor(diag.noise_std, dtype=torch.float64)
     given = float(window_error(model, test, horizon).mean())
     base = copy.deepcopy(model)
-    shooting_fit(base, train, horizon, own_parameters(base), params.shooting_iters)
+    shooting_fit(base, train, min(horizon, params.fit_window), own_parameters(base), params.shooting_iters)
     e_base = window_error(base, test, horizon)
     if not float(e_base.mean()) <= given:  # the refit never makes the starting point worse
         base, e_base = copy.deepcopy(model), window_error(model, test, horizon)
@@ -156,15 +156,25 @@ def judge(
     # the screen ranks (BIC-selected, screened ones first, then by share of their row); held-out data decide.
     # Each candidate is first tried alone on the refit model; the best passing one (the simplest kind among
     # those as good within their standard errors) is added, and the rest are tried again on top of it.
-    queue = sorted(diag.findings, key=lambda f: (not f.accepted, -f.gain))[: params.max_candidates]
-    queue = [(f, labels[f.label.split(": ", 1)[1]]) for f in queue if f.label.split(": ", 1)[1] in labels]
+    ranked = [f for f in sorted(diag.findings, key=lambda f: (not f.accepted, -f.gain))
+              if f.label.split(": ", 1)[1] in labels]
+    # a delayed copy of a state imitates many terms within a step and needs the slow delay integrator: delayed
+    # candidates are tried only when none of the others passes
+    plain = [f for f in ranked if f.kind != "DelayedFeedback"][: params.max_candidates]
+    delayed = [f for f in ranked if f.kind == "DelayedFeedback"][: params.max_candidates]
     current, e_current, trials = base, e_base, []
-    pending = queue
+    pending = [(f, labels[f.label.split(": ", 1)[1]]) for f in plain]
+    later = [(f, labels[f.label.split(": ", 1)[1]]) for f in delayed]
+    if not pending:
+        pending, later = later, []
     while pending:
         tried = [(f, c, *_trial(current, e_current, base, e_null, c, f, train, test, null_train, null_test,
                                 horizon, params, diag.state_names)) for f, c in pending]
         passing = [t for t in tried if t[2].accepted]
         trials += [t[2] for t in tried if not t[2].accepted]
+        if not passing and later and current is base:
+            pending, later = later, []
+            continue
         if not passing:
             break
         best_err = min(t[2].error_after for t in passing)
@@ -235,6 +245,16 @@ def _best_text(trials: list[Trial], refit: float, null: float) -> str:
             f"it would leave {max(left, 0):.0%} of the excess")
 
 
+def _log_ratio(before: torch.Tensor, after: torch.Tensor, floor: float) -> tuple[float, float]:
+    """(mean, standard error) over recordings of log((before + floor) / (after + floor)); −inf if none finite."""
+    ratio = torch.log((before + floor) / (after + floor))
+    ratio = ratio[torch.isfinite(ratio)]
+    if ratio.numel() == 0:
+        return -math.inf, math.inf
+    se = float(ratio.std() / math.sqrt(ratio.numel())) if ratio.numel() > 1 else math.inf
+    return float(ratio.mean()), se
+
+
 def phased_heldout(current: Model, trial: Model, data: Trajectories, horizon: int, iters: int):
     """([B] MSE without, [B] MSE with a per-recording drive, the model with it) on `data` after a warm-up window.
 
@@ -269,7 +289,8 @@ def _trial(current, e_current, base, e_null, cand: Candidate, finding: Finding, 
     phased = bool(cand.params.get("phased"))
     coef = list(finding.coef)[: 2 * len(train)] if phased else list(finding.coef)  # the fit's recordings only
     effect = cand.make_effect(coef, finding.target, names)
-    trial, fit = _fit_with(current, effect, train, horizon, params.shooting_iters)
+    fit_len = min(horizon, params.fit_window)
+    trial, fit = _fit_with(current, effect, train, fit_len, params.shooting_iters)
     if phased:  # phases belong to recordings: held-out ones get theirs from a warm-up window
         e_current, e_after, _ = phased_heldout(current, trial, test, horizon, params.shooting_iters)
     else:
@@ -278,25 +299,32 @@ def _trial(current, e_current, base, e_null, cand: Candidate, finding: Finding, 
     finite = torch.isfinite(diff)
     gain = float(diff[finite].mean()) if finite.any() else -math.inf
     se = float(diff[finite].std() / math.sqrt(max(int(finite.sum()), 1))) if int(finite.sum()) > 1 else math.inf
+    # the test is on log error ratios per held-out recording: errors differ by orders of magnitude between
+    # recordings, a multiplicative improvement does not
+    floor = max(float(e_null.mean()), 1e-14)
+    log_gain, log_se = _log_ratio(e_current, e_after, floor)
     if current is not base:  # null data of the model the candidate is added to (its integrator included)
         noise = (null_train.x - null_train.x).new_zeros(null_train.state_dim)  # clean: the comparison is paired
         null_train, null_test = null_data(current, null_train, noise, 21), null_data(current, null_test, noise, 22)
         e_null = window_error(current, null_test, horizon)
     null_trial, _ = _fit_with(current, cand.make_effect(coef, finding.target, names), null_train,
-                              horizon, max(5, params.shooting_iters // 3))
+                              fit_len, max(5, params.shooting_iters // 3))
     if phased:
         before, after, _ = phased_heldout(current, null_trial, null_test, horizon, max(5, params.shooting_iters // 3))
         null_gain = float((before - after).mean())
+        null_log, _ = _log_ratio(before, after, floor)
     else:
-        null_gain = float((e_null - window_error(null_trial, null_test, horizon)).mean())
+        null_after = window_error(null_trial, null_test, horizon)
+        null_gain = float((e_null - null_after).mean())
+        null_log, _ = _log_ratio(e_null, null_after, floor)
     fitted = trial.effects[-1]
     k = len(fit.values) - sum(p.numel() for p in own_parameters(trial))
     values, interval = reported(fitted, fit.values[:k], fit.stderr[:k])
     checks = [
         (fit.converged and math.isfinite(gain), "the multiple-shooting fit diverged"),
-        (gain > max(null_gain, 0.0) + params.margin * se,
-         f"held-out MSE gain {gain:.3g} ± {se:.2g} is not above the null fit's gain {max(null_gain, 0):.3g} + "
-         f"{params.margin:g} standard errors"),
+        (log_gain > max(null_log, 0.0) + params.margin * log_se,
+         f"held-out error ratio e^{log_gain:.3g} (± {log_se:.2g} in log) is not above the null fit's "
+         f"e^{max(null_log, 0):.3g} + {params.margin:g} standard errors"),
         (gain >= params.min_gain * excess,
          f"removes {gain / max(excess, 1e-300):.1%} of the held-out error the model had above the null level, below "
          f"{params.min_gain:.0%}: too small to be an effect (an integrator artefact or a detail of another term)"),

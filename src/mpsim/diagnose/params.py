@@ -33,8 +33,10 @@ class DiagnoseParams:
         shooting_iters: L-BFGS iterations of each multiple-shooting fit.
         fit_trajectories: held-in trajectories the multiple-shooting fits use (the first this many; more cost
             time roughly in proportion, and a handful of parameters needs few).
-        horizon: steps of the shooting and evaluation windows (null: from the data — the model's own
-            valid prediction time on held-in data, the whole record when it never loses track).
+        horizon: steps of the held-out evaluation windows (null: from the data — the model's own valid
+            prediction time on held-in data, the whole record when it never loses track).
+        fit_window: the multiple-shooting fits use windows of at most this many steps (short windows keep the
+            fit of oscillators well-conditioned; the held-out evaluation still uses `horizon`).
         vpt_threshold: valid prediction time: until the normalised rollout error exceeds this.
     Fix (fix=true):
         fix_lr_factor: the finetune runs at trainer.lr × this (it starts near the optimum).
@@ -56,6 +58,7 @@ class DiagnoseParams:
     shooting_iters: int = 25
     fit_trajectories: int = 16
     horizon: int | None = None
+    fit_window: int = 40
     vpt_threshold: float = 0.3
     fix_lr_factor: float = 0.1
     rounds: int = 3
