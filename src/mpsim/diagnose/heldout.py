@@ -43,6 +43,8 @@ from mpsim.models.base import Model
 
 EFFECTS_NAMED, NOTHING_MISSING, UNEXPLAINED = "effects named", "nothing missing", "unexplained structured residual"
 EXIT_CODES = {EFFECTS_NAMED: 0, NOTHING_MISSING: 10, UNEXPLAINED: 11}
+#: a simpler kind is preferred when its held-out error is within this factor of the best candidate's
+SIMPLER_WITHIN = 1.25
 #: among candidates that predict held-out data equally well, the simplest kind is named (a delayed copy of a
 #: state imitates damping within a step; a drive needs three numbers)
 COMPLEXITY = {"Bias": 0, "LinearDamping": 0, "DryFriction": 1, "QuadraticDrag": 1, "CubicStiffness": 1,
@@ -178,7 +180,7 @@ def judge(
         if not passing:
             break
         best_err = min(t[2].error_after for t in passing)
-        close = [t for t in passing if t[2].error_after <= best_err + params.margin * t[2].gain_se]
+        close = [t for t in passing if t[2].error_after <= SIMPLER_WITHIN * best_err]
         chosen = min(close, key=lambda t: (COMPLEXITY.get(t[2].kind, 1), t[2].error_after))
         trials.append(chosen[2])
         current, e_current = chosen[3], chosen[4]

@@ -126,9 +126,14 @@ def shooting_fit(
 
     def closure() -> torch.Tensor:
         opt.zero_grad(set_to_none=True)
-        loss = window_sq_error(model, data, length).mean()
-        if not torch.isfinite(loss):
-            raise DivergenceError("a multiple-shooting rollout diverged")
+        try:
+            loss = window_sq_error(model, data, length).mean()
+        except DivergenceError:
+            loss = None
+        if loss is None or not torch.isfinite(loss):  # a trial step too far: a bad point the line search leaves
+            for p in free:
+                p.grad = torch.zeros_like(p)
+            return torch.tensor(1e30, dtype=torch.float64)
         loss.backward()
         return loss
 
@@ -147,6 +152,10 @@ def shooting_fit(
     model.eval()
     with torch.no_grad():
         loss = float(window_error(model, data, length).mean())
+        if not math.isfinite(loss):  # ended on a diverging point: back to where the fit started
+            ok = False
+            for p, v in zip(free, start, strict=True):
+                p.copy_(v)
     values = torch.cat([p.detach().reshape(-1).double().cpu() for p in free])
     stderr = _sandwich_stderr(model, data, length, free) if ok and math.isfinite(loss) else [math.nan] * len(values)
     return ShootingFit(loss, values.tolist(), stderr, ok and math.isfinite(loss))
