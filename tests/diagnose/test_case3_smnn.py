@@ -122,7 +122,8 @@ def test_cli_discovery_diagnosis_and_rediscovery(tmp_path):
     assert before["verdict"] == "effects named"
     (found,) = before["effects_named"]
     assert found["label"] == "dx/dt: CubicStiffness(x)"
-    assert found["values"]["coef"] == pytest.approx(C_TRUE, rel=0.05)
+    # multiple-shooting fit with the discovered coefficients refit alongside: 6 % off (issue 11 bound: 10 %)
+    assert found["values"]["coef"] == pytest.approx(C_TRUE, rel=0.10)
 
     run_cli(["train", *common, "model.extra_terms=[x**3]", "system.name=lorenz1_cubic_x3",
              f"hydra.run.dir={tmp_path}/x3"], tmp_path, timeout=1200, check=True)

@@ -26,9 +26,16 @@ from mpsim.models.base import Model
 
 
 def own_parameters(model: Model) -> list[nn.Parameter]:
-    """The interpretable parameters of a white-box model (`model=equations`, `model=physics`), else none."""
+    """The interpretable parameters a multiple-shooting fit refits beside a candidate: the physical parameters of
+    a white-box model (`model=equations`, `model=physics`), the discovered coefficients ξ of an equation-discovery
+    model (S-MNN), else none (a network's weights are refit by the finetune of `fix=true`)."""
     raw = getattr(model, "raw", None)
-    return list(raw.values()) if isinstance(raw, nn.ParameterDict) else []
+    if isinstance(raw, nn.ParameterDict):
+        return list(raw.values())
+    theta = getattr(model, "theta", None)
+    if isinstance(theta, nn.Parameter) and model.sensitivity_names():
+        return [theta]
+    return []
 
 
 def _starts(n_times: int, length: int) -> list[int]:
