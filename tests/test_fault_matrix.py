@@ -142,6 +142,15 @@ def data_args(path: Path) -> list[str]:
     return ["train", f"data.path={path}", *TINY_TRAIN[:2], "eval.horizons=[1,5]", "eval.plots=false"]
 
 
+SPEC = "states: [x]\nequations:\n  x: \"{eq}\"\nparams: {{k: 1.0}}\n"
+
+
+def _spec(d: Path, text: str, *extra: str) -> list[str]:
+    """A spec file in `d` and the train command that reads it."""
+    (d / "spec.yaml").write_text(text)
+    return ["train", "model=equations", f"model.spec={d / 'spec.yaml'}", *extra, *TINY_TRAIN[:2]]
+
+
 # ---- the cases ------------------------------------------------------------------------------------------------
 @dataclass
 class Case:
@@ -315,6 +324,16 @@ CASES: dict[str, Case] = {
                                   "memory_check=false"),
     "memory_train_nbody": Case(lambda w, d: ["train", "system=nbody", "system.n_particles=10000000", "model=deltagn"],
                                5, "is available on cpu"),
+    # -- equation specs (model=equations / system=equations): data, never code
+    "spec_missing": Case(lambda w, d: ["train", "model=equations", f"model.spec={d / 'none.yaml'}"], 2,
+                         "does not exist"),
+    "spec_python_tag": Case(lambda w, d: _spec(d, "!!python/object/apply:os.system ['touch pwned.txt']\n"), 2,
+                            "cannot read spec file"),
+    "spec_code_in_equation": Case(lambda w, d: _spec(d, SPEC.format(eq="__import__('os').system('touch pwned.txt')")),
+                                  2, "only plain function names can be called"),
+    "spec_unknown_name": Case(lambda w, d: _spec(d, SPEC.format(eq="-kk*x")), 2, "Did you mean 'k'"),
+    "spec_wrong_states": Case(lambda w, d: _spec(d, SPEC.format(eq="-k*x"), "system=lorenz3"), 2,
+                              "has 1 states"),
 }
 
 
