@@ -261,18 +261,21 @@ class DiffusiveCoupling(Effect):
         return f"{float(self.coef.detach()[0]):+.4g}·Σ_j({s}_j − {s}_i)"
 
 
+def _phase_sum(fn, s: torch.Tensor, ctx: EffectContext) -> torch.Tensor:  # s: [B, N] source values
+    """[B, N, 1] Σ_j A_ij fn(s_j − s_i) over each node's in-neighbours (one pass over the batched edges)."""
+    b, n = s.shape
+    flat = s.reshape(b * n)
+    diff = fn(flat[ctx.graph.src] - flat[ctx.graph.dst])  # [E'] sender − receiver
+    return flat.new_zeros(b * n).index_add_(0, ctx.graph.dst, diff).reshape(b, n, 1)
+
+
 class SineCoupling(Effect):
     """c·Σ_j A_ij sin(s_j − s_i): Kuramoto-type coupling of phases."""
 
     basis = ("sum_j sin(s_j - s_i)",)
 
     def features(self, t, x, ctx):
-        s = x[..., self.source]  # [B, N]
-        b, n = s.shape
-        flat = s.reshape(b * n)
-        diff = torch.sin(flat[ctx.graph.src] - flat[ctx.graph.dst])  # [E'] sender − receiver
-        out = flat.new_zeros(b * n).index_add_(0, ctx.graph.dst, diff)
-        return out.reshape(b, n, 1)
+        return _phase_sum(torch.sin, x[..., self.source], ctx)
 
     def _formula(self, s):
         return f"{float(self.coef.detach()[0]):+.4g}·Σ_j sin({s}_j − {s}_i)"
@@ -284,12 +287,7 @@ class CosineCoupling(Effect):
     basis = ("sum_j cos(s_j - s_i)",)
 
     def features(self, t, x, ctx):
-        s = x[..., self.source]  # [B, N]
-        b, n = s.shape
-        flat = s.reshape(b * n)
-        diff = torch.cos(flat[ctx.graph.src] - flat[ctx.graph.dst])  # [E'] sender − receiver
-        out = flat.new_zeros(b * n).index_add_(0, ctx.graph.dst, diff)
-        return out.reshape(b, n, 1)
+        return _phase_sum(torch.cos, x[..., self.source], ctx)
 
     def _formula(self, s):
         return f"{float(self.coef.detach()[0]):+.4g}·Σ_j cos({s}_j − {s}_i)"

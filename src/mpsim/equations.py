@@ -113,10 +113,6 @@ class Spec:
     def state_dim(self) -> int:
         return len(self.states)
 
-    def kind(self, name: str) -> str:
-        """"scalar", "node" or "matrix"."""
-        return {0: "scalar", 1: "node", 2: "matrix"}[self.params[name].dim()]
-
     def equation_text(self) -> dict[str, str]:
         return {s: str(e) for s, e in zip(self.states, self.rhs, strict=True)}
 

@@ -147,7 +147,7 @@ def test_command_line_round_trip_keeps_the_spec_in_the_checkpoint(cfg_factory, t
     system_spec = ckpt["system"]["params"]["spec"]
     assert system_spec["params"] == {"k": 3.0, "c": 0.2}
     out = run_eval(cfg_factory("eval", f"init={summary['exported']}", "system=equations",
-                               f"system.spec={{states: [x, v], equations: {{x: v, v: -3*x - 0.2*v}}, nodes: 2}}",
+                               "system.spec={states: [x, v], equations: {x: v, v: -3*x - 0.2*v}, nodes: 2}",
                                "data.n_test=2", "data.horizon=30", "eval.horizons=[1,10]", "eval.plots=false"),
                    output_dir=tmp_path / "eval")
     assert out["test"]["rmse"] < 1e-2

@@ -101,9 +101,9 @@ class EquationsBench(Suite):
                 gap = float((physics.rollout(x[:, 0], t, data.edge_index)
                              - equations.rollout(x[:, 0], t, data.edge_index)).abs().max())
 
-            def step(model: Model) -> None:
+            def step(model: Model, x=x, t=t, ei=data.edge_index) -> None:  # x: [B, T, N, D]
                 model.zero_grad()
-                pred = model.rollout(x[:, 0], t, data.edge_index)
+                pred = model.rollout(x[:, 0], t, ei)
                 loss_fn(model.normalise(pred), model.normalise(x), 1.0).backward()
 
             for _ in range(self.repeats):  # alternate, so that load changes fall on both

@@ -84,9 +84,13 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
     log.info(f"diagnosing {Path(ckpt['path']).name} on {len(splits.train)} held-in trajectories "
              f"({len(splits.test)} held out)")
 
+    def fixed_config(fixed: Model) -> dict[str, Any]:
+        """The model config with the effects the loop added (fitted values) after the configured ones."""
+        configured = list(model_cfg.get("effects") or [])
+        return {**model_cfg, "effects": configured + [e.config() for e in fixed.effects[len(configured):]]}
+
     def finetune(fixed: Model, k: int) -> tuple[Model, str]:
-        fixed_cfg = {**model_cfg, "effects": list(model_cfg.get("effects") or [])}
-        fixed_cfg["effects"] += [e.config() for e in fixed.effects[len(fixed_cfg["effects"]):]]
+        fixed_cfg = fixed_config(fixed)
         built, _ = build_model_for(cfg, rt, Shape.of(splits.train),
                                    {**ckpt, "model": {**ckpt["model"], "config": fixed_cfg}})
         built.load_state_dict(fixed.state_dict())  # fitted coefficients and refit own parameters
@@ -100,8 +104,7 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
         return built, str(run_dir / "checkpoints" / "best.ckpt")
 
     def save(fixed: Model, k: int) -> str:
-        fixed_cfg = {**model_cfg, "effects": list(model_cfg.get("effects") or [])}
-        fixed_cfg["effects"] += [e.config() for e in fixed.effects[len(fixed_cfg["effects"]):]]
+        fixed_cfg = fixed_config(fixed)
         path = rt.output_dir / "fix" / f"round{k}" / "fixed.ckpt"
         base = checkpoint_base(fixed_cfg, fixed, splits.train.meta, {"mode": "diagnose-fix", "init": ckpt["path"]})
         save_checkpoint(path, {**base, "model": {**base["model"], "state_dict": fixed.state_dict()}})

@@ -170,7 +170,7 @@ def judge(
     if not pending:
         pending, later = later, []
     while pending:
-        tried = [(f, c, *_trial(current, e_current, base, e_null, c, f, train, test, null_train, null_test,
+        tried = [(f, c, *_trial(current, e_current, base, e_base, e_null, c, f, train, test, null_train, null_test,
                                 horizon, params, diag.state_names)) for f, c in pending]
         passing = [t for t in tried if t[2].accepted]
         trials += [t[2] for t in tried if not t[2].accepted]
@@ -230,9 +230,7 @@ def reported(effect, values: list[float], stderr: list[float]) -> tuple[dict[str
         vals = {"amplitude": amp, "omega": omega, "phase": math.atan2(b, a)}
         ses = {"amplitude": se_amp, "omega": omega * sw, "phase": se_phase}
     else:
-        basis = list(getattr(effect, "basis", ())) or ["coef"]
         keys = ["coef"] if len(values) == 1 else [f"coef[{i}]" for i in range(len(values))]
-        del basis
         vals = dict(zip(keys, values, strict=True))
         ses = dict(zip(keys, stderr, strict=True))
     return vals, {k: (v - 1.96 * ses[k], v + 1.96 * ses[k]) for k, v in vals.items()}
@@ -284,10 +282,10 @@ def phased_heldout(current: Model, trial: Model, data: Trajectories, horizon: in
     return window_error(current, tail, horizon), window_error(model, tail, horizon), model
 
 
-def _trial(current, e_current, base, e_null, cand: Candidate, finding: Finding, train, test, null_train, null_test,
-           horizon, params: DiagnoseParams, names) -> tuple[Trial, Model, torch.Tensor]:
+def _trial(current, e_current, base, e_base, e_null, cand: Candidate, finding: Finding, train, test, null_train,
+           null_test, horizon, params: DiagnoseParams, names) -> tuple[Trial, Model, torch.Tensor]:
     # the error the given model (own parameters refit) had above the null level: what effects may explain
-    excess = max(float(window_error(base, test, horizon).mean()) - float(e_null.mean()), 0.0)
+    excess = max(float(e_base.mean()) - float(e_null.mean()), 0.0)
     phased = bool(cand.params.get("phased"))
     coef = list(finding.coef)[: 2 * len(train)] if phased else list(finding.coef)  # the fit's recordings only
     effect = cand.make_effect(coef, finding.target, names)
