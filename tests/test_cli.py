@@ -39,8 +39,15 @@ def test_default_train_writes_every_output(tmp_path):
         assert key in summary, key
     assert summary["model"]["n_params"] == 1413
     assert summary["epochs_x_min_error"] == pytest.approx(summary["min_test_error"] * summary["min_test_error_epoch"])
-    for name in ("checkpoints/best.ckpt", "checkpoints/last.ckpt", "plots/learning_curves.png",
-                 "plots/trajectories.png", "plots/error_growth.png", ".hydra/overrides.yaml", "train.log"):
+    for name in (
+        "checkpoints/best.ckpt",
+        "checkpoints/last.ckpt",
+        "plots/learning_curves.png",
+        "plots/trajectories.png",
+        "plots/error_growth.png",
+        ".hydra/overrides.yaml",
+        "train.log",
+    ):
         assert (run / name).is_file(), name
     assert (tmp_path / "checkpoints" / "pendulum2.ckpt").is_file()
 
@@ -86,13 +93,16 @@ def test_trained_file_data_round_trip(lorenz_ws, tmp_path):
     (sim,) = _runs(tmp_path, "simulate")
     run_cli(["train", f"data.path={sim / 'trajectories.csv'}", *TINY_TRAIN], tmp_path, check=True)
     summary = json.loads((_runs(tmp_path)[-1] / "summary.json").read_text())
-    assert summary["data"]["source"].endswith("trajectories.csv") and summary["data"]["train"] == 7  # 9 trajectories split 0.7/0.15/0.15 → 7/1/1
+    assert (
+        summary["data"]["source"].endswith("trajectories.csv") and summary["data"]["train"] == 7
+    )  # 9 trajectories split 0.7/0.15/0.15 → 7/1/1
 
 
 def test_sweep_gives_every_job_its_own_directory(lorenz_ws):
     ws = lorenz_ws
-    proc = run_cli(["train", "-m", *TINY_TRAIN, "system=lorenz10", "data.n_train=4,6", "init=lorenz3.ckpt,null"],
-                   ws, check=True)
+    proc = run_cli(
+        ["train", "-m", *TINY_TRAIN, "system=lorenz10", "data.n_train=4,6", "init=lorenz3.ckpt,null"], ws, check=True
+    )
     jobs = sorted(p.parent for p in (ws / "outputs" / "multirun").rglob("summary.json"))
     assert len(jobs) == 4 and len({j.name for j in jobs}) == 4, proc.stderr
     modes = sorted(json.loads((j / "summary.json").read_text())["mode"] for j in jobs)
@@ -102,21 +112,37 @@ def test_sweep_gives_every_job_its_own_directory(lorenz_ws):
 
 
 def test_joblib_launcher_runs_jobs_in_parallel_processes(tmp_path):
-    proc = run_cli(["train", "-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "seed=0,1", *TINY_TRAIN],
-                   tmp_path, check=True)
+    proc = run_cli(
+        ["train", "-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "seed=0,1", *TINY_TRAIN],
+        tmp_path,
+        check=True,
+    )
     jobs = sorted(p.parent for p in (tmp_path / "outputs" / "multirun").rglob("summary.json"))
     assert len(jobs) == 2, proc.stderr
     assert "Joblib.Parallel" in proc.stderr or "joblib" in proc.stderr.lower()
 
 
 def test_resume_after_interrupt_matches_an_uninterrupted_run(tmp_path):
-    args = ["train", "trainer=quick", "trainer.max_epochs=8", "trainer.progress=false", "data.n_train=8",
-            "data.n_val=4", "data.n_test=4", "data.horizon=10"]
+    args = [
+        "train",
+        "trainer=quick",
+        "trainer.max_epochs=8",
+        "trainer.progress=false",
+        "data.n_train=8",
+        "data.n_val=4",
+        "data.n_test=4",
+        "data.horizon=10",
+    ]
     full_ws, cut_ws = tmp_path / "full", tmp_path / "cut"
     full_ws.mkdir(), cut_ws.mkdir()
     run_cli(args, full_ws, check=True)
-    proc = subprocess.Popen([sys.executable, "-m", "mpsim.cli", *args], cwd=cut_ws, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mpsim.cli", *args],
+        cwd=cut_ws,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     deadline = time.time() + 120
     while time.time() < deadline:
         metrics = list((cut_ws / "outputs").rglob("metrics.csv"))
@@ -155,10 +181,16 @@ def test_bad_inputs_end_with_one_clear_message(lorenz_ws, tmp_path):
     _fails(["train", "init=nowhere.ckpt", *TINY_TRAIN], ws, "init=nowhere.ckpt: no such checkpoint")
     _fails(["train", "mode=finetune", *TINY_TRAIN], ws, "mode=finetune needs init=<checkpoint>")
     _fails(["train", "mode=zeroshot", *TINY_TRAIN], ws, "mode=zeroshot needs init=<checkpoint>")
-    _fails(["train", "system=pendulum2", "init=lorenz3.ckpt", *TINY_TRAIN], ws,
-           "was trained on lorenz3 (3 states ['x', 'y', 'z']")
-    _fails(["train", "system=lorenz10", "init=lorenz3.ckpt", "model.message_size=5", *TINY_TRAIN], ws,
-           "model.message_size: checkpoint 3, config 5")
+    _fails(
+        ["train", "system=pendulum2", "init=lorenz3.ckpt", *TINY_TRAIN],
+        ws,
+        "was trained on lorenz3 (3 states ['x', 'y', 'z']",
+    )
+    _fails(
+        ["train", "system=lorenz10", "init=lorenz3.ckpt", "model.message_size=5", *TINY_TRAIN],
+        ws,
+        "model.message_size: checkpoint 3, config 5",
+    )
     _fails(["train", "system=lorenz3", "system.coupling=strong", *TINY_TRAIN], ws, "expects float")
     (tmp_path / "bad.csv").write_text("traj,t,node,theta\n0,0.0,0,1.0\n0,0.1,0,nan\n")
     (tmp_path / "bad_edges.csv").write_text("src,dst\n")
@@ -169,7 +201,8 @@ def test_bad_inputs_end_with_one_clear_message(lorenz_ws, tmp_path):
 
 
 def test_bench_writes_table_and_plot(tmp_path):
-    run_cli(["bench", "bench.nodes=[2,4]", "bench.batches=[1,2]", "bench.steps=3", "bench.repeats=1"], tmp_path,
-            check=True)
+    run_cli(
+        ["bench", "bench.nodes=[2,4]", "bench.batches=[1,2]", "bench.steps=3", "bench.repeats=1"], tmp_path, check=True
+    )
     (run,) = sorted(p.parent for p in (tmp_path / "outputs" / "bench").rglob("bench.md"))
     assert "fwd_bwd_s" in (run / "bench.md").read_text() and (run / "plots" / "mpnode_scaling.png").is_file()

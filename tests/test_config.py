@@ -80,15 +80,18 @@ def test_unknown_system_lists_the_options(cfg_factory):
         cfg_factory("train", "system=lorenz4")
 
 
-@pytest.mark.parametrize("args, match", [
-    (["system.n_node=4"], "system.n_node is not a config key. Did you mean system.n_nodes?"),
-    (["trainer.lrr=1"], "Did you mean trainer.lr?"),
-    (["data.n_tran=5"], "Did you mean data.n_train"),
-    (["eval.horizon=[1]"], "Did you mean eval.horizons?"),
-    (["traner.lr=1"], "traner is not a config section. Did you mean trainer?"),
-    (["system=nbody", "system.mass=2"], "add it with +system.mass=<value>"),
-    (["-m", "seed=0,1", "trainer.batch_sise=4"], "Did you mean trainer.batch_size"),
-])
+@pytest.mark.parametrize(
+    "args, match",
+    [
+        (["system.n_node=4"], "system.n_node is not a config key. Did you mean system.n_nodes?"),
+        (["trainer.lrr=1"], "Did you mean trainer.lr?"),
+        (["data.n_tran=5"], "Did you mean data.n_train"),
+        (["eval.horizon=[1]"], "Did you mean eval.horizons?"),
+        (["traner.lr=1"], "traner is not a config section. Did you mean trainer?"),
+        (["system=nbody", "system.mass=2"], "add it with +system.mass=<value>"),
+        (["-m", "seed=0,1", "trainer.batch_sise=4"], "Did you mean trainer.batch_size"),
+    ],
+)
 def test_command_line_typos_get_a_did_you_mean(args, match):
     from mpsim.config import compose_command, register_schemas
 
@@ -100,15 +103,18 @@ def test_command_line_typos_get_a_did_you_mean(args, match):
         assert "+" not in str(err.value)
 
 
-@pytest.mark.parametrize("args, match", [
-    (["device=tpu"], "device=tpu is not supported"),
-    (["threads=-2"], "threads=-2"),
-    (["system=lorenz3", "system.sigma=nan"], "system.sigma=nan is not a finite number"),
-    (["data.noise_std=-1"], "data.noise_std=-1.0"),
-    (["trainer.early_stop_patience=-1"], "trainer.early_stop_patience=-1: must be >= 0"),
-    (["eval.horizons=[0]"], "horizons are numbers of steps >= 1"),
-    (["-m", "data.n_train=4,0"], "data.n_train=0"),  # every sweep value is checked, not only the first
-])
+@pytest.mark.parametrize(
+    "args, match",
+    [
+        (["device=tpu"], "device=tpu is not supported"),
+        (["threads=-2"], "threads=-2"),
+        (["system=lorenz3", "system.sigma=nan"], "system.sigma=nan is not a finite number"),
+        (["data.noise_std=-1"], "data.noise_std=-1.0"),
+        (["trainer.early_stop_patience=-1"], "trainer.early_stop_patience=-1: must be >= 0"),
+        (["eval.horizons=[0]"], "horizons are numbers of steps >= 1"),
+        (["-m", "data.n_train=4,0"], "data.n_train=0"),  # every sweep value is checked, not only the first
+    ],
+)
 def test_values_out_of_range_are_refused_before_the_run(args, match):
     from mpsim.config import compose_command, register_schemas
 

@@ -14,8 +14,18 @@ SMALL = ["data.n_train=32", "data.n_val=8", "data.n_test=16", "trainer.progress=
 
 def test_hidden_damping_found_added_and_error_drops(tmp_path):
     run_cli(["train", "experiment=pendulum_damped", "trainer.max_epochs=15", *SMALL[:-1]], tmp_path, check=True)
-    proc = run_cli(["diagnose", "experiment=pendulum_damped", "init=pendulum2_damped.ckpt", "fix=true",
-                    "trainer.max_epochs=10", *SMALL], tmp_path, check=True)
+    proc = run_cli(
+        [
+            "diagnose",
+            "experiment=pendulum_damped",
+            "init=pendulum2_damped.ckpt",
+            "fix=true",
+            "trainer.max_epochs=10",
+            *SMALL,
+        ],
+        tmp_path,
+        check=True,
+    )
     assert "effects named" in proc.stdout
     (run,) = [p.parent for p in (tmp_path / "outputs" / "diagnose").rglob("diagnosis.json")]
     result = json.loads((run / "diagnosis.json").read_text())

@@ -39,8 +39,10 @@ def test_terms_match_their_formulas():
         (Bias(0.7, target="omega"), torch.full_like(w, 0.7)),
         (PeriodicForcing(1.5, omega=2.0, phase=0.4, target="omega"), torch.full_like(w, 1.5 * math.sin(0.6 + 0.4))),
         (DiffusiveCoupling(1.0, target="omega"), torch.tensor([[3.0 - (-2.0), (-2.0 - 3.0) + (0.5 - 3.0), 3.0 - 0.5]])),
-        (SineCoupling(1.0, target="omega", source="theta"),
-         torch.tensor([[math.sin(0.5), math.sin(-0.5) + math.sin(-2.0), math.sin(2.0)]])),
+        (
+            SineCoupling(1.0, target="omega", source="theta"),
+            torch.tensor([[math.sin(0.5), math.sin(-0.5) + math.sin(-2.0), math.sin(2.0)]]),
+        ),
     ]
     for effect, expected in cases:
         out = effect.bind(NAMES)(t, x, ctx)
@@ -69,8 +71,9 @@ def test_hidden_damping_matches_the_damped_oscillator():
 
 def test_delayed_feedback_matches_the_method_of_steps():
     # dθ/dt = ω (declared), dω/dt = … + c·θ(t − τ); on [0, τ] the delayed term is the constant θ0
-    system = CoupledPendulums(n_nodes=1, gravity=0.0, effects=[DelayedFeedback(-1.0, delay=0.5, target="omega",
-                                                                               source="theta")])
+    system = CoupledPendulums(
+        n_nodes=1, gravity=0.0, effects=[DelayedFeedback(-1.0, delay=0.5, target="omega", source="theta")]
+    )
     x0 = torch.tensor([[[0.3, 0.0]]], dtype=torch.float64)
     t = torch.linspace(0, 0.5, 11, dtype=torch.float64)
     traj = system.simulate(x0, t)
@@ -96,8 +99,11 @@ def test_dry_friction_and_cosine_coupling_match_their_formulas():
     assert torch.allclose(dry, torch.tensor([-0.5 * math.tanh(v / 0.01) for v in w], dtype=torch.float64))
     # chain 0-1-2: node 0 hears 1, node 1 hears 0 and 2, node 2 hears 1
     cos = CosineCoupling(0.7, target="omega", source="theta").bind(NAMES)(t, x, ctx)
-    expected = [0.7 * math.cos(th[1] - th[0]), 0.7 * (math.cos(th[0] - th[1]) + math.cos(th[2] - th[1])),
-                0.7 * math.cos(th[1] - th[2])]
+    expected = [
+        0.7 * math.cos(th[1] - th[0]),
+        0.7 * (math.cos(th[0] - th[1]) + math.cos(th[2] - th[1])),
+        0.7 * math.cos(th[1] - th[2]),
+    ]
     assert torch.allclose(cos[0, :, 1], torch.tensor(expected, dtype=torch.float64))
     assert torch.all(cos[..., 0] == 0)
 
@@ -106,8 +112,9 @@ def test_sine_and_cosine_coupling_express_a_phase_lag():
     k, alpha = 1.3, 0.25
     x = torch.randn(4, 5, 1, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     ctx = EffectContext.for_batch(chain(5), x)
-    pair = (SineCoupling(k * math.cos(alpha), target=0)(0.0, x, ctx)
-            + CosineCoupling(-k * math.sin(alpha), target=0)(0.0, x, ctx))
+    pair = SineCoupling(k * math.cos(alpha), target=0)(0.0, x, ctx) + CosineCoupling(-k * math.sin(alpha), target=0)(
+        0.0, x, ctx
+    )
     s = x[..., 0]
     lag = torch.zeros_like(s)
     lag[:, 1:] += torch.sin(s[:, :-1] - s[:, 1:] - alpha)  # from the left neighbour
@@ -118,9 +125,11 @@ def test_sine_and_cosine_coupling_express_a_phase_lag():
 def test_new_effects_round_trip_through_their_config():
     from hydra.utils import instantiate
 
-    effects = [DryFriction(0.5, target="omega", scale=1e-3, learnable=False),
-               CosineCoupling(-0.3, target="omega", source="theta"),
-               PeriodicForcing(1.5, omega=3.1, phase=0.2, target="omega", random_phase=True, phase_seed=7)]
+    effects = [
+        DryFriction(0.5, target="omega", scale=1e-3, learnable=False),
+        CosineCoupling(-0.3, target="omega", source="theta"),
+        PeriodicForcing(1.5, omega=3.1, phase=0.2, target="omega", random_phase=True, phase_seed=7),
+    ]
     x = torch.randn(3, 3, 2, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
     t = torch.tensor(0.8, dtype=torch.float64)
     for effect in effects:

@@ -44,12 +44,16 @@ def test_values_match_a_hand_written_field():
 
 
 def test_functions_time_degree_mean_and_per_node_parameters():
-    spec = parse_spec({
-        "states": ["a"],
-        "equations": {"a": "tanh(a) + abs(a)*sign(a) + exp(-a**2)/sqrt(2 + cos(a)) + log(2 + tan(a/10)) "
-                           "+ p*sin(3*t) + deg + mean_nbr(p_j*a_j - a) + 2^2"},
-        "params": {"p": [0.5, 1.0, 2.0, -1.0]},
-    })
+    spec = parse_spec(
+        {
+            "states": ["a"],
+            "equations": {
+                "a": "tanh(a) + abs(a)*sign(a) + exp(-a**2)/sqrt(2 + cos(a)) + log(2 + tan(a/10)) "
+                "+ p*sin(3*t) + deg + mean_nbr(p_j*a_j - a) + 2^2"
+            },
+            "params": {"p": [0.5, 1.0, 2.0, -1.0]},
+        }
+    )
     ei = make_topology("chain", 4)
     x = torch.randn(2, 4, 1, dtype=torch.float64)
     a = x[..., 0]
@@ -57,16 +61,25 @@ def test_functions_time_degree_mean_and_per_node_parameters():
     deg = torch.tensor([1.0, 2.0, 2.0, 1.0], dtype=torch.float64)
     mean = (torch.zeros_like(a).index_add_(1, ei[1], (p * a)[:, ei[0]]) - deg * a) / deg
     t = 0.7
-    expected = (torch.tanh(a) + a.abs() * a.sign() + torch.exp(-a**2) / torch.sqrt(2 + torch.cos(a))
-                + torch.log(2 + torch.tan(a / 10)) + p * math.sin(3 * t) + deg + mean + 4)
+    expected = (
+        torch.tanh(a)
+        + a.abs() * a.sign()
+        + torch.exp(-(a**2)) / torch.sqrt(2 + torch.cos(a))
+        + torch.log(2 + torch.tan(a / 10))
+        + p * math.sin(3 * t)
+        + deg
+        + mean
+        + 4
+    )
     assert torch.allclose(_eval(spec, x, ei, t=t)[..., 0], expected, atol=1e-12)
 
 
 def test_matrix_parameter_through_lin_is_node_major():
     n, d = 3, 2
     h = torch.randn(n * d, n * d, dtype=torch.float64)
-    spec = parse_spec({"states": ["u", "v"], "equations": {"u": "lin(H)", "v": "-v + lin(H)"},
-                       "params": {"H": h.tolist()}})
+    spec = parse_spec(
+        {"states": ["u", "v"], "equations": {"u": "lin(H)", "v": "-v + lin(H)"}, "params": {"H": h.tolist()}}
+    )
     assert spec.n_nodes == 3
     x = torch.randn(4, n, d, dtype=torch.float64)
     hx = (x.reshape(4, n * d) @ h.T).reshape(4, n, d)
@@ -77,8 +90,13 @@ def test_matrix_parameter_through_lin_is_node_major():
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_autograd_reaches_every_parameter_kind(dtype):
-    spec = parse_spec({"states": ["x"], "equations": {"x": "-a*x + sum_nbr(b_j*x_j) + lin(H)"},
-                       "params": {"a": 1.0, "b": [1.0, 2.0], "H": [[0.0, 0.5], [0.25, 0.0]]}})
+    spec = parse_spec(
+        {
+            "states": ["x"],
+            "equations": {"x": "-a*x + sum_nbr(b_j*x_j) + lin(H)"},
+            "params": {"a": 1.0, "b": [1.0, 2.0], "H": [[0.0, 0.5], [0.25, 0.0]]},
+        }
+    )
     params = {k: v.to(dtype).requires_grad_() for k, v in spec.params.items()}
     x = torch.randn(2, 2, 1, dtype=dtype)
     out = _eval(spec, x, make_topology("complete", 2), params=params)
@@ -89,43 +107,55 @@ def test_autograd_reaches_every_parameter_kind(dtype):
 
 def test_nothing_in_an_expression_is_executed(tmp_path):
     marker = tmp_path / "pwned"
-    payloads = [f"__import__('pathlib').Path('{marker}').write_text('x')",
-                f"open('{marker}', 'w')", "(lambda: 1)()", "omega.real", "[omega][0]", "omega if 1 else 2"]
+    payloads = [
+        f"__import__('pathlib').Path('{marker}').write_text('x')",
+        f"open('{marker}', 'w')",
+        "(lambda: 1)()",
+        "omega.real",
+        "[omega][0]",
+        "omega if 1 else 2",
+    ]
     for text in payloads:
         with pytest.raises(ConfigError):
             _spec(equations={"theta": "omega", "omega": text})
     assert not marker.exists()
 
 
-@pytest.mark.parametrize("equation, message", [
-    ("omegaa", "unknown name 'omegaa'. Did you mean 'omega'"),
-    ("-(gg/l)*sin(theta)", "Did you mean 'g'"),
-    ("sinn(theta)", "unknown function 'sinn'. Did you mean 'sin'"),
-    ("theta_j", "only defined inside sum_nbr"),
-    ("sum_nbr(sum_nbr(theta_j))", "cannot be nested"),
-    ("sin(theta, omega)", "takes exactly one argument"),
-    ("g_j", "only states and per-node parameters"),
-    ("sin", "is a function"),
-    ("omega +", "cannot parse"),
-])
+@pytest.mark.parametrize(
+    "equation, message",
+    [
+        ("omegaa", "unknown name 'omegaa'. Did you mean 'omega'"),
+        ("-(gg/l)*sin(theta)", "Did you mean 'g'"),
+        ("sinn(theta)", "unknown function 'sinn'. Did you mean 'sin'"),
+        ("theta_j", "only defined inside sum_nbr"),
+        ("sum_nbr(sum_nbr(theta_j))", "cannot be nested"),
+        ("sin(theta, omega)", "takes exactly one argument"),
+        ("g_j", "only states and per-node parameters"),
+        ("sin", "is a function"),
+        ("omega +", "cannot parse"),
+    ],
+)
 def test_bad_equations_get_one_clear_message(equation, message):
     with pytest.raises(ConfigError, match="model.spec.equations.omega") as err:
         _spec(equations={"theta": "omega", "omega": equation})
     assert message in str(err.value)
 
 
-@pytest.mark.parametrize("changes, message", [
-    ({"equations": {"theta": "omega"}}, "no equation for ['omega']"),
-    ({"equations": {"theta": "omega", "omega": "0", "phi": "1"}}, "'phi' is not a state"),
-    ({"learnable": ["gg"]}, "Did you mean 'g'"),
-    ({"params": {"g": [1.0, 2.0], "l": [1.0, 2.0, 3.0], "k": 1.0}}, "node counts disagree"),
-    ({"params": {"g": float("nan"), "l": 1.0, "k": 1.0}}, "NaN or infinite"),
-    ({"params": {"g": "fast", "l": 1.0, "k": 1.0}}, "expected a number"),
-    ({"states": ["theta", "lambda"]}, "not a valid identifier"),
-    ({"states": ["theta", "omega_j"]}, "ends in '_j'"),
-    ({"kinematic": ["phi"]}, "not a state"),
-    ({"equatons": {}}, "Did you mean 'equations'"),
-])
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        ({"equations": {"theta": "omega"}}, "no equation for ['omega']"),
+        ({"equations": {"theta": "omega", "omega": "0", "phi": "1"}}, "'phi' is not a state"),
+        ({"learnable": ["gg"]}, "Did you mean 'g'"),
+        ({"params": {"g": [1.0, 2.0], "l": [1.0, 2.0, 3.0], "k": 1.0}}, "node counts disagree"),
+        ({"params": {"g": float("nan"), "l": 1.0, "k": 1.0}}, "NaN or infinite"),
+        ({"params": {"g": "fast", "l": 1.0, "k": 1.0}}, "expected a number"),
+        ({"states": ["theta", "lambda"]}, "not a valid identifier"),
+        ({"states": ["theta", "omega_j"]}, "ends in '_j'"),
+        ({"kinematic": ["phi"]}, "not a state"),
+        ({"equatons": {}}, "Did you mean 'equations'"),
+    ],
+)
 def test_bad_specs_get_one_clear_message(changes, message):
     with pytest.raises(ConfigError) as err:
         _spec(**changes)
@@ -146,7 +176,11 @@ def test_spec_file_reading(tmp_path):
     (tmp_path / "list.yaml").write_text("- 1\n- 2\n")
     (tmp_path / "bad.yaml").write_text("states: [x\n")
     (tmp_path / "obj.yaml").write_text("!!python/object/apply:os.system ['true']\n")
-    for name, message in [("missing.yaml", "does not exist"), ("list.yaml", "not a mapping"),
-                          ("bad.yaml", "cannot read spec file"), ("obj.yaml", "cannot read spec file")]:
+    for name, message in [
+        ("missing.yaml", "does not exist"),
+        ("list.yaml", "not a mapping"),
+        ("bad.yaml", "cannot read spec file"),
+        ("obj.yaml", "cannot read spec file"),
+    ]:
         with pytest.raises(ConfigError, match=message):
             load_spec_file(tmp_path / name)

@@ -130,8 +130,12 @@ def write_csv(d: Path, rows=None, sidecar: str | None = None, name: str = "m") -
 
 def write_npz(d: Path, name: str = "d.npz", **changes) -> Path:
     rng = np.random.default_rng(0)
-    arrays = {"t": np.arange(6) * 0.1, "x": rng.normal(size=(6, 6, 2, 2)), "edge_index": np.array([[0, 1], [1, 0]]),
-              "meta": np.array(json.dumps({"system": "measured", "state_names": ["theta", "omega"]}))}
+    arrays = {
+        "t": np.arange(6) * 0.1,
+        "x": rng.normal(size=(6, 6, 2, 2)),
+        "edge_index": np.array([[0, 1], [1, 0]]),
+        "meta": np.array(json.dumps({"system": "measured", "state_names": ["theta", "omega"]})),
+    }
     arrays.update(changes)
     arrays = {k: v for k, v in arrays.items() if v is not None}
     np.savez(d / name, **arrays)
@@ -142,7 +146,7 @@ def data_args(path: Path) -> list[str]:
     return ["train", f"data.path={path}", *TINY_TRAIN[:2], "eval.horizons=[1,5]", "eval.plots=false"]
 
 
-SPEC = "states: [x]\nequations:\n  x: \"{eq}\"\nparams: {{k: 1.0}}\n"
+SPEC = 'states: [x]\nequations:\n  x: "{eq}"\nparams: {{k: 1.0}}\n'
 
 
 def _spec(d: Path, text: str, *extra: str) -> list[str]:
@@ -187,8 +191,11 @@ def _malicious(ws: Path, d: Path) -> list[str]:
 
 def payload_effect(target: Path) -> dict:
     """A config node that writes `target` when `hydra.utils.instantiate` builds it."""
-    return {"_target_": "pathlib.Path.write_text", "self": {"_target_": "pathlib.Path", "_args_": [str(target)]},
-            "data": "pwned"}
+    return {
+        "_target_": "pathlib.Path.write_text",
+        "self": {"_target_": "pathlib.Path", "_args_": [str(target)]},
+        "data": "pwned",
+    }
 
 
 def _os_system(ws: Path, d: Path) -> list[str]:
@@ -236,104 +243,178 @@ CASES: dict[str, Case] = {
     "unknown_system": Case(lambda w, d: ["train", "system=lorenz4"], 2, "Could not find 'system/lorenz4'"),
     "unknown_model": Case(lambda w, d: ["train", "model=mpnod"], 2, "Could not find 'model/mpnod'"),
     "wrong_type": Case(lambda w, d: ["train", "trainer.max_epochs=many"], 2, "could not be converted to Integer"),
-    "wrong_type_target": Case(lambda w, d: ["train", "system=lorenz3", "system.coupling=strong", *TINY_TRAIN], 2,
-                              "expects float"),
+    "wrong_type_target": Case(
+        lambda w, d: ["train", "system=lorenz3", "system.coupling=strong", *TINY_TRAIN], 2, "expects float"
+    ),
     "device_tpu": Case(lambda w, d: ["train", "device=tpu"], 2, "device=tpu is not supported"),
     "threads_negative": Case(lambda w, d: ["train", "threads=-2"], 2, "threads=-2"),
-    "sigma_nan": Case(lambda w, d: ["train", "system=lorenz3", "system.sigma=nan"], 2,
-                      "system.sigma=nan is not a finite number"),
+    "sigma_nan": Case(
+        lambda w, d: ["train", "system=lorenz3", "system.sigma=nan"], 2, "system.sigma=nan is not a finite number"
+    ),
     "noise_negative": Case(lambda w, d: ["train", "data.noise_std=-1"], 2, "data.noise_std=-1.0"),
-    "patience_negative": Case(lambda w, d: ["train", "trainer.early_stop_patience=-1"], 2,
-                              "trainer.early_stop_patience=-1"),
+    "patience_negative": Case(
+        lambda w, d: ["train", "trainer.early_stop_patience=-1"], 2, "trainer.early_stop_patience=-1"
+    ),
     "lr_zero": Case(lambda w, d: ["train", "trainer.lr=0"], 2, "trainer.lr=0.0: must be > 0"),
     "horizon_zero": Case(lambda w, d: ["train", "eval.horizons=[0,5]"], 2, "eval.horizons=[0, 5]"),
-    "horizon_beyond_record": Case(lambda w, d: ["train", *TINY_TRAIN[:-1], "eval.horizons=[1,5,50]"], 2,
-                                  "[50] go beyond the record"),
+    "horizon_beyond_record": Case(
+        lambda w, d: ["train", *TINY_TRAIN[:-1], "eval.horizons=[1,5,50]"], 2, "[50] go beyond the record"
+    ),
     "simulate_n_zero": Case(lambda w, d: ["simulate", "n=0"], 2, "n=0"),
     "sweep_bad_value": Case(lambda w, d: ["train", "-m", *TINY_TRAIN, "data.n_train=4,-1"], 2, "data.n_train=-1"),
     "unknown_command": Case(lambda w, d: ["frobnicate"], 2, "unknown command 'frobnicate'"),
     # -- output locations that cannot be written: refused before any work
-    "output_root_unwritable": Case(lambda w, d: ((d / "f").write_text("x"), ["train", f"paths.output_root={d}/f/o"])[1],
-                                   4, "is a file, not a directory"),
-    "ckpt_dir_unwritable": Case(lambda w, d: ((d / "f").write_text("x"), ["train", f"paths.ckpt_dir={d}/f/c"])[1],
-                                4, "paths.ckpt_dir="),
+    "output_root_unwritable": Case(
+        lambda w, d: ((d / "f").write_text("x"), ["train", f"paths.output_root={d}/f/o"])[1],
+        4,
+        "is a file, not a directory",
+    ),
+    "ckpt_dir_unwritable": Case(
+        lambda w, d: ((d / "f").write_text("x"), ["train", f"paths.ckpt_dir={d}/f/c"])[1], 4, "paths.ckpt_dir="
+    ),
     # -- resume
     "resume_missing_dir": Case(lambda w, d: ["train", f"resume={d}/nowhere"], 2, "last.ckpt does not exist"),
     "resume_other_lr": Case(_resume_other_lr, 2, "trainer.lr=0.5 (not set in the run)"),
     "resume_true_no_run": Case(lambda w, d: ["train", "resume=true", "seed=7"], 2, "no earlier run"),
     # -- checkpoints: data, never code
     "init_missing": Case(lambda w, d: ["eval", "init=nowhere.ckpt", "system=lorenz3", *EVAL], 2, "no such checkpoint"),
-    "ckpt_empty": Case(lambda w, d: ((d / "e.ckpt").write_bytes(b""), ["eval", f"init={d / 'e.ckpt'}", *EVAL])[1], 2,
-                       "is empty (0 bytes)"),
-    "ckpt_truncated": Case(lambda w, d: ((d / "t.ckpt").write_bytes((w / "checkpoints/lorenz3.ckpt").read_bytes()[:300]),
-                                         ["eval", f"init={d / 't.ckpt'}", *EVAL])[1], 2, "cannot read checkpoint"),
-    "ckpt_foreign": Case(lambda w, d: (torch.save({"w": torch.zeros(2)}, d / "f.ckpt"),
-                                       ["eval", f"init={d / 'f.ckpt'}", *EVAL])[1], 2, "not an mpsim checkpoint"),
+    "ckpt_empty": Case(
+        lambda w, d: ((d / "e.ckpt").write_bytes(b""), ["eval", f"init={d / 'e.ckpt'}", *EVAL])[1],
+        2,
+        "is empty (0 bytes)",
+    ),
+    "ckpt_truncated": Case(
+        lambda w, d: (
+            (d / "t.ckpt").write_bytes((w / "checkpoints/lorenz3.ckpt").read_bytes()[:300]),
+            ["eval", f"init={d / 't.ckpt'}", *EVAL],
+        )[1],
+        2,
+        "cannot read checkpoint",
+    ),
+    "ckpt_foreign": Case(
+        lambda w, d: (torch.save({"w": torch.zeros(2)}, d / "f.ckpt"), ["eval", f"init={d / 'f.ckpt'}", *EVAL])[1],
+        2,
+        "not an mpsim checkpoint",
+    ),
     "ckpt_no_state_dim": Case(_no_state_dim, 2, "lacks 'model.state_dim'"),
     "ckpt_bytes_flipped": Case(_bytes_flipped, 2, "does not match the checksum"),
     "ckpt_nan_weight": Case(_nan_weight, 2, "holds NaN/inf"),
     "ckpt_malicious_effect": Case(_malicious, 2, "'pathlib.Path.write_text' is not an mpsim class"),
     "ckpt_os_system": Case(_os_system, 2, "'os.system' is not an mpsim class"),
-    "ckpt_mpsim_function": Case(lambda w, d: ["eval", f"init={altered(w, d, lambda p: p['model']['config'].__setitem__('effects', [{'_target_': 'mpsim.files.atomic_write', 'path': str(d / 'x'), 'write': None}]))}", *EVAL],
-                                2, "'mpsim.files.atomic_write' is not an mpsim class"),
-    "ckpt_interpolation": Case(lambda w, d: ["eval", f"init={altered(w, d, lambda p: p['model']['config'].__setitem__('aggregation', '${oc.env:HOME}'))}", *EVAL],
-                               2, "holds an interpolation"),
-    "ckpt_newer": Case(lambda w, d: ["eval", f"init={altered(w, d, lambda p: p.__setitem__('version', 99))}", *EVAL],
-                       2, "newer mpsim"),
-    "ckpt_other_system": Case(lambda w, d: ["eval", f"init={w / 'checkpoints/lorenz3.ckpt'}", "system=pendulum2", *EVAL],
-                              2, "was trained on lorenz3"),
+    "ckpt_mpsim_function": Case(
+        lambda w, d: [
+            "eval",
+            f"init={altered(w, d, lambda p: p['model']['config'].__setitem__('effects', [{'_target_': 'mpsim.files.atomic_write', 'path': str(d / 'x'), 'write': None}]))}",
+            *EVAL,
+        ],
+        2,
+        "'mpsim.files.atomic_write' is not an mpsim class",
+    ),
+    "ckpt_interpolation": Case(
+        lambda w, d: [
+            "eval",
+            f"init={altered(w, d, lambda p: p['model']['config'].__setitem__('aggregation', '${oc.env:HOME}'))}",
+            *EVAL,
+        ],
+        2,
+        "holds an interpolation",
+    ),
+    "ckpt_newer": Case(
+        lambda w, d: ["eval", f"init={altered(w, d, lambda p: p.__setitem__('version', 99))}", *EVAL], 2, "newer mpsim"
+    ),
+    "ckpt_other_system": Case(
+        lambda w, d: ["eval", f"init={w / 'checkpoints/lorenz3.ckpt'}", "system=pendulum2", *EVAL],
+        2,
+        "was trained on lorenz3",
+    ),
     # -- data files
-    "csv_empty_traj": Case(lambda w, d: data_args(write_csv(d, [[None if i == 5 and j == 0 else v for j, v in enumerate(r)]
-                                                                 for i, r in enumerate(grid_rows())])), 2,
-                           "row 7, column 'traj' is empty"),
-    "csv_nan_value": Case(lambda w, d: data_args(write_csv(d, [[*r[:3], float("nan") if i == 2 else r[3], r[4]]
-                                                               for i, r in enumerate(grid_rows())])), 2,
-                          "row 4, column 'theta' is empty"),
+    "csv_empty_traj": Case(
+        lambda w, d: data_args(
+            write_csv(
+                d, [[None if i == 5 and j == 0 else v for j, v in enumerate(r)] for i, r in enumerate(grid_rows())]
+            )
+        ),
+        2,
+        "row 7, column 'traj' is empty",
+    ),
+    "csv_nan_value": Case(
+        lambda w, d: data_args(
+            write_csv(d, [[*r[:3], float("nan") if i == 2 else r[3], r[4]] for i, r in enumerate(grid_rows())])
+        ),
+        2,
+        "row 4, column 'theta' is empty",
+    ),
     "csv_ragged": Case(lambda w, d: data_args(write_csv(d, grid_rows()[:-1])), 2, "ragged data"),
     "csv_sidecar_malformed": Case(lambda w, d: data_args(write_csv(d, sidecar="{not json")), 2, "m.json: the metadata"),
-    "csv_sidecar_list": Case(lambda w, d: data_args(write_csv(d, sidecar="[1, 2]")), 2,
-                             "m.json must be a JSON object"),
-    "csv_sidecar_wrong_type": Case(lambda w, d: data_args(write_csv(d, sidecar='{"control_columns": "omega"}')), 2,
-                                   "key 'control_columns' must be a list"),
-    "npz_meta_list": Case(lambda w, d: data_args(write_npz(d, meta=np.array("[1, 2]"))), 2,
-                          "array 'meta' must be a JSON object"),
-    "npz_float_edge_ids": Case(lambda w, d: data_args(write_npz(d, edge_index=np.array([[0.0, 1.5], [1.0, 0.0]]))), 2,
-                               "node id 1.5"),
-    "npz_complex_states": Case(lambda w, d: data_args(write_npz(d, x=np.ones((6, 6, 2, 2)) * (1 + 1j))), 2,
-                               "array 'x' is complex"),
-    "npz_zero_nodes": Case(lambda w, d: data_args(write_npz(d, x=np.ones((6, 6, 0, 2)),
-                                                            edge_index=np.zeros((2, 0), dtype=int))), 2,
-                           "zero nodes (N)", ("diverged",)),
-    "npz_float32_overflow": Case(lambda w, d: data_args(write_npz(d, x=np.full((6, 6, 2, 2), 1e300))), 2,
-                                 "overflow float32", ("NaN",)),
+    "csv_sidecar_list": Case(lambda w, d: data_args(write_csv(d, sidecar="[1, 2]")), 2, "m.json must be a JSON object"),
+    "csv_sidecar_wrong_type": Case(
+        lambda w, d: data_args(write_csv(d, sidecar='{"control_columns": "omega"}')),
+        2,
+        "key 'control_columns' must be a list",
+    ),
+    "npz_meta_list": Case(
+        lambda w, d: data_args(write_npz(d, meta=np.array("[1, 2]"))), 2, "array 'meta' must be a JSON object"
+    ),
+    "npz_float_edge_ids": Case(
+        lambda w, d: data_args(write_npz(d, edge_index=np.array([[0.0, 1.5], [1.0, 0.0]]))), 2, "node id 1.5"
+    ),
+    "npz_complex_states": Case(
+        lambda w, d: data_args(write_npz(d, x=np.ones((6, 6, 2, 2)) * (1 + 1j))), 2, "array 'x' is complex"
+    ),
+    "npz_zero_nodes": Case(
+        lambda w, d: data_args(write_npz(d, x=np.ones((6, 6, 0, 2)), edge_index=np.zeros((2, 0), dtype=int))),
+        2,
+        "zero nodes (N)",
+        ("diverged",),
+    ),
+    "npz_float32_overflow": Case(
+        lambda w, d: data_args(write_npz(d, x=np.full((6, 6, 2, 2), 1e300))), 2, "overflow float32", ("NaN",)
+    ),
     "npz_missing_x": Case(lambda w, d: data_args(write_npz(d, x=None)), 2, "missing array(s) ['x']"),
     "data_missing_file": Case(lambda w, d: data_args(d / "nothing.npz"), 2, "does not exist"),
-    "data_unknown_format": Case(lambda w, d: ((d / "d.txt").write_text("1"), data_args(d / "d.txt"))[1], 2,
-                                "unknown data format"),
+    "data_unknown_format": Case(
+        lambda w, d: ((d / "d.txt").write_text("1"), data_args(d / "d.txt"))[1], 2, "unknown data format"
+    ),
     # -- report
-    "report_corrupt_summary": Case(lambda w, d: ((d / "runs/a").mkdir(parents=True),
-                                                 (d / "runs/a/summary.json").write_text('{"task": "tr'),
-                                                 ["report", f"runs=[{d / 'runs'}]"])[2], 2,
-                                   "runs/a/summary.json is not valid JSON"),
-    "report_summary_list": Case(lambda w, d: ((d / "runs/b").mkdir(parents=True),
-                                              (d / "runs/b/summary.json").write_text("[1]"),
-                                              ["report", f"runs=[{d / 'runs'}]"])[2], 2,
-                                "runs/b/summary.json must hold a JSON object"),
+    "report_corrupt_summary": Case(
+        lambda w, d: (
+            (d / "runs/a").mkdir(parents=True),
+            (d / "runs/a/summary.json").write_text('{"task": "tr'),
+            ["report", f"runs=[{d / 'runs'}]"],
+        )[2],
+        2,
+        "runs/a/summary.json is not valid JSON",
+    ),
+    "report_summary_list": Case(
+        lambda w, d: (
+            (d / "runs/b").mkdir(parents=True),
+            (d / "runs/b/summary.json").write_text("[1]"),
+            ["report", f"runs=[{d / 'runs'}]"],
+        )[2],
+        2,
+        "runs/b/summary.json must hold a JSON object",
+    ),
     # -- memory: estimated and refused before anything is allocated
-    "memory_simulate_nbody": Case(lambda w, d: ["simulate", "system=nbody", "system.n_particles=10000000"], 5,
-                                  "memory_check=false"),
-    "memory_train_nbody": Case(lambda w, d: ["train", "system=nbody", "system.n_particles=10000000", "model=deltagn"],
-                               5, "is available on cpu"),
+    "memory_simulate_nbody": Case(
+        lambda w, d: ["simulate", "system=nbody", "system.n_particles=10000000"], 5, "memory_check=false"
+    ),
+    "memory_train_nbody": Case(
+        lambda w, d: ["train", "system=nbody", "system.n_particles=10000000", "model=deltagn"], 5, "is available on cpu"
+    ),
     # -- equation specs (model=equations / system=equations): data, never code
-    "spec_missing": Case(lambda w, d: ["train", "model=equations", f"model.spec={d / 'none.yaml'}"], 2,
-                         "does not exist"),
-    "spec_python_tag": Case(lambda w, d: _spec(d, "!!python/object/apply:os.system ['touch pwned.txt']\n"), 2,
-                            "cannot read spec file"),
-    "spec_code_in_equation": Case(lambda w, d: _spec(d, SPEC.format(eq="__import__('os').system('touch pwned.txt')")),
-                                  2, "only plain function names can be called"),
+    "spec_missing": Case(
+        lambda w, d: ["train", "model=equations", f"model.spec={d / 'none.yaml'}"], 2, "does not exist"
+    ),
+    "spec_python_tag": Case(
+        lambda w, d: _spec(d, "!!python/object/apply:os.system ['touch pwned.txt']\n"), 2, "cannot read spec file"
+    ),
+    "spec_code_in_equation": Case(
+        lambda w, d: _spec(d, SPEC.format(eq="__import__('os').system('touch pwned.txt')")),
+        2,
+        "only plain function names can be called",
+    ),
     "spec_unknown_name": Case(lambda w, d: _spec(d, SPEC.format(eq="-kk*x")), 2, "Did you mean 'k'"),
-    "spec_wrong_states": Case(lambda w, d: _spec(d, SPEC.format(eq="-k*x"), "system=lorenz3"), 2,
-                              "has 1 states"),
+    "spec_wrong_states": Case(lambda w, d: _spec(d, SPEC.format(eq="-k*x"), "system=lorenz3"), 2, "has 1 states"),
 }
 
 

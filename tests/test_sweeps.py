@@ -18,8 +18,9 @@ def _jobs(root):
 @pytest.mark.scaling
 def test_submitit_local_runs_a_two_job_sweep(tmp_path):
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
-    proc = run_cli(["train", "-m", "hydra/launcher=slurm_local", "seed=0,1", "eval.plots=false", *TINY_TRAIN],
-                   tmp_path, check=True)
+    proc = run_cli(
+        ["train", "-m", "hydra/launcher=slurm_local", "seed=0,1", "eval.plots=false", *TINY_TRAIN], tmp_path, check=True
+    )
     jobs = _jobs(tmp_path / "outputs" / "multirun")
     assert len(jobs) == 2, proc.stderr
     sweep = jobs[0].parent
@@ -31,9 +32,20 @@ def test_submitit_local_runs_a_two_job_sweep(tmp_path):
 
 def test_optuna_search_minimises_the_objective(tmp_path):
     pytest.importorskip("hydra_plugins.hydra_optuna_sweeper")
-    proc = run_cli(["train", "hparams_search=mpnode_lorenz10", "hydra.sweeper.n_trials=3", "system=lorenz3",
-                    "objective=final.val_error", "eval.plots=false", "trainer.max_epochs=2", *TINY_TRAIN],
-                   tmp_path, check=True)
+    proc = run_cli(
+        [
+            "train",
+            "hparams_search=mpnode_lorenz10",
+            "hydra.sweeper.n_trials=3",
+            "system=lorenz3",
+            "objective=final.val_error",
+            "eval.plots=false",
+            "trainer.max_epochs=2",
+            *TINY_TRAIN,
+        ],
+        tmp_path,
+        check=True,
+    )
     jobs = _jobs(tmp_path / "outputs" / "multirun")
     assert len(jobs) == 3, proc.stderr
     summaries = [json.loads((j / "summary.json").read_text()) for j in jobs]
@@ -44,4 +56,5 @@ def test_optuna_search_minimises_the_objective(tmp_path):
     best = summaries[values.index(min(values))]
     assert result["best_params"]["model.hidden"] == best["model"]["config"]["hidden"]
     assert result["best_params"]["trainer.lr"] == pytest.approx(
-        yaml.safe_load((jobs[values.index(min(values))] / ".hydra" / "config.yaml").read_text())["trainer"]["lr"])
+        yaml.safe_load((jobs[values.index(min(values))] / ".hydra" / "config.yaml").read_text())["trainer"]["lr"]
+    )

@@ -62,11 +62,14 @@ def _as_user_error(err: BaseException) -> MpsimError | None:
         where = f" {err.filename}" if getattr(err, "filename", None) else ""
         return OutputError(f"cannot write{where}: {describe_os_error(err)}.")
     text = str(err)
-    if isinstance(err, MemoryError) or (isinstance(err, RuntimeError) and (
-            "can't allocate memory" in text or "out of memory" in text.lower())):
+    if isinstance(err, MemoryError) or (
+        isinstance(err, RuntimeError) and ("can't allocate memory" in text or "out of memory" in text.lower())
+    ):
         first = text.strip().splitlines()[0][:200] if text.strip() else type(err).__name__
-        return ResourceError(f"ran out of memory ({first}). Make the job smaller (fewer trajectories, shorter "
-                             "data.horizon, smaller trainer.batch_size or system) or use a machine with more memory.")
+        return ResourceError(
+            f"ran out of memory ({first}). Make the job smaller (fewer trajectories, shorter "
+            "data.horizon, smaller trainer.batch_size or system) or use a machine with more memory."
+        )
     return None
 
 
@@ -92,8 +95,10 @@ def _divergence_message(command: str, result: dict[str, Any]) -> str:
             kept += f", exported as {result['exported']}"
     else:
         kept = "no epoch finished, so there is no trained checkpoint (only the starting point in last.ckpt)"
-    return (f"mpsim {command}: training diverged ({result.get('divergence') or 'NaN/inf'}); {kept}. "
-            "Lower trainer.lr or trainer.clip_norm.")
+    return (
+        f"mpsim {command}: training diverged ({result.get('divergence') or 'NaN/inf'}); {kept}. "
+        "Lower trainer.lr or trainer.clip_norm."
+    )
 
 
 def _guard(command: str, func: Callable[[Any], dict], cfg: Any) -> dict | float | None:
@@ -109,8 +114,11 @@ def _guard(command: str, func: Callable[[Any], dict], cfg: Any) -> dict | float 
         result = func(cfg)
     except KeyboardInterrupt:
         args = " ".join(a for a in hydra_overrides() if not a.startswith("resume="))
-        print(f"\nmpsim {command}: interrupted. Completed epochs are saved in last.ckpt; continue with:\n"
-              f"  mpsim {command} {args} resume=true", file=sys.stderr)
+        print(
+            f"\nmpsim {command}: interrupted. Completed epochs are saved in last.ckpt; continue with:\n"
+            f"  mpsim {command} {args} resume=true",
+            file=sys.stderr,
+        )
         sys.exit(130)
     except Exception as err:  # noqa: BLE001 - user errors become one message; bugs are re-raised
         user = _as_user_error(err)
@@ -214,17 +222,25 @@ def _with_resume(args: list[str]) -> list[str]:
     else:
         run = Path(value)
         if not (run / "checkpoints" / "last.ckpt").is_file():
-            raise MpsimError(f"resume={value}: {run}/checkpoints/last.ckpt does not exist. Pass the directory of an "
-                             "earlier train run (it holds checkpoints/last.ckpt).")
+            raise MpsimError(
+                f"resume={value}: {run}/checkpoints/last.ckpt does not exist. Pass the directory of an "
+                "earlier train run (it holds checkpoints/last.ckpt)."
+            )
     saved = _saved_overrides(run)
     if saved is None:
-        print(f"mpsim train: warning: {run}/.hydra/overrides.yaml is missing; resuming with the overrides given "
-              "now, which cannot be checked against the run's own.", file=sys.stderr)
+        print(
+            f"mpsim train: warning: {run}/.hydra/overrides.yaml is missing; resuming with the overrides given "
+            "now, which cannot be checked against the run's own.",
+            file=sys.stderr,
+        )
         own = _own(args)
     else:
         mine, theirs = dict(_split(a) for a in _own(args)), dict(_split(a) for a in _own(saved))
-        differ = [f"{k}={v} (the run has {k}={theirs[k]})" if k in theirs else f"{k}={v} (not set in the run)"
-                  for k, v in mine.items() if theirs.get(k) != v]
+        differ = [
+            f"{k}={v} (the run has {k}={theirs[k]})" if k in theirs else f"{k}={v} (not set in the run)"
+            for k, v in mine.items()
+            if theirs.get(k) != v
+        ]
         if differ:
             raise MpsimError(
                 f"resume={value}: {'; '.join(differ)}. A resumed run continues with its own config "
@@ -260,8 +276,10 @@ def _check_writable(cfg: Any, command: str) -> None:
         if not probe.is_dir():
             raise OutputError(f"{key}={value}: {probe} is a file, not a directory. Choose a directory: {key}=<dir>.")
         if not os.access(probe, os.W_OK | os.X_OK):
-            raise OutputError(f"{key}={value}: {probe} is not writable (permissions or a read-only file system). "
-                              f"Choose a writable directory: {key}=<dir>.")
+            raise OutputError(
+                f"{key}={value}: {probe} is not writable (permissions or a read-only file system). "
+                f"Choose a writable directory: {key}=<dir>."
+            )
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -277,8 +295,9 @@ def main(argv: list[str] | None = None) -> None:
         return
     command, rest = argv[0], argv[1:]
     if command not in COMMANDS:
-        print(f"mpsim: unknown command {command!r}; choose one of {', '.join(COMMANDS)} (mpsim --help).",
-              file=sys.stderr)
+        print(
+            f"mpsim: unknown command {command!r}; choose one of {', '.join(COMMANDS)} (mpsim --help).", file=sys.stderr
+        )
         sys.exit(2)
     from mpsim.config import compose_command, register_schemas
 

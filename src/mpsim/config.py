@@ -177,7 +177,9 @@ def _import(path: str, where: str) -> Any:
     try:
         return getattr(importlib.import_module(module), name)
     except (ImportError, AttributeError, ValueError):
-        raise ConfigError(f"{where}._target_: cannot import {path!r}. Check the spelling or install its package.") from None
+        raise ConfigError(
+            f"{where}._target_: cannot import {path!r}. Check the spelling or install its package."
+        ) from None
 
 
 def _type_ok(value: Any, annotation: Any) -> bool:
@@ -284,11 +286,15 @@ def validate_values(cfg: DictConfig) -> None:
         ConfigError: the first value that is out of range, naming the key, the rule and the fix.
     """
     if "device" in cfg:
-        _check(bool(DEVICE.fullmatch(str(cfg.device))),
-               f"device={cfg.device} is not supported; choose auto, cpu, cuda, cuda:<index> or mps.")
+        _check(
+            bool(DEVICE.fullmatch(str(cfg.device))),
+            f"device={cfg.device} is not supported; choose auto, cpu, cuda, cuda:<index> or mps.",
+        )
     if cfg.get("threads") is not None:
-        _check(cfg.threads >= 1, f"threads={cfg.threads}: give a number of CPU threads >= 1, or threads=null for "
-                                 "torch's default.")
+        _check(
+            cfg.threads >= 1,
+            f"threads={cfg.threads}: give a number of CPU threads >= 1, or threads=null for torch's default.",
+        )
     for group in _FINITE_GROUPS:
         if cfg.get(group) is None:
             continue
@@ -300,8 +306,11 @@ def validate_values(cfg: DictConfig) -> None:
         _check(bad is None, f"{bad} is not a finite number; give a finite value for {str(bad).split('=')[0]}.")
     data = cfg.get("data")
     if data is not None:
-        _check(data.noise_std >= 0, f"data.noise_std={data.noise_std}: noise is a standard deviation (in units of each "
-                                    "feature's std); give a value >= 0 (0: no noise).")
+        _check(
+            data.noise_std >= 0,
+            f"data.noise_std={data.noise_std}: noise is a standard deviation (in units of each "
+            "feature's std); give a value >= 0 (0: no noise).",
+        )
         for key in ("n_train", "n_val", "n_test"):
             _check(data[key] >= 1, f"data.{key}={data[key]}: each split needs at least 1 trajectory.")
         _check(data.burn_in >= 0, f"data.burn_in={data.burn_in}: give a number of steps >= 0.")
@@ -418,8 +427,11 @@ def _compose_one(firsts: list[str], _compose: Any, config_dir: str) -> DictConfi
         text = str(err)
         match = re.match(r"Could not override '([^']+)'", text)
         if match:
-            raise ConfigError(_unknown_key(match.group(1), [a for a in firsts if not _is_key(a, match.group(1))],
-                                           _compose, config_dir)) from None
+            raise ConfigError(
+                _unknown_key(
+                    match.group(1), [a for a in firsts if not _is_key(a, match.group(1))], _compose, config_dir
+                )
+            ) from None
         cause = f": {_one_line(err.__cause__)}" if err.__cause__ is not None else ""
         raise ConfigError(f"{_one_line(err)}{cause}") from None
     except HydraException as err:
@@ -460,7 +472,11 @@ def _unknown_key(key: str, others: list[str], compose_fn: Any, config_dir: str) 
                 close = difflib.get_close_matches(part, options, n=3, cutoff=0.6)
                 prefix = ".".join(parts[:depth])
                 name = f"{prefix}.{part}" if prefix else part
-                hint = f" Did you mean {' or '.join((prefix + '.' if prefix else '') + c for c in close)}?" if close else ""
+                hint = (
+                    f" Did you mean {' or '.join((prefix + '.' if prefix else '') + c for c in close)}?"
+                    if close
+                    else ""
+                )
                 return f"{key}: {name} is not a config section.{hint} (mpsim <command> --cfg job lists every key.)"
             here = here[part]
         return f"{key}: {parent} is not a config section (mpsim <command> --cfg job lists every key)."
@@ -470,8 +486,10 @@ def _unknown_key(key: str, others: list[str], compose_fn: Any, config_dir: str) 
         keys += [p.name for p in Path(config_dir).iterdir() if p.is_dir() and not p.name.startswith("_")]
     close = difflib.get_close_matches(leaf, keys, n=3, cutoff=0.6)
     if close:
-        return (f"{key} is not a config key. Did you mean {' or '.join(where + c for c in close)}? "
-                f"Keys of {parent or 'the config'}: {', '.join(sorted(set(k for k in keys if not k.startswith('_'))))}.")
+        return (
+            f"{key} is not a config key. Did you mean {' or '.join(where + c for c in close)}? "
+            f"Keys of {parent or 'the config'}: {', '.join(sorted(set(k for k in keys if not k.startswith('_'))))}."
+        )
     target = node.get("_target_") if parent else None
     if isinstance(target, str):
         try:
@@ -480,8 +498,10 @@ def _unknown_key(key: str, others: list[str], compose_fn: Any, config_dir: str) 
         except (ConfigError, TypeError, ValueError):
             params = {}
         if leaf in params:
-            return (f"{key} is a parameter of {target} that {parent}'s config file does not list; add it with "
-                    f"+{key}=<value>.")
+            return (
+                f"{key} is a parameter of {target} that {parent}'s config file does not list; add it with "
+                f"+{key}=<value>."
+            )
         close = difflib.get_close_matches(leaf, [p for p in params if p != "self"], n=3, cutoff=0.6)
         if close:
             return f"{key} is not a parameter of {target}. Did you mean {' or '.join(where + c for c in close)}?"

@@ -209,8 +209,10 @@ class DryFriction(Effect):
     ) -> None:
         super().__init__(coef, target, source, learnable)
         if isinstance(scale, bool) or not isinstance(scale, int | float) or not scale > 0 or math.isinf(scale):
-            raise ConfigError(f"DryFriction.scale must be a finite number > 0 (the velocity over which sign(v) is "
-                              f"smoothed, e.g. scale=0.01); got {scale!r}.")
+            raise ConfigError(
+                f"DryFriction.scale must be a finite number > 0 (the velocity over which sign(v) is "
+                f"smoothed, e.g. scale=0.01); got {scale!r}."
+            )
         self.scale = float(scale)
 
     def features(self, t, x, ctx):
@@ -406,7 +408,7 @@ class DelayedFeedback(Effect):
 
 
 def _minus(coef: torch.Tensor) -> str:  # coef: [K] the first entry is c of a term −c·φ
-    """"−c" with one clean sign: −0.3 for c = 0.3, +0.02 for c = −0.02 (never "--0.02")."""
+    """ "−c" with one clean sign: −0.3 for c = 0.3, +0.02 for c = −0.02 (never "--0.02")."""
     c = float(coef.detach()[0])
     return f"-{c:.4g}" if c >= 0 else f"+{-c:.4g}"
 

@@ -44,12 +44,25 @@ MEAN_NBR = sympy.Function("mean_nbr")
 LIN = sympy.Function("lin")
 NEIGHBOUR_FUNCS = {"sum_nbr": SUM_NBR, "mean_nbr": MEAN_NBR}
 FUNCS: dict[str, Any] = {
-    "sin": sympy.sin, "cos": sympy.cos, "tan": sympy.tan, "exp": sympy.exp, "log": sympy.log,
-    "sqrt": sympy.sqrt, "abs": sympy.Abs, "sign": sympy.sign, "tanh": sympy.tanh,
+    "sin": sympy.sin,
+    "cos": sympy.cos,
+    "tan": sympy.tan,
+    "exp": sympy.exp,
+    "log": sympy.log,
+    "sqrt": sympy.sqrt,
+    "abs": sympy.Abs,
+    "sign": sympy.sign,
+    "tanh": sympy.tanh,
 }
 TORCH_FUNCS: dict[Any, Callable[[torch.Tensor], torch.Tensor]] = {
-    sympy.sin: torch.sin, sympy.cos: torch.cos, sympy.tan: torch.tan, sympy.exp: torch.exp,
-    sympy.log: torch.log, sympy.Abs: torch.abs, sympy.sign: torch.sign, sympy.tanh: torch.tanh,
+    sympy.sin: torch.sin,
+    sympy.cos: torch.cos,
+    sympy.tan: torch.tan,
+    sympy.exp: torch.exp,
+    sympy.log: torch.log,
+    sympy.Abs: torch.abs,
+    sympy.sign: torch.sign,
+    sympy.tanh: torch.tanh,
 }
 T, DEG = sympy.Symbol("t"), sympy.Symbol("deg")
 RESERVED = {"t", "deg", "pi", *FUNCS, *NEIGHBOUR_FUNCS, "lin"}
@@ -73,16 +86,19 @@ def load_spec_file(path: str | Path) -> dict[str, Any]:
     """
     path = Path(path)
     if not path.is_file():
-        raise ConfigError(f"spec file {path} does not exist; give a path to a YAML file (absolute, or relative to "
-                          "the directory you started mpsim from).")
+        raise ConfigError(
+            f"spec file {path} does not exist; give a path to a YAML file (absolute, or relative to "
+            "the directory you started mpsim from)."
+        )
     try:
         data = yaml.safe_load(path.read_text())
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise ConfigError(f"cannot read spec file {path}: {first}. Fix the YAML (states, equations, params).") from None
     if not isinstance(data, dict):
-        raise ConfigError(f"spec file {path} holds a {type(data).__name__}, not a mapping of states, equations, "
-                          "params.")
+        raise ConfigError(
+            f"spec file {path} holds a {type(data).__name__}, not a mapping of states, equations, params."
+        )
     return data
 
 
@@ -127,8 +143,10 @@ def _names(value: Any, key: str, where: str) -> list[str]:
 
 def _check_name(name: str, where: str, what: str) -> None:
     if not name.isidentifier() or keyword.iskeyword(name):
-        raise ConfigError(f"{where}: {what} name {name!r} is not a valid identifier (letters, digits, _; not a "
-                          "Python keyword such as lambda). Rename it.")
+        raise ConfigError(
+            f"{where}: {what} name {name!r} is not a valid identifier (letters, digits, _; not a "
+            "Python keyword such as lambda). Rename it."
+        )
     if name in RESERVED:
         raise ConfigError(f"{where}: {what} name {name!r} is reserved (t, deg, pi and the function names). Rename it.")
     if name.endswith(NEIGHBOUR_SUFFIX):
@@ -137,8 +155,10 @@ def _check_name(name: str, where: str, what: str) -> None:
 
 def _param_value(name: str, value: Any, where: str) -> torch.Tensor:
     def bad() -> ConfigError:
-        return ConfigError(f"{where}.params.{name}: expected a number, a list of numbers (one per node) or a "
-                           f"square matrix (list of rows); got {str(value)[:80]!r}.")
+        return ConfigError(
+            f"{where}.params.{name}: expected a number, a list of numbers (one per node) or a "
+            f"square matrix (list of rows); got {str(value)[:80]!r}."
+        )
 
     def number(v: Any) -> bool:
         return isinstance(v, int | float) and not isinstance(v, bool)
@@ -150,8 +170,10 @@ def _param_value(name: str, value: Any, where: str) -> torch.Tensor:
             out = torch.tensor([float(v) for v in value], dtype=torch.float64)
         elif all(isinstance(r, Sequence) and not isinstance(r, str) and all(number(v) for v in r) for r in value):
             if len({len(r) for r in value}) != 1 or len(value[0]) != len(value):
-                raise ConfigError(f"{where}.params.{name}: a matrix parameter must be square; got "
-                                  f"{len(value)} rows of lengths {sorted({len(r) for r in value})}.")
+                raise ConfigError(
+                    f"{where}.params.{name}: a matrix parameter must be square; got "
+                    f"{len(value)} rows of lengths {sorted({len(r) for r in value})}."
+                )
             out = torch.tensor([[float(v) for v in r] for r in value], dtype=torch.float64)
         else:
             raise bad()
@@ -178,8 +200,9 @@ def parse_spec(spec: Mapping[str, Any], where: str = "model.spec", extra_keys: S
     allowed = (*MODEL_KEYS, *extra_keys)
     for key in spec:
         if key not in allowed:
-            raise ConfigError(f"{where}.{key} is not a spec key.{did_you_mean(str(key), allowed)} "
-                              f"Valid keys: {', '.join(allowed)}.")
+            raise ConfigError(
+                f"{where}.{key} is not a spec key.{did_you_mean(str(key), allowed)} Valid keys: {', '.join(allowed)}."
+            )
     states = _names(spec.get("states"), "states", where)
     if not states:
         raise ConfigError(f"{where}.states is missing: list the per-node state names in the data's column order.")
@@ -203,8 +226,9 @@ def parse_spec(spec: Mapping[str, Any], where: str = "model.spec", extra_keys: S
         raise ConfigError(f"{where}.equations is missing: give one expression per state, e.g. {{{states[0]}: ...}}.")
     for key in equations:
         if key not in states:
-            raise ConfigError(f"{where}.equations.{key}: {key!r} is not a state.{did_you_mean(str(key), states)} "
-                              f"States: {states}.")
+            raise ConfigError(
+                f"{where}.equations.{key}: {key!r} is not a state.{did_you_mean(str(key), states)} States: {states}."
+            )
     missing = [s for s in states if s not in equations]
     if missing:
         raise ConfigError(f"{where}.equations has no equation for {missing}; give d/dt of every state.")
@@ -214,8 +238,10 @@ def parse_spec(spec: Mapping[str, Any], where: str = "model.spec", extra_keys: S
     learnable = list(params) if spec.get("learnable") is None else _names(spec.get("learnable"), "learnable", where)
     for name in learnable:
         if name not in params:
-            raise ConfigError(f"{where}.learnable names {name!r}, which is not a parameter."
-                              f"{did_you_mean(name, list(params))} Parameters: {sorted(params)}.")
+            raise ConfigError(
+                f"{where}.learnable names {name!r}, which is not a parameter."
+                f"{did_you_mean(name, list(params))} Parameters: {sorted(params)}."
+            )
     auto = [s for s, e in zip(states, rhs, strict=True) if isinstance(e, sympy.Symbol) and e.name in states]
     kinematic = auto if spec.get("kinematic") is None else _names(spec.get("kinematic"), "kinematic", where)
     for name in kinematic:
@@ -245,27 +271,38 @@ def _node_count(nodes: Any, params: dict[str, torch.Tensor], d: int, where: str)
             sizes[f"params.{name} (per node)"] = value.numel()
         elif value.dim() == 2:
             if value.shape[0] % d:
-                raise ConfigError(f"{where}.params.{name} is {value.shape[0]}×{value.shape[0]}, not a multiple of the "
-                                  f"{d} states per node: a matrix parameter must be [N·D, N·D].")
+                raise ConfigError(
+                    f"{where}.params.{name} is {value.shape[0]}×{value.shape[0]}, not a multiple of the "
+                    f"{d} states per node: a matrix parameter must be [N·D, N·D]."
+                )
             sizes[f"params.{name} (matrix/{d})"] = value.shape[0] // d
     if len(set(sizes.values())) > 1:
         listing = ", ".join(f"{k}: {v}" for k, v in sizes.items())
-        raise ConfigError(f"{where}: the node counts disagree ({listing}); make every per-node list length N and "
-                          "every matrix N·D square.")
+        raise ConfigError(
+            f"{where}: the node counts disagree ({listing}); make every per-node list length N and "
+            "every matrix N·D square."
+        )
     return next(iter(sizes.values()), None)
 
 
 class _Parser:
     """Python-syntax expressions -> sympy, through an allowlist of `ast` nodes (nothing is evaluated)."""
 
-    BINOPS = {ast.Add: lambda a, b: a + b, ast.Sub: lambda a, b: a - b, ast.Mult: lambda a, b: a * b,
-              ast.Div: lambda a, b: a / b, ast.Pow: lambda a, b: a**b}
+    BINOPS = {
+        ast.Add: lambda a, b: a + b,
+        ast.Sub: lambda a, b: a - b,
+        ast.Mult: lambda a, b: a * b,
+        ast.Div: lambda a, b: a / b,
+        ast.Pow: lambda a, b: a**b,
+    }
 
     def __init__(self, states: list[str], params: dict[str, torch.Tensor], where: str) -> None:
         self.states, self.params, self.where = states, params, where
         per_node = [p for p, v in params.items() if v.dim() == 1]
         self.own = {n: sympy.Symbol(n) for n in [*states, *params]}
-        self.neighbour = {f"{n}{NEIGHBOUR_SUFFIX}": sympy.Symbol(f"{n}{NEIGHBOUR_SUFFIX}") for n in [*states, *per_node]}
+        self.neighbour = {
+            f"{n}{NEIGHBOUR_SUFFIX}": sympy.Symbol(f"{n}{NEIGHBOUR_SUFFIX}") for n in [*states, *per_node]
+        }
         self.known = [*states, *params, *self.neighbour, "t", "deg", "pi", *FUNCS, *NEIGHBOUR_FUNCS, "lin"]
 
     def parse(self, state: str, text: Any) -> sympy.Expr:
@@ -297,8 +334,11 @@ class _Parser:
         if isinstance(node, ast.Call):
             return self.call(node, in_nbr)
         what = type(node).__name__
-        raise self.fail(node, f"{what} is not allowed; use numbers, names, + - * / ** and the functions "
-                              f"{', '.join(FUNCS)}, sum_nbr, mean_nbr, lin")
+        raise self.fail(
+            node,
+            f"{what} is not allowed; use numbers, names, + - * / ** and the functions "
+            f"{', '.join(FUNCS)}, sum_nbr, mean_nbr, lin",
+        )
 
     def name(self, node: ast.Name, in_nbr: bool) -> sympy.Expr:
         n = node.id
@@ -314,14 +354,19 @@ class _Parser:
             return self.own[n]
         if n in self.neighbour:
             if not in_nbr:
-                raise self.fail(node, f"{n!r} (a neighbour's value) is only defined inside sum_nbr(...) or mean_nbr(...)")
+                raise self.fail(
+                    node, f"{n!r} (a neighbour's value) is only defined inside sum_nbr(...) or mean_nbr(...)"
+                )
             return self.neighbour[n]
         if n.endswith(NEIGHBOUR_SUFFIX) and n[: -len(NEIGHBOUR_SUFFIX)] in self.params:
             raise self.fail(node, f"{n!r}: only states and per-node parameters have a neighbour's value")
         if n in FUNCS or n in NEIGHBOUR_FUNCS or n == "lin":
             raise self.fail(node, f"{n!r} is a function: call it, e.g. {n}(...)")
-        raise self.fail(node, f"unknown name {n!r}.{did_you_mean(n, self.known)} Known: states {self.states}, "
-                              f"parameters {sorted(self.params)}, t, deg, pi")
+        raise self.fail(
+            node,
+            f"unknown name {n!r}.{did_you_mean(n, self.known)} Known: states {self.states}, "
+            f"parameters {sorted(self.params)}, t, deg, pi",
+        )
 
     def call(self, node: ast.Call, in_nbr: bool) -> sympy.Expr:
         if not isinstance(node.func, ast.Name):
@@ -343,8 +388,11 @@ class _Parser:
                 matrices = [p for p, v in self.params.items() if v.dim() == 2]
                 raise self.fail(node, f"lin(...) takes the name of a matrix parameter (have: {matrices or 'none'})")
             return LIN(sympy.Symbol(arg.id))
-        raise self.fail(node, f"unknown function {f!r}.{did_you_mean(f, [*FUNCS, *NEIGHBOUR_FUNCS, 'lin'])} "
-                              f"Functions: {', '.join([*FUNCS, *NEIGHBOUR_FUNCS, 'lin'])}")
+        raise self.fail(
+            node,
+            f"unknown function {f!r}.{did_you_mean(f, [*FUNCS, *NEIGHBOUR_FUNCS, 'lin'])} "
+            f"Functions: {', '.join([*FUNCS, *NEIGHBOUR_FUNCS, 'lin'])}",
+        )
 
 
 # ---- compilation -----------------------------------------------------------------------------------------------
@@ -468,8 +516,12 @@ class EquationField:
     def _edge(self, expr: sympy.Expr) -> Callable[[_Env], Value]:
         names = {s.name for s in expr.free_symbols}
         nbr = {n for n in names if n.endswith(NEIGHBOUR_SUFFIX)}
-        own = {n for n in names if n not in nbr and (n in self.index or n in ("t", "deg")
-                                                   or (n in self.spec.params and self.spec.params[n].dim() == 1))}
+        own = {
+            n
+            for n in names
+            if n not in nbr
+            and (n in self.index or n in ("t", "deg") or (n in self.spec.params and self.spec.params[n].dim() == 1))
+        }
         if not nbr:
             rank, fn = self.node(expr, -1)
             if rank <= 1:
@@ -551,6 +603,7 @@ class EquationField:
         if not steps:
             return 0, lambda env: -1.0
         if negative:
+
             def mul(env: _Env) -> Value:
                 return -positive(env)
 
@@ -624,8 +677,10 @@ def _degree(env: _Env) -> torch.Tensor:
 def check_nodes(spec: Spec, n_nodes: int, where: str) -> None:
     """Refuse data with another node count than a spec's per-node or matrix parameters fix."""
     if spec.n_nodes is not None and spec.n_nodes != n_nodes:
-        raise ConfigError(f"{where} is written for {spec.n_nodes} nodes (its per-node/matrix parameters or `nodes:`) "
-                          f"but the data has {n_nodes}; give parameters for {n_nodes} nodes.")
+        raise ConfigError(
+            f"{where} is written for {spec.n_nodes} nodes (its per-node/matrix parameters or `nodes:`) "
+            f"but the data has {n_nodes}; give parameters for {n_nodes} nodes."
+        )
 
 
 def check_states(spec: Spec, state_names: Sequence[str], where: str) -> None:

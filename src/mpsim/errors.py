@@ -16,8 +16,15 @@ Exit codes (documented in the README, "What mpsim guarantees"):
 | 130 | interrupted (Ctrl-C); `resume=true` continues |
 """
 
-EXIT_CODES = {0: "success", 1: "bug (traceback)", 2: "bad input", 3: "diverged", 4: "cannot write output",
-              5: "not enough memory", 130: "interrupted"}
+EXIT_CODES = {
+    0: "success",
+    1: "bug (traceback)",
+    2: "bad input",
+    3: "diverged",
+    4: "cannot write output",
+    5: "not enough memory",
+    130: "interrupted",
+}
 
 
 class MpsimError(Exception):

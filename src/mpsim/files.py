@@ -124,8 +124,9 @@ def keep_previous(path: str | Path) -> Path:
         try:
             shutil.copy2(path, backup)
         except OSError as err:
-            raise OutputError(f"cannot keep the previous {path} as {backup.name}: {describe_os_error(err)}; "
-                              "nothing was replaced.") from None
+            raise OutputError(
+                f"cannot keep the previous {path} as {backup.name}: {describe_os_error(err)}; nothing was replaced."
+            ) from None
     return backup
 
 

@@ -32,8 +32,10 @@ def fmt_bytes(n: float) -> str:
 
 def _cgroup_room() -> int | None:
     """Bytes left under this process's cgroup (v2 or v1) memory limit, or None without a limit."""
-    candidates = [(Path("/sys/fs/cgroup/memory.max"), Path("/sys/fs/cgroup/memory.current")),
-                  (Path("/sys/fs/cgroup/memory/memory.limit_in_bytes"), Path("/sys/fs/cgroup/memory/memory.usage_in_bytes"))]
+    candidates = [
+        (Path("/sys/fs/cgroup/memory.max"), Path("/sys/fs/cgroup/memory.current")),
+        (Path("/sys/fs/cgroup/memory/memory.limit_in_bytes"), Path("/sys/fs/cgroup/memory/memory.usage_in_bytes")),
+    ]
     for limit_path, usage_path in candidates:
         try:
             limit = limit_path.read_text().strip()

@@ -57,8 +57,9 @@ def trajectories(
     b, _, n, d = true.shape
     n_traj, nodes = min(n_traj, b), min(n, max_nodes)
     rows_per = d + (1 if messages is not None and messages.shape[-1] > 0 else 0)
-    fig, axes = plt.subplots(n_traj * rows_per, nodes, figsize=(2.6 * nodes + 1, 1.7 * n_traj * rows_per),
-                             squeeze=False, sharex=True)
+    fig, axes = plt.subplots(
+        n_traj * rows_per, nodes, figsize=(2.6 * nodes + 1, 1.7 * n_traj * rows_per), squeeze=False, sharex=True
+    )
     tt = t.cpu().numpy()
     for i in range(n_traj):
         for k in range(nodes):

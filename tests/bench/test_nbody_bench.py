@@ -20,9 +20,20 @@ def test_graph_edge_counts() -> None:
 
 
 def test_suite_rows_summary_and_plot(tmp_path) -> None:
-    suite = NBodyBench(graph_sizes=[50, 400], forward_sizes=[50, 200], full_max=400, full_forward_max=200,
-                       sim_sizes=[20, 40], sim_steps=4, sim_full_max=20, sim_steps_large=2, sim_batch=3,
-                       repeats=1, memory=False, fit_min=1000)
+    suite = NBodyBench(
+        graph_sizes=[50, 400],
+        forward_sizes=[50, 200],
+        full_max=400,
+        full_forward_max=200,
+        sim_sizes=[20, 40],
+        sim_steps=4,
+        sim_full_max=20,
+        sim_steps_large=2,
+        sim_batch=3,
+        repeats=1,
+        memory=False,
+        fit_min=1000,
+    )
     rows = suite.run()
     parts = {r["part"] for r in rows}
     assert parts == {"graph", "forward", "simulator"}
@@ -35,8 +46,14 @@ def test_suite_rows_summary_and_plot(tmp_path) -> None:
     assert [(r["N"], r["B"], r["steps"]) for r in sim] == [(20, 1, 4), (40, 1, 2), (20, 3, 4)]
     assert all(0 <= r["energy_drift"] < 1e-3 for r in sim)
     text = "\n".join(suite.summarise(rows))
-    for phrase in ("build time ∝ N^", "forward time ∝ N^", "expected ≈ 2 (quadratic)", "edges per particle vary",
-                   "per 200-step trajectory", "per-trajectory throughput"):
+    for phrase in (
+        "build time ∝ N^",
+        "forward time ∝ N^",
+        "expected ≈ 2 (quadratic)",
+        "edges per particle vary",
+        "per 200-step trajectory",
+        "per-trajectory throughput",
+    ):
         assert phrase in text, phrase
     (plot,) = suite.plot(rows, tmp_path)
     assert plot.endswith("nbody_scaling.png")
@@ -46,10 +63,17 @@ def _summary(run, model: str, graph: str, n: int, system: str) -> None:
     run.mkdir(parents=True)
     summary = {
         "system": {"name": system, "n_nodes": n},
-        "model": {"model": model, "n_params": 1, "config": {"_target_": "mpsim.models.deltagn.DeltaGN", "graph": graph,
-                                                            "k": 6},
-                  "nbody": {"graph": graph, "energy_error": {"20": 1e-3, "200": 1e-2},
-                            "data_energy_drift": {"20": 1e-7, "200": 1e-6}, "n_ill_conditioned": 0}},
+        "model": {
+            "model": model,
+            "n_params": 1,
+            "config": {"_target_": "mpsim.models.deltagn.DeltaGN", "graph": graph, "k": 6},
+            "nbody": {
+                "graph": graph,
+                "energy_error": {"20": 1e-3, "200": 1e-2},
+                "data_energy_drift": {"20": 1e-7, "200": 1e-6},
+                "n_ill_conditioned": 0,
+            },
+        },
         "data": {"n_test": 4},
         "test": {"horizons": {"20": {"rmse_raw": 0.03}, "200": {"rmse_raw": 0.4}}, "n_diverged": 1},
         "trained_on": "nbody100",
@@ -66,8 +90,11 @@ def test_table_reads_runs_and_measures_cost(tmp_path) -> None:
     rows = suite.run()
     assert [r["graph"] for r in rows] == ["hierarchical", "knn"]  # in order, deduplicated, non-N-body skipped
     a = rows[0]
-    assert a["rmse20"] == 0.03 and a["energy200"] == 1e-2 and a["paper_rmse20"] == PAPER[
-        ("gravity", "DeltaGN", "hierarchical", 100)][0]
+    assert (
+        a["rmse20"] == 0.03
+        and a["energy200"] == 1e-2
+        and a["paper_rmse20"] == PAPER[("gravity", "DeltaGN", "hierarchical", 100)][0]
+    )
     text = "\n".join(suite.summarise(rows))
     assert "| nbody100 | DeltaGN | hierarchical |" in text and "0.03 / 0.0016" in text and "1/4" in text
     measured = NBodyTable(runs=[str(tmp_path / "runs" / "b")], train_states=1, repeats=1).run()[0]

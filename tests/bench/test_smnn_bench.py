@@ -19,8 +19,9 @@ def test_inputs_have_the_lorenz_discovery_shapes():
 
 
 def test_rows_summary_and_exponents():
-    suite = SMNNBench(lengths=[5, 20, 40], batches=[4, 8], base_batch=8, base_length=20, repeats=1, memory=False,
-                      fit_from=5)
+    suite = SMNNBench(
+        lengths=[5, 20, 40], batches=[4, 8], base_batch=8, base_length=20, repeats=1, memory=False, fit_from=5
+    )
     rows = suite.run()
     assert len(rows) == 2 * 4 * 4  # two LHS modes x (3 lengths + 1 extra batch) x 4 solvers
     assert all(r["status"] == "ok" and r["fwd_bwd_ms"] > 0 for r in rows)
@@ -37,8 +38,16 @@ def test_rows_summary_and_exponents():
 
 
 def test_dense_is_refused_over_budget_not_crashed():
-    suite = SMNNBench(lengths=[30], batches=[16], base_batch=16, base_length=30, lhs_modes=["per_sample"],
-                      dense_budget_gib=1e-4, repeats=1, memory=False)
+    suite = SMNNBench(
+        lengths=[30],
+        batches=[16],
+        base_batch=16,
+        base_length=30,
+        lhs_modes=["per_sample"],
+        dense_budget_gib=1e-4,
+        repeats=1,
+        memory=False,
+    )
     rows = {r["method"]: r for r in suite.run()}
     for method in ("dense", "mnn"):
         assert rows[method]["status"].startswith("refused: needs ") and "GiB" in rows[method]["status"]
@@ -60,9 +69,21 @@ def test_bad_method_is_refused():
 
 
 def test_cli_writes_table_and_plot(tmp_path):
-    run_cli(["bench", "bench=smnn", "bench.lengths=[5,20]", "bench.batches=[4]", "bench.base_batch=4",
-             "bench.base_length=20", "bench.repeats=1", "bench.memory=false", "bench.fit_from=5"], tmp_path,
-            check=True)
+    run_cli(
+        [
+            "bench",
+            "bench=smnn",
+            "bench.lengths=[5,20]",
+            "bench.batches=[4]",
+            "bench.base_batch=4",
+            "bench.base_length=20",
+            "bench.repeats=1",
+            "bench.memory=false",
+            "bench.fit_from=5",
+        ],
+        tmp_path,
+        check=True,
+    )
     (run,) = sorted(p.parent for p in (tmp_path / "outputs" / "bench").rglob("bench.md"))
     text = (run / "bench.md").read_text()
     assert "fwd_bwd_ms" in text and "banded" in text and (run / "plots" / "smnn_scaling.png").is_file()

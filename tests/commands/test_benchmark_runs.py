@@ -7,8 +7,17 @@ import pytest
 from mpsim.commands.train import run_train
 from mpsim.errors import IncompatibleError
 
-TINY = ["trainer=quick", "trainer.max_epochs=1", "trainer.progress=false", "data.n_train=4", "data.n_val=2",
-        "data.n_test=2", "data.horizon=5", "eval.horizons=[1,5]", "eval.plots=false"]
+TINY = [
+    "trainer=quick",
+    "trainer.max_epochs=1",
+    "trainer.progress=false",
+    "data.n_train=4",
+    "data.n_val=2",
+    "data.n_test=2",
+    "data.horizon=5",
+    "eval.horizons=[1,5]",
+    "eval.plots=false",
+]
 
 
 def _train(cfg_factory, tmp_path, name, *overrides):
@@ -34,8 +43,9 @@ def test_mpnode_on_quadrotors_finetunes_from_three_to_six(cfg_factory, tmp_path)
     pre = _train(cfg_factory, tmp_path, "quad3", "system=quad3", "solver=rk4", "model.message_size=7")
     assert pre["model"]["n_params"] > 0 and pre["system"]["n_nodes"] == 3
     ckpt = str(tmp_path / "checkpoints" / "quad3.ckpt")
-    fine = _train(cfg_factory, tmp_path, "quad6", "system=quad6", "solver=rk4", f"init={ckpt}",
-                  "mode.refit_normalisation=true")
+    fine = _train(
+        cfg_factory, tmp_path, "quad6", "system=quad6", "solver=rk4", f"init={ckpt}", "mode.refit_normalisation=true"
+    )
     assert fine["mode"] == "finetune" and fine["system"]["n_nodes"] == 6
     assert fine["model"]["config"]["message_size"] == 7  # the architecture comes from the checkpoint
     assert math.isfinite(fine["initial_test_error"]) and math.isfinite(fine["min_test_error"])

@@ -11,29 +11,58 @@ from mpsim.commands.report import run_report
 from mpsim.errors import ConfigError
 
 
-def _run(root: Path, name: str, *, system: str, mode: str = "scratch", model: str = "MPNODE", seed: int = 0,
-         n_train: int = 100, errors: list[float] | None = None, message_size: int | None = 3,
-         trained_on: str | None = None, best_val: float | None = None, overrides: list[str] = ()) -> Path:
+def _run(
+    root: Path,
+    name: str,
+    *,
+    system: str,
+    mode: str = "scratch",
+    model: str = "MPNODE",
+    seed: int = 0,
+    n_train: int = 100,
+    errors: list[float] | None = None,
+    message_size: int | None = 3,
+    trained_on: str | None = None,
+    best_val: float | None = None,
+    overrides: list[str] = (),
+) -> Path:
     """A run directory as `mpsim train` (or a zero-shot run) leaves it: summary.json, metrics.csv, overrides."""
     run = root / name
     (run / ".hydra").mkdir(parents=True)
     (run / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump([f"seed={seed}", *overrides]))
     config = {"_target_": f"mpsim.models.{model}"} | ({"message_size": message_size} if message_size else {})
-    summary = {"task": "train", "mode": mode, "status": "complete", "seed": seed,
-               "system": {"name": system, "n_nodes": 10}, "model": {"model": model, "config": config},
-               "data": {"train": n_train, "val": 20, "test": 20, "n_times": 51}}
+    summary = {
+        "task": "train",
+        "mode": mode,
+        "status": "complete",
+        "seed": seed,
+        "system": {"name": system, "n_nodes": 10},
+        "model": {"model": model, "config": config},
+        "data": {"train": n_train, "val": 20, "test": 20, "n_times": 51},
+    }
     if errors is not None:  # a training run: per-epoch curve, Table 2 metric from it
         epochs = list(range(len(errors)))
-        pd.DataFrame({"epoch": epochs, "train_loss": [10 * e for e in errors], "val_error": errors,
-                      "test_error": errors}).to_csv(run / "metrics.csv", index=False)
+        pd.DataFrame(
+            {"epoch": epochs, "train_loss": [10 * e for e in errors], "val_error": errors, "test_error": errors}
+        ).to_csv(run / "metrics.csv", index=False)
         best = min(range(1, len(errors)), key=lambda k: errors[k])
-        summary |= {"min_test_error": errors[best], "min_test_error_epoch": best,
-                    "epochs_x_min_error": best * errors[best], "initial_test_error": errors[0],
-                    "epochs_run": len(errors) - 1, "best_val_error": best_val or errors[best],
-                    "test": {"rmse": errors[best]}}
+        summary |= {
+            "min_test_error": errors[best],
+            "min_test_error_epoch": best,
+            "epochs_x_min_error": best * errors[best],
+            "initial_test_error": errors[0],
+            "epochs_run": len(errors) - 1,
+            "best_val_error": best_val or errors[best],
+            "test": {"rmse": errors[best]},
+        }
     else:  # zero-shot evaluation
-        summary |= {"task": "train", "mode": "zeroshot", "trained_on": trained_on, "test": {"rmse": best_val},
-                    "test_error": best_val}
+        summary |= {
+            "task": "train",
+            "mode": "zeroshot",
+            "trained_on": trained_on,
+            "test": {"rmse": best_val},
+            "test_error": best_val,
+        }
     (run / "summary.json").write_text(json.dumps(summary))
     return run
 
@@ -50,14 +79,28 @@ def table2_runs(tmp_path):
     _run(root, "pre", system="lorenz3", errors=[2.0, 1.0, 0.8])  # pre-training: not a Table 2 column
     for seed in (0, 1):
         for ds in (50, 100):
-            _run(root, f"lf{seed}{ds}", system="lorenz10", mode="finetune", seed=seed, n_train=ds,
-                 errors=[1.0, 0.5, 0.4, 0.45, 0.5])  # min 0.4 at epoch 2 → 0.8
-            _run(root, f"ls{seed}{ds}", system="lorenz10", seed=seed, n_train=ds,
-                 errors=[2.0, 1.5, 1.0, 0.8, 0.6 + 0.1 * seed])  # min at epoch 4 → 2.4 / 2.8
+            _run(
+                root,
+                f"lf{seed}{ds}",
+                system="lorenz10",
+                mode="finetune",
+                seed=seed,
+                n_train=ds,
+                errors=[1.0, 0.5, 0.4, 0.45, 0.5],
+            )  # min 0.4 at epoch 2 → 0.8
+            _run(
+                root,
+                f"ls{seed}{ds}",
+                system="lorenz10",
+                seed=seed,
+                n_train=ds,
+                errors=[2.0, 1.5, 1.0, 0.8, 0.6 + 0.1 * seed],
+            )  # min at epoch 4 → 2.4 / 2.8
         _run(root, f"gf{seed}", system="gene_ba_large", mode="finetune", seed=seed, errors=[0.5, 0.2, 0.1])
         _run(root, f"gs{seed}", system="gene_ba_large", seed=seed, errors=[3.0, 1.0, 0.5])
-        _run(root, f"gl{seed}", system="gene_ba_large", model="L2S", seed=seed, message_size=None,
-             errors=[3.0, 2.0, 0.9])
+        _run(
+            root, f"gl{seed}", system="gene_ba_large", model="L2S", seed=seed, message_size=None, errors=[3.0, 2.0, 0.9]
+        )
     return root
 
 
@@ -111,8 +154,14 @@ def test_message_size_layout(cfg_factory, tmp_path):
     root = tmp_path / "runs"
     for m, err in ((1, 0.9), (3, 0.5), (7, 0.3), (13, 0.29)):
         for seed in (0, 1):
-            _run(root, f"k{m}_{seed}", system="kuramoto10_ba", seed=seed, message_size=m,
-                 errors=[2.0, 1.0, err + 0.01 * seed])
+            _run(
+                root,
+                f"k{m}_{seed}",
+                system="kuramoto10_ba",
+                seed=seed,
+                message_size=m,
+                errors=[2.0, 1.0, err + 0.01 * seed],
+            )
     _run(root, "l2s", system="kuramoto10_ba", model="L2S", message_size=None, errors=[2.0, 1.0, 0.6])
     _, out = _report(cfg_factory, tmp_path, "message_size", root)
     text = (out / "report.md").read_text()

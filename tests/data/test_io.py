@@ -59,8 +59,10 @@ def test_hand_written_csv_loads(tmp_path):
         (lambda r: r.__setitem__(2, [0, 0.1, 0, "abc", 0.0]), r"row 4, column 'theta' holds 'abc'"),
         (lambda r: r.__setitem__(4, [0, 0.2, 0, float("inf"), 0.0]), r"row 6, column 'theta'"),
         (lambda r: r.pop(5), r"ragged data: trajectory 0 has 5 rows"),
-        (lambda r: r.__setitem__(6, [1, 0.15, 0, 0.0, 0.0]) or r.__setitem__(7, [1, 0.15, 1, 0.0, 0.0]),
-         r"ragged times: trajectory 1"),
+        (
+            lambda r: r.__setitem__(6, [1, 0.15, 0, 0.0, 0.0]) or r.__setitem__(7, [1, 0.15, 1, 0.0, 0.0]),
+            r"ragged times: trajectory 1",
+        ),
         (lambda r: r.__setitem__(1, [0, 0.0, 0, 0.0, 0.0]), r"repeat the same \(traj, t, node\)"),
         (lambda r: [row.__setitem__(2, row[2] + 1) for row in r], r"ids 0..N-1"),
     ],
@@ -97,7 +99,8 @@ def test_per_trajectory_edge_lists(tmp_path):
     path = tmp_path / "g.csv"
     pd.DataFrame(rows, columns=["traj", "t", "node", "theta", "omega"]).to_csv(path, index=False)
     pd.DataFrame([["a", 0, 1], ["b", 1, 2], ["b", 2, 1]], columns=["traj", "src", "dst"]).to_csv(
-        tmp_path / "g_edges.csv", index=False)
+        tmp_path / "g_edges.csv", index=False
+    )
     data = load_trajectories(path)
     assert data.edge_index.shape == (2, 2, 2)
     assert data.edge_index[0].tolist() == [[0, -1], [1, -1]]
@@ -131,10 +134,15 @@ def test_empty_traj_cell_is_named(tmp_path):
         load_trajectories(_write(tmp_path, rows))
 
 
-@pytest.mark.parametrize("text, match", [("{oops", r"m.json: the metadata file beside the CSV is not valid JSON"),
-                                         ('["a"]', r"m.json must be a JSON object .* got a JSON list"),
-                                         ('{"dt": "fast"}', r"m.json: key 'dt' must be a number"),
-                                         ('{"control_columns": [1]}', r"key 'control_columns' must be a list of strings")])
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("{oops", r"m.json: the metadata file beside the CSV is not valid JSON"),
+        ('["a"]', r"m.json must be a JSON object .* got a JSON list"),
+        ('{"dt": "fast"}', r"m.json: key 'dt' must be a number"),
+        ('{"control_columns": [1]}', r"key 'control_columns' must be a list of strings"),
+    ],
+)
 def test_bad_sidecar_json_is_named(tmp_path, text, match):
     path = _write(tmp_path, _grid())
     (tmp_path / "m.json").write_text(text)
@@ -154,7 +162,9 @@ def test_npz_values_are_never_cast_silently(tmp_path):
     with pytest.raises(DataError, match=r"node id 0.5 at \[1, 1\]"):
         load_trajectories(_npz(tmp_path, edge_index=np.array([[0.0, 1.0], [1.0, 0.5]])))
     assert load_trajectories(_npz(tmp_path, edge_index=np.array([[0.0, 1.0], [1.0, 0.0]]))).edge_index.tolist() == [
-        [0, 1], [1, 0]]
+        [0, 1],
+        [1, 0],
+    ]
     with pytest.raises(DataError, match="array 'x' is complex"):
         load_trajectories(_npz(tmp_path, x=np.zeros((2, 3, 2, 1), dtype=complex)))
     with pytest.raises(DataError, match=r"zero nodes \(N\)"):
@@ -173,7 +183,9 @@ def test_values_beyond_the_model_precision_are_reported_as_overflow(tmp_path):
 
 
 def test_one_node_csv_needs_no_edge_list(tmp_path):
-    rows = [{"traj": r, "t": 0.1 * k, "node": 0, "theta": 0.1 * k + r, "omega": 1.0} for r in range(2) for k in range(5)]
+    rows = [
+        {"traj": r, "t": 0.1 * k, "node": 0, "theta": 0.1 * k + r, "omega": 1.0} for r in range(2) for k in range(5)
+    ]
     pd.DataFrame(rows).to_csv(tmp_path / "one.csv", index=False)
     data = load_trajectories(tmp_path / "one.csv")
     assert data.x.shape == (2, 5, 1, 2) and data.edge_index.shape == (2, 0)

@@ -24,14 +24,22 @@ from mpsim.systems.lorenz import CoupledLorenz
 from tests.conftest import run_cli
 
 C_TRUE = 0.005
-LORENZ = {("x", "x"): -10.0, ("x", "y"): 10.0, ("y", "x"): 28.0, ("y", "y"): -1.0, ("y", "x z"): -1.0,
-          ("z", "z"): -8.0 / 3.0, ("z", "x y"): 1.0}
+LORENZ = {
+    ("x", "x"): -10.0,
+    ("x", "y"): 10.0,
+    ("y", "x"): 28.0,
+    ("y", "y"): -1.0,
+    ("y", "x z"): -1.0,
+    ("z", "z"): -8.0 / 3.0,
+    ("z", "x y"): 1.0,
+}
 
 
 @pytest.fixture(scope="module")
 def cubic_data():
-    system = CoupledLorenz(name="lorenz1", n_nodes=1, ic_range=(-15.0, 15.0),
-                           effects=[CubicStiffness(C_TRUE, target="x")])
+    system = CoupledLorenz(
+        name="lorenz1", n_nodes=1, ic_range=(-15.0, 15.0), effects=[CubicStiffness(C_TRUE, target="x")]
+    )
     return system.generate(24, seed=0, dt=0.01, horizon=200)
 
 
@@ -72,8 +80,12 @@ def test_residual_names_the_missing_cubic_term(cubic_data):
     # the regression on the step-averaged −x³ alone would be biased by (1 − σΔ/2) = 0.95 (within the step the
     # term's effect on x feeds back through ∂(dx/dt)/∂x = −σ); the loop refits it through the model's integration
     assert found.coef[0] == pytest.approx(C_TRUE, rel=0.01)
-    assert found.effect == {"_target_": "mpsim.effects.CubicStiffness", "target": "x", "source": "x",
-                            "coef": found.coef[0]}
+    assert found.effect == {
+        "_target_": "mpsim.effects.CubicStiffness",
+        "target": "x",
+        "source": "x",
+        "coef": found.coef[0],
+    }
     # what the scientist does next: add the term the loop named to the library and rediscover (which fits the
     # windows themselves and recovers c without that bias: the slow test below)
     fixed = discovered(cubic_data, extra_terms=["x^3"], cubic=C_TRUE)
@@ -98,8 +110,15 @@ def test_extra_terms_parse_resolve_and_threshold():
     assert float(thr[10]) == pytest.approx(0.1 * 4.0 / 8.0)  # mean σ = 4, x^3 at σ = 8
 
 
-@pytest.mark.parametrize("terms, match", [(["x^2"], "already in the library"), (["w^3"], "not state variables"),
-                                          (["x^0"], "cannot read"), (["x^3", "x x^2"], "listed twice")])
+@pytest.mark.parametrize(
+    "terms, match",
+    [
+        (["x^2"], "already in the library"),
+        (["w^3"], "not state variables"),
+        (["x^0"], "cannot read"),
+        (["x^3", "x x^2"], "listed twice"),
+    ],
+)
 def test_bad_extra_terms_are_refused(terms, match):
     from mpsim.errors import ConfigError
 
@@ -114,8 +133,12 @@ def test_cli_discovery_diagnosis_and_rediscovery(tmp_path):
     residual variance far below the first model's."""
     common = ["experiment=lorenz_cubic_discovery", "trainer.progress=false", f"paths.ckpt_dir={tmp_path}/ckpt"]
     run_cli(["train", *common, f"hydra.run.dir={tmp_path}/deg2"], tmp_path, timeout=1200, check=True)
-    run_cli(["diagnose", *common, "init=lorenz1_cubic.ckpt", "diagnose.n_boot=30", f"hydra.run.dir={tmp_path}/d2"],
-            tmp_path, timeout=1200, check=True)
+    run_cli(
+        ["diagnose", *common, "init=lorenz1_cubic.ckpt", "diagnose.n_boot=30", f"hydra.run.dir={tmp_path}/d2"],
+        tmp_path,
+        timeout=1200,
+        check=True,
+    )
     before = json.loads((tmp_path / "d2" / "diagnosis.json").read_text())
     # the cubic term on x and nothing else: the y-residual echoes of what the degree-2 x equation absorbed are
     # refuted once the loop's trial model carries the refit of the model's own coefficients
@@ -125,13 +148,20 @@ def test_cli_discovery_diagnosis_and_rediscovery(tmp_path):
     # multiple-shooting fit with the discovered coefficients refit alongside: 6 % off (issue 11 bound: 10 %)
     assert found["values"]["coef"] == pytest.approx(C_TRUE, rel=0.10)
 
-    run_cli(["train", *common, "model.extra_terms=[x**3]", "system.name=lorenz1_cubic_x3",
-             f"hydra.run.dir={tmp_path}/x3"], tmp_path, timeout=1200, check=True)
+    run_cli(
+        ["train", *common, "model.extra_terms=[x**3]", "system.name=lorenz1_cubic_x3", f"hydra.run.dir={tmp_path}/x3"],
+        tmp_path,
+        timeout=1200,
+        check=True,
+    )
     coefs = json.loads((tmp_path / "x3" / "summary.json").read_text())["model"]["coefficients"]
     for (eq, term), value in {**LORENZ, ("x", "x^3"): -C_TRUE}.items():
         assert coefs[eq][term] == pytest.approx(value, rel=0.02), (eq, term, coefs[eq])
-    proc = run_cli(["diagnose", *common, "init=lorenz1_cubic_x3.ckpt", "diagnose.n_boot=30",
-                    f"hydra.run.dir={tmp_path}/d3"], tmp_path, timeout=1200)
+    proc = run_cli(
+        ["diagnose", *common, "init=lorenz1_cubic_x3.ckpt", "diagnose.n_boot=30", f"hydra.run.dir={tmp_path}/d3"],
+        tmp_path,
+        timeout=1200,
+    )
     assert proc.returncode == 10, proc.stderr  # nothing missing
     after = json.loads((tmp_path / "d3" / "diagnosis.json").read_text())
     assert after["verdict"] == "nothing missing"

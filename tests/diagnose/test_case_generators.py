@@ -71,8 +71,7 @@ def _time_integral(f: torch.Tensor, dt: float) -> torch.Tensor:  # f: [B, T]
 
 
 def test_readme_lists_every_case_and_the_specs_fit_together():
-    assert set(COMMANDS) == {"a_damped", "a_undamped", "b_vdp", "c_kuramoto_lag", "d_chain_friction",
-                             "e_pendulum_sin2"}
+    assert set(COMMANDS) == {"a_damped", "a_undamped", "b_vdp", "c_kuramoto_lag", "d_chain_friction", "e_pendulum_sin2"}
     for stem in ("a_chain", "b_vdp", "c_kuramoto_lag", "d_chain_friction", "e_pendulum_sin2"):
         data, model = load_spec_file(CASES / f"{stem}_data.yaml"), load_spec_file(CASES / f"{stem}_model.yaml")
         assert parse_spec(model, extra_keys=SYSTEM_KEYS).states == parse_spec(data, extra_keys=SYSTEM_KEYS).states
@@ -95,13 +94,20 @@ def test_a_semi_implicit_euler_artefact_is_first_order_in_h():
     system, data = _data("a_undamped")
     assert system.integrator == "semi_implicit_euler" and system.substep == 0.005 and data.meta["dt"] == 0.05
     x0, t = data.x[:, 0], data.t[:21]
-    exact = EquationsSystem({**load_spec_file(COMMANDS["a_undamped"]["spec"]), "integrator": "dopri5",
-                             "substep": None}).simulate(x0, t).x
-    error = {h: float((system_h.simulate(x0, t).x - exact).abs().max())
-             for h, system_h in ((h, EquationsSystem(load_spec_file(COMMANDS["a_undamped"]["spec"]), substep=h))
-                                 for h in (0.005, 0.0025))}
-    assert torch.allclose(data.x[:, :21], EquationsSystem(load_spec_file(COMMANDS["a_undamped"]["spec"]))
-                          .simulate(x0, t).x)
+    exact = (
+        EquationsSystem({**load_spec_file(COMMANDS["a_undamped"]["spec"]), "integrator": "dopri5", "substep": None})
+        .simulate(x0, t)
+        .x
+    )
+    error = {
+        h: float((system_h.simulate(x0, t).x - exact).abs().max())
+        for h, system_h in (
+            (h, EquationsSystem(load_spec_file(COMMANDS["a_undamped"]["spec"]), substep=h)) for h in (0.005, 0.0025)
+        )
+    }
+    assert torch.allclose(
+        data.x[:, :21], EquationsSystem(load_spec_file(COMMANDS["a_undamped"]["spec"])).simulate(x0, t).x
+    )
     assert error[0.005] > 1e-3 * float(exact.abs().max())  # a real artefact, not round-off
     assert 1.8 < error[0.005] / error[0.0025] < 2.2  # O(h)
 
@@ -134,8 +140,9 @@ def test_b_drive_has_its_amplitude_and_a_phase_per_trajectory():
     amplitude, phase = coef.norm(dim=0), torch.atan2(coef[1], coef[0])
     assert torch.allclose(amplitude, torch.full_like(amplitude, 1.5), rtol=0.05)
     expected = drive.trajectory_phases(b)
-    assert torch.allclose(torch.remainder(phase - expected + math.pi, 2 * math.pi), torch.full_like(phase, math.pi),
-                          atol=0.05)
+    assert torch.allclose(
+        torch.remainder(phase - expected + math.pi, 2 * math.pi), torch.full_like(phase, math.pi), atol=0.05
+    )
     assert float(torch.cos(phase - phase.roll(1)).max()) < 0.999  # every recording starts elsewhere in the drive
     shared = torch.linalg.lstsq(basis.repeat(b, 1), residual.reshape(-1, 1)).solution
     explained = 1 - float((residual.reshape(-1, 1) - basis.repeat(b, 1) @ shared).pow(2).sum() / residual.pow(2).sum())
@@ -154,9 +161,14 @@ def test_c_phase_lag_data_leave_the_nominal_model_and_keep_slipping():
     k, alpha = spec["params"]["K"], spec["params"]["alpha"]
     from mpsim.effects import CosineCoupling, SineCoupling
 
-    pair = EquationsSystem(load_spec_file(CASES / "c_kuramoto_lag_model.yaml") | {"graph": "ring", "params": {
-        "w": spec["params"]["w"], "K": 0.0}}, effects=[SineCoupling(k * math.cos(alpha), target="theta"),
-                                                         CosineCoupling(-k * math.sin(alpha), target="theta")])
+    pair = EquationsSystem(
+        load_spec_file(CASES / "c_kuramoto_lag_model.yaml")
+        | {"graph": "ring", "params": {"w": spec["params"]["w"], "K": 0.0}},
+        effects=[
+            SineCoupling(k * math.cos(alpha), target="theta"),
+            CosineCoupling(-k * math.sin(alpha), target="theta"),
+        ],
+    )
     assert torch.allclose(pair.simulate(data.x[:, 0], data.t[:20]).x, data.x[:, :20], atol=1e-6)
 
 
@@ -179,8 +191,17 @@ def test_e_sin2_torque_is_outside_the_library():
     torque = system.rhs(0.0, data.x.reshape(-1, 1, 2))[..., 1] - nominal.rhs(0.0, data.x.reshape(-1, 1, 2))[..., 1]
     assert torch.allclose(torque.reshape(-1), -3.0 * torch.sin(2 * theta))
     # a refitted g plus every library-like term of θ and ω leaves most of the torque unexplained
-    columns = [torch.sin(theta), theta, theta**3, theta * theta.abs(), torch.ones_like(theta), omega,
-               omega * omega.abs(), omega**3, torch.tanh(omega / 0.01)]
+    columns = [
+        torch.sin(theta),
+        theta,
+        theta**3,
+        theta * theta.abs(),
+        torch.ones_like(theta),
+        omega,
+        omega * omega.abs(),
+        omega**3,
+        torch.tanh(omega / 0.01),
+    ]
     basis = torch.stack(columns, dim=1)
     fit = basis @ torch.linalg.lstsq(basis, torque.reshape(-1, 1)).solution
     assert float((torque.reshape(-1, 1) - fit).norm() / torque.norm()) > 0.5

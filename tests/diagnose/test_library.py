@@ -3,8 +3,8 @@ import math
 import pytest
 import torch
 
-from mpsim.diagnose.library import build_library, delayed, dominant_frequency, refine_frequency
 from mpsim.data.trajectories import Trajectories
+from mpsim.diagnose.library import build_library, delayed, dominant_frequency, refine_frequency
 from mpsim.systems import CoupledPendulums
 
 
@@ -15,8 +15,12 @@ def test_delayed_shift_keeps_a_constant_history():
 
 def test_library_columns_are_step_averaged_basis_functions():
     data = CoupledPendulums().generate(3, seed=0, horizon=6)
-    lib = build_library(data, omegas={1: 2.0}, delays=[0.2], kinds=("LinearDamping", "PeriodicForcing",
-                                                                     "DelayedFeedback", "SineCoupling"))
+    lib = build_library(
+        data,
+        omegas={1: 2.0},
+        delays=[0.2],
+        kinds=("LinearDamping", "PeriodicForcing", "DelayedFeedback", "SineCoupling"),
+    )
     kinds = [c.kind for c in lib]
     assert kinds.count("LinearDamping") == 2 and kinds.count("PeriodicForcing") == 1
     damping_w = next(c for c in lib if c.kind == "LinearDamping" and c.source == 1)
@@ -51,8 +55,12 @@ def test_a_drive_with_a_phase_per_recording_is_found_by_the_incoherent_periodogr
     # the phase-coherent periodogram of the average residual sees the drive cancel out
     coherent, _, _ = dominant_frequency(r, t_mid)
     assert abs(coherent - 3.1) > 0.05 or float(r.mean(dim=(0, 2)).std()) < 0.3
-    data = Trajectories(t=torch.linspace(0, 10, 11, dtype=torch.float64), x=torch.zeros(3, 11, 2, 1),
-                        edge_index=torch.zeros(2, 0, dtype=torch.long), meta={"state_names": ["v"]})
+    data = Trajectories(
+        t=torch.linspace(0, 10, 11, dtype=torch.float64),
+        x=torch.zeros(3, 11, 2, 1),
+        edge_index=torch.zeros(2, 0, dtype=torch.long),
+        meta={"state_names": ["v"]},
+    )
     cols = phased_columns(data, 3.1)  # [B, T-1, N, 2B]: recording b's sin/cos only in its own rows
     assert cols.shape == (3, 10, 2, 6) and float(cols[0, :, :, 2:].abs().max()) == 0.0
     drive = PhasedDrive(1.5, 3.1, phases[:3].tolist(), target=0).bind(["v"])

@@ -12,8 +12,9 @@ from mpsim.systems import CoupledPendulums
 
 def _declared_model(train):
     # the scientist's model: the declared (undamped) pendulum equations, g and k learnable
-    model = PhysicsModel(2, system=CoupledPendulums(), learnable=["gravity", "spring"],
-                         solver=ODESolver("dopri5", rtol=1e-7, atol=1e-7)).double()
+    model = PhysicsModel(
+        2, system=CoupledPendulums(), learnable=["gravity", "spring"], solver=ODESolver("dopri5", rtol=1e-7, atol=1e-7)
+    ).double()
     model.set_normalisation(train.x.reshape(-1, 2).mean(0), train.x.reshape(-1, 2).std(0))
     return model
 
@@ -24,8 +25,12 @@ def test_names_hidden_damping_with_its_coefficient():
     (found,) = diag.accepted
     assert found.kind == "LinearDamping" and found.label == "domega/dt: LinearDamping(omega)"
     assert found.coef[0] == pytest.approx(0.2, rel=0.1)
-    assert found.effect == {"_target_": "mpsim.effects.LinearDamping", "target": "omega", "coef": found.coef[0],
-                            "source": "omega"}
+    assert found.effect == {
+        "_target_": "mpsim.effects.LinearDamping",
+        "target": "omega",
+        "coef": found.coef[0],
+        "source": "omega",
+    }
 
 
 def test_no_effect_in_clean_data():
@@ -39,9 +44,16 @@ def test_works_from_a_hand_written_csv(tmp_path):
     data = CoupledPendulums(effects=[LinearDamping(0.2, target="omega")]).generate(16, seed=2)
     b, t, n, _ = data.x.shape
     rows = [
-        {"traj": f"run{i}", "t": round(float(data.t[k]), 10), "node": j, "angle": float(data.x[i, k, j, 0]),
-         "rate": float(data.x[i, k, j, 1])}
-        for i in range(b) for k in range(t) for j in range(n)
+        {
+            "traj": f"run{i}",
+            "t": round(float(data.t[k]), 10),
+            "node": j,
+            "angle": float(data.x[i, k, j, 0]),
+            "rate": float(data.x[i, k, j, 1]),
+        }
+        for i in range(b)
+        for k in range(t)
+        for j in range(n)
     ]
     pd.DataFrame(rows).to_csv(tmp_path / "lab.csv", index=False)
     pd.DataFrame({"src": [0, 1], "dst": [1, 0]}).to_csv(tmp_path / "lab_edges.csv", index=False)
@@ -60,7 +72,9 @@ def test_noise_estimate_and_valid_prediction_time():
     assert noise_level(noisy)[0] == pytest.approx(0.01, rel=0.15)
     assert noise_level(clean)[0] < 1e-4
     pred = clean + 0.1 * t[None, :, None, None]  # normalised error 0.1·t crosses 0.3 at t = 3
-    assert valid_prediction_time(pred, clean, torch.ones(1, dtype=torch.float64), t, 0.3) == pytest.approx(3.05, abs=0.06)
+    assert valid_prediction_time(pred, clean, torch.ones(1, dtype=torch.float64), t, 0.3) == pytest.approx(
+        3.05, abs=0.06
+    )
 
 
 def test_names_a_hidden_drive_and_its_frequency():
@@ -69,9 +83,14 @@ def test_names_a_hidden_drive_and_its_frequency():
     from mpsim.systems import CoupledLorenz
 
     data = CoupledLorenz(n_nodes=3, effects=[PeriodicForcing(20.0, 20.0, 0.0, target="x")]).generate(
-        16, seed=0, horizon=100, burn_in=80)
-    model = PhysicsModel(3, system=CoupledLorenz(n_nodes=3), learnable=["sigma", "rho", "beta"],
-                         solver=ODESolver("dopri5", rtol=1e-7, atol=1e-7)).double()
+        16, seed=0, horizon=100, burn_in=80
+    )
+    model = PhysicsModel(
+        3,
+        system=CoupledLorenz(n_nodes=3),
+        learnable=["sigma", "rho", "beta"],
+        solver=ODESolver("dopri5", rtol=1e-7, atol=1e-7),
+    ).double()
     model.set_normalisation(data.x.reshape(-1, 3).mean(0), data.x.reshape(-1, 3).std(0))
     diag = find_effects(model, data, n_boot=30)
     (found,) = diag.accepted

@@ -7,8 +7,12 @@ def _data(n=2000, seed=0):
     g = torch.Generator().manual_seed(seed)
     cols = [torch.randn(n, 1, generator=g, dtype=torch.float64) for _ in range(5)]
     forcing = torch.randn(n, 2, generator=g, dtype=torch.float64)
-    y = 0.8 * cols[1][:, 0] - 0.5 * forcing[:, 0] + 0.3 * forcing[:, 1] + 0.05 * torch.randn(n, generator=g,
-                                                                                         dtype=torch.float64)
+    y = (
+        0.8 * cols[1][:, 0]
+        - 0.5 * forcing[:, 0]
+        + 0.3 * forcing[:, 1]
+        + 0.05 * torch.randn(n, generator=g, dtype=torch.float64)
+    )
     return y, [*cols, forcing]
 
 
@@ -43,5 +47,5 @@ def test_bootstrap_intervals_cover_the_truth():
     b = 40
     freq, ci = bootstrap(y.reshape(b, -1), [g.reshape(b, -1, g.shape[1]) for g in groups], [1, 5], n_boot=40)
     assert freq[1] == 1.0 and freq[5] == 1.0 and freq[0] < 0.5
-    (lo, hi), = ci[1]
+    ((lo, hi),) = ci[1]
     assert lo < 0.8 < hi

@@ -11,8 +11,13 @@ from mpsim.models.equations import EquationsModel
 from mpsim.solvers.odeint import ODESolver
 from mpsim.systems.equations import EquationsSystem
 
-OSC = {"states": ["x", "v"], "equations": {"x": "v", "v": "-k*x"}, "params": {"k": 4.0}, "nodes": 1,
-       "init": {"x": [-1, 1], "v": [-1, 1]}}
+OSC = {
+    "states": ["x", "v"],
+    "equations": {"x": "v", "v": "-k*x"},
+    "params": {"k": 4.0},
+    "nodes": 1,
+    "init": {"x": [-1, 1], "v": [-1, 1]},
+}
 
 
 def _model():

@@ -43,7 +43,9 @@ def test_per_trajectory_graphs_padded():
     values = torch.randn(2, 3, 1)
     out = sum_aggregate(values, batch_graph(padded, 2, 3))
     assert torch.allclose(out[0, :, 0], torch.stack([values[0, 1, 0], values[0, 0, 0], torch.tensor(0.0)]))
-    assert torch.allclose(out[1, :, 0], torch.stack([values[1, 2, 0] + values[1, 1, 0], torch.tensor(0.0), values[1, 0, 0]]))
+    assert torch.allclose(
+        out[1, :, 0], torch.stack([values[1, 2, 0] + values[1, 1, 0], torch.tensor(0.0), values[1, 0, 0]])
+    )
 
 
 def test_self_loops_join_the_mean():

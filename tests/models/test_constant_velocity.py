@@ -36,8 +36,17 @@ def test_refuses_training() -> None:
 
 @pytest.mark.slow
 def test_train_with_zero_epochs_evaluates_the_baseline(tmp_path) -> None:
-    args = ["train", "system=nbody20", "model=constant_velocity", "trainer.max_epochs=0", "trainer.progress=false",
-            "data.n_train=1", "data.n_val=1", "data.n_test=3", "eval.plots=false"]
+    args = [
+        "train",
+        "system=nbody20",
+        "model=constant_velocity",
+        "trainer.max_epochs=0",
+        "trainer.progress=false",
+        "data.n_train=1",
+        "data.n_val=1",
+        "data.n_test=3",
+        "eval.plots=false",
+    ]
     proc = run_cli(args, tmp_path, check=True)
     assert "energy error |ΔH/H0|" in proc.stdout
     (path,) = list((tmp_path / "outputs" / "train").rglob("summary.json"))

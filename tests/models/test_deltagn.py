@@ -39,9 +39,15 @@ def _close_on_torus(a: torch.Tensor, b: torch.Tensor, box: float, atol: float) -
     return bool(d.abs().max() < atol)
 
 
-@pytest.mark.parametrize(("graph", "charge", "expected"), [
-    ("full", False, 60_254), ("knn", False, 60_254), ("hierarchical", False, 285_604), ("hierarchical", True, 287_404),
-])
+@pytest.mark.parametrize(
+    ("graph", "charge", "expected"),
+    [
+        ("full", False, 60_254),
+        ("knn", False, 60_254),
+        ("hierarchical", False, 285_604),
+        ("hierarchical", True, 287_404),
+    ],
+)
 def test_parameter_counts_match_the_reference(graph: str, charge: bool, expected: int) -> None:
     assert sum(p.numel() for p in DeltaGN(graph=graph, charge=charge).parameters()) == expected
 
@@ -63,8 +69,11 @@ def test_translation_invariant_in_the_periodic_box(graph: str, data: Trajectorie
     under shifts by whole top-level (L/4) cells, which map every level's cells onto cells."""
     model = _model(graph)
     x, nf, box = data.x[:2, 5], data.node_features[:2], data.meta["box_size"]
-    shift = torch.tensor([box / 4, -box / 2], dtype=torch.float64) if graph == "hierarchical" else \
-        torch.tensor([0.37 * box, -1.91], dtype=torch.float64)
+    shift = (
+        torch.tensor([box / 4, -box / 2], dtype=torch.float64)
+        if graph == "hierarchical"
+        else torch.tensor([0.37 * box, -1.91], dtype=torch.float64)
+    )
     with torch.no_grad():
         a = model.step(x, nf, box, 0.01)
         b = model.step(_shifted(x, shift, box), nf, box, 0.01)
@@ -125,8 +134,7 @@ def test_trained_at_one_n_runs_at_another() -> None:
     big = NBody(n_particles=70, n_steps=3).generate(2, seed=1).to(dtype=torch.float32)
     model.eval()
     with torch.no_grad():
-        pred = model.rollout(big.x[:, 0], big.t.float(), big.edge_index, node_features=big.node_features,
-                             meta=big.meta)
+        pred = model.rollout(big.x[:, 0], big.t.float(), big.edge_index, node_features=big.node_features, meta=big.meta)
     assert pred.shape == (2, 4, 70, 4) and torch.isfinite(pred).all()
     assert (pred[..., :2].abs() <= big.meta["box_size"] / 2).all()
     report = model.report()["nbody"]
@@ -170,16 +178,37 @@ def test_divergence_is_reported_per_trajectory(data: Trajectories) -> None:
 
 @pytest.mark.slow
 def test_train_then_eval_at_another_n_end_to_end(tmp_path) -> None:
-    tiny = ["trainer=quick", "trainer.progress=false", "trainer.max_epochs=1", "trainer.batch_size=2",
-            "data.n_train=4", "data.n_val=1", "data.n_test=2", "data.horizon=20", "eval.plots=false"]
+    tiny = [
+        "trainer=quick",
+        "trainer.progress=false",
+        "trainer.max_epochs=1",
+        "trainer.batch_size=2",
+        "data.n_train=4",
+        "data.n_val=1",
+        "data.n_test=2",
+        "data.horizon=20",
+        "eval.plots=false",
+    ]
     run_cli(["train", "system=nbody20", "model=deltagn", "model.pairs_per_trajectory=2", *tiny], tmp_path, check=True)
     (summary,) = list((tmp_path / "outputs" / "train").rglob("summary.json"))
     s = json.loads(summary.read_text())
     assert s["model"]["n_params"] == 285_604 and s["model"]["nbody"]["graph"] == "hierarchical"
     assert set(s["test"]["horizons"]) == {"1", "20"} and s["test"]["n_diverged"] == 0
     assert s["model"]["nbody"]["energy_error"]["20"] > 0 and "data_energy_drift" in s["model"]["nbody"]
-    proc = run_cli(["eval", "init=nbody20.ckpt", "system=nbody100", "data.n_train=1", "data.n_val=1",
-                    "data.n_test=2", "data.horizon=5", "eval.plots=false"], tmp_path, check=True)
+    proc = run_cli(
+        [
+            "eval",
+            "init=nbody20.ckpt",
+            "system=nbody100",
+            "data.n_train=1",
+            "data.n_val=1",
+            "data.n_test=2",
+            "data.horizon=5",
+            "eval.plots=false",
+        ],
+        tmp_path,
+        check=True,
+    )
     assert "energy error |ΔH/H0|" in proc.stdout
     (ev,) = list((tmp_path / "outputs" / "eval").rglob("summary.json"))
     e = json.loads(ev.read_text())

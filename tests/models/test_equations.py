@@ -30,16 +30,27 @@ def _fit(name, tmp_path, n=6):
     system = EquationsSystem(spec)
     train, val = system.generate(n, seed=0), system.generate(2, seed=1)
     start = {p: (system.spec.params[p] * 1.2).tolist() for p in system.spec.learnable}  # 20 % off
-    model = EquationsModel(system.spec.state_dim, spec=spec, init=start,
-                           solver=ODESolver("dopri5", rtol=1e-7, atol=1e-8)).double()
+    model = EquationsModel(
+        system.spec.state_dim, spec=spec, init=start, solver=ODESolver("dopri5", rtol=1e-7, atol=1e-8)
+    ).double()
     model.bind_effects(train.state_names)
     model.set_normalisation(*fit_normalisation(train))
-    trainer = Trainer(optimizer="lbfgs", lr=1.0, batch_size=64, max_epochs=12, plateau_patience=3,
-                      early_stop_patience=4, progress=False)
+    trainer = Trainer(
+        optimizer="lbfgs",
+        lr=1.0,
+        batch_size=64,
+        max_epochs=12,
+        plateau_patience=3,
+        early_stop_patience=4,
+        progress=False,
+    )
     trainer.fit(model, train, val, run_dir=tmp_path, checkpoint_base={"model": {}})
     fitted = model.parameters_now()
-    return {p: float(((fitted[p].detach() - v).abs() / v.abs()).max())
-            for p, v in system.spec.params.items() if p in system.spec.learnable}
+    return {
+        p: float(((fitted[p].detach() - v).abs() / v.abs()).max())
+        for p, v in system.spec.params.items()
+        if p in system.spec.learnable
+    }
 
 
 @pytest.mark.parametrize("name", FAST)
@@ -59,8 +70,11 @@ def test_every_example_is_in_a_recovery_test():
     assert sorted(FAST + SLOW) == sorted(p.stem for p in EXAMPLES.glob("*.yaml"))
 
 
-SPRING = {"states": ["x", "v"], "equations": {"x": "v", "v": "-k*x + c*sum_nbr(x_j - x)"},
-          "params": {"k": 1.0, "c": [0.5, 1.0, 1.5]}}
+SPRING = {
+    "states": ["x", "v"],
+    "equations": {"x": "v", "v": "-k*x + c*sum_nbr(x_j - x)"},
+    "params": {"k": 1.0, "c": [0.5, 1.0, 1.5]},
+}
 
 
 def test_each_trajectory_runs_on_its_own_graph():
@@ -86,6 +100,7 @@ def test_sensitivities_match_finite_differences_and_shifts_apply():
 
     def field(**change):
         from mpsim.graphs.batch import batch_graph
+
         values = {**{k: v.detach() for k, v in base.items()}, **change}
         return model.field(torch.tensor(0.0), x, values, batch_graph(ei, 5, 3, dtype=x.dtype))
 
@@ -103,15 +118,25 @@ def test_sensitivities_match_finite_differences_and_shifts_apply():
 
 
 def test_learnable_effects_train_beside_the_spec(tmp_path):
-    spec = {"states": ["x", "v"], "equations": {"x": "v", "v": "-k*x"}, "params": {"k": 2.0}, "learnable": [],
-            "nodes": 1, "init": {"x": [-1, 1], "v": [-1, 1]}, "dt": 0.1, "horizon": 40}
+    spec = {
+        "states": ["x", "v"],
+        "equations": {"x": "v", "v": "-k*x"},
+        "params": {"k": 2.0},
+        "learnable": [],
+        "nodes": 1,
+        "init": {"x": [-1, 1], "v": [-1, 1]},
+        "dt": 0.1,
+        "horizon": 40,
+    }
     data = EquationsSystem(spec, effects=[LinearDamping(0.4, target="v")]).generate(6, seed=0)
-    model = EquationsModel(2, spec=spec, effects=[LinearDamping(0.1, target="v")],
-                           solver=ODESolver("dopri5", rtol=1e-7, atol=1e-8)).double()
+    model = EquationsModel(
+        2, spec=spec, effects=[LinearDamping(0.1, target="v")], solver=ODESolver("dopri5", rtol=1e-7, atol=1e-8)
+    ).double()
     model.bind_effects(data.state_names)
     model.set_normalisation(*fit_normalisation(data))
     Trainer(optimizer="lbfgs", lr=1.0, batch_size=64, max_epochs=8, progress=False).fit(
-        model, data, data, run_dir=tmp_path, checkpoint_base={"model": {}})
+        model, data, data, run_dir=tmp_path, checkpoint_base={"model": {}}
+    )
     assert float(model.effects[0].coef.detach()[0]) == pytest.approx(0.4, rel=0.01)
 
 
@@ -133,12 +158,25 @@ def test_spec_must_fit_the_data():
 
 def test_command_line_round_trip_keeps_the_spec_in_the_checkpoint(cfg_factory, tmp_path):
     spec_file = tmp_path / "osc.yaml"
-    spec_file.write_text("states: [x, v]\nequations: {x: v, v: -k*x - c*v}\nparams: {k: 3.0, c: 0.2}\n"
-                         "learnable: [k, c]\nnodes: 2\ninit: {x: [-1, 1], v: [-1, 1]}\ndt: 0.1\nhorizon: 30\n")
-    common = ["system=equations", f"system.spec={spec_file}", "data.n_train=8", "data.n_val=2", "data.n_test=2",
-              "eval.horizons=[1,10]", "eval.plots=false", "trainer=whitebox", "trainer.progress=false"]
-    summary = run_train(cfg_factory("train", "model=equations", f"model.spec={spec_file}", "model.init={k: 2.5}",
-                                    *common), output_dir=tmp_path / "run")
+    spec_file.write_text(
+        "states: [x, v]\nequations: {x: v, v: -k*x - c*v}\nparams: {k: 3.0, c: 0.2}\n"
+        "learnable: [k, c]\nnodes: 2\ninit: {x: [-1, 1], v: [-1, 1]}\ndt: 0.1\nhorizon: 30\n"
+    )
+    common = [
+        "system=equations",
+        f"system.spec={spec_file}",
+        "data.n_train=8",
+        "data.n_val=2",
+        "data.n_test=2",
+        "eval.horizons=[1,10]",
+        "eval.plots=false",
+        "trainer=whitebox",
+        "trainer.progress=false",
+    ]
+    summary = run_train(
+        cfg_factory("train", "model=equations", f"model.spec={spec_file}", "model.init={k: 2.5}", *common),
+        output_dir=tmp_path / "run",
+    )
     assert summary["model"]["physical_parameters"]["k"] == pytest.approx(3.0, rel=0.01)
     assert summary["system"]["name"] == "osc"
     spec_file.unlink()  # the checkpoint carries the equations, not the file name
@@ -146,10 +184,19 @@ def test_command_line_round_trip_keeps_the_spec_in_the_checkpoint(cfg_factory, t
     assert ckpt["model"]["config"]["spec"]["equations"] == {"x": "v", "v": "-k*x - c*v"}
     system_spec = ckpt["system"]["params"]["spec"]
     assert system_spec["params"] == {"k": 3.0, "c": 0.2}
-    out = run_eval(cfg_factory("eval", f"init={summary['exported']}", "system=equations",
-                               "system.spec={states: [x, v], equations: {x: v, v: -3*x - 0.2*v}, nodes: 2}",
-                               "data.n_test=2", "data.horizon=30", "eval.horizons=[1,10]", "eval.plots=false"),
-                   output_dir=tmp_path / "eval")
+    out = run_eval(
+        cfg_factory(
+            "eval",
+            f"init={summary['exported']}",
+            "system=equations",
+            "system.spec={states: [x, v], equations: {x: v, v: -3*x - 0.2*v}, nodes: 2}",
+            "data.n_test=2",
+            "data.horizon=30",
+            "eval.horizons=[1,10]",
+            "eval.plots=false",
+        ),
+        output_dir=tmp_path / "eval",
+    )
     assert out["test"]["rmse"] < 1e-2
 
 
@@ -157,10 +204,17 @@ def test_batched_one_step_equals_step_by_step_with_time_and_effects():
     from mpsim.effects import PeriodicForcing
     from mpsim.models.base import Model
 
-    spec = {"states": ["x", "v"], "equations": {"x": "v", "v": "-k*x + 0.3*sin(2*t) + c*sum_nbr(x_j - x)"},
-            "params": {"k": 2.0, "c": 0.5}}
-    model = EquationsModel(2, spec=spec, effects=[PeriodicForcing(0.5, 3.0, 0.2, target=1)],
-                           solver=ODESolver("dopri5", rtol=1e-10, atol=1e-12)).double()
+    spec = {
+        "states": ["x", "v"],
+        "equations": {"x": "v", "v": "-k*x + 0.3*sin(2*t) + c*sum_nbr(x_j - x)"},
+        "params": {"k": 2.0, "c": 0.5},
+    }
+    model = EquationsModel(
+        2,
+        spec=spec,
+        effects=[PeriodicForcing(0.5, 3.0, 0.2, target=1)],
+        solver=ODESolver("dopri5", rtol=1e-10, atol=1e-12),
+    ).double()
     model.bind_effects(["x", "v"])
     x = torch.randn(3, 12, 4, 2, dtype=torch.float64)
     t = torch.arange(12, dtype=torch.float64) * 0.1 + 0.7  # absolute times: the drive's phase must follow them

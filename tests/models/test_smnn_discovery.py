@@ -68,8 +68,16 @@ def test_whitening_makes_the_library_orthonormal():
 def test_recovers_a_linear_ode_and_thresholds_the_absent_terms():
     torch.manual_seed(0)
     data = linear_data()
-    model = SMNNDiscovery(state_dim=2, window=50, window_batch=32, n_orders=4, threshold=0.05,
-                          threshold_every=300, threshold_rounds=1, state_names=["x", "y"]).double()
+    model = SMNNDiscovery(
+        state_dim=2,
+        window=50,
+        window_batch=32,
+        n_orders=4,
+        threshold=0.05,
+        threshold_every=300,
+        threshold_rounds=1,
+        state_names=["x", "y"],
+    ).double()
     fit(model, data, steps=420)
     xi = model.coefficients().detach()
     truth = torch.zeros(6, 2, dtype=F64)
@@ -171,8 +179,9 @@ def test_effects_join_the_field_the_windows_and_the_gradient():
     from mpsim.effects import CubicStiffness
 
     data = linear_data(n_traj=4)
-    model = SMNNDiscovery(state_dim=2, window=20, window_batch=8, state_names=["x", "y"],
-                          effects=[CubicStiffness(0.3, target="x")]).double()
+    model = SMNNDiscovery(
+        state_dim=2, window=20, window_batch=8, state_names=["x", "y"], effects=[CubicStiffness(0.3, target="x")]
+    ).double()
     model.bind_effects(["x", "y"])
     model.set_normalisation(*fit_normalisation(data))
     x = data.x[:2, :3]
@@ -197,8 +206,13 @@ def test_delayed_effects_train_on_the_windows_observed_history():
     assert torch.allclose(past[0], data.x[2, 5]) and torch.allclose(past[2], data.x[2, 0])  # before t0: x(t0)
     assert torch.allclose(past[1], 0.5 * (data.x[2, 3] + data.x[2, 4]))  # between samples: interpolated
     assert torch.allclose(past[3], data.x[0, 20])
-    model = SMNNDiscovery(state_dim=2, window=20, window_batch=8, state_names=["x", "y"],
-                          effects=[DelayedFeedback(0.5, delay=0.05, target="x")]).double()
+    model = SMNNDiscovery(
+        state_dim=2,
+        window=20,
+        window_batch=8,
+        state_names=["x", "y"],
+        effects=[DelayedFeedback(0.5, delay=0.05, target="x")],
+    ).double()
     model.bind_effects(["x", "y"])
     model.set_normalisation(*fit_normalisation(data))
     loss, _ = model.training_loss(data, data.t, mse_loss)
@@ -221,8 +235,15 @@ def test_lorenz_discovery_reaches_one_percent(tmp_path):
     run_cli(["train", "experiment=lorenz_discovery", "trainer.progress=false"], tmp_path, timeout=900, check=True)
     (summary,) = (tmp_path / "outputs").rglob("summary.json")
     coefs = json.loads(summary.read_text())["model"]["coefficients"]
-    truth = {("x", "x"): -10.0, ("x", "y"): 10.0, ("y", "x"): 28.0, ("y", "y"): -1.0, ("y", "x z"): -1.0,
-             ("z", "z"): -8.0 / 3.0, ("z", "x y"): 1.0}
+    truth = {
+        ("x", "x"): -10.0,
+        ("x", "y"): 10.0,
+        ("y", "x"): 28.0,
+        ("y", "y"): -1.0,
+        ("y", "x z"): -1.0,
+        ("z", "z"): -8.0 / 3.0,
+        ("z", "x y"): 1.0,
+    }
     for (eq, term), value in truth.items():
         assert coefs[eq][term] == pytest.approx(value, rel=0.01), (eq, term, coefs[eq])
     assert sum(len(c) for c in coefs.values()) == 7  # thresholding removed every other term

@@ -49,8 +49,9 @@ def test_context_of_one_state_and_wrong_context_length(pendulums):
     pred = model.rollout(pendulums.x[:, 0], pendulums.t, pendulums.edge_index)  # x0: [B, N, D]
     assert pred.shape == pendulums.x.shape
     with pytest.raises(ConfigError, match="context"):
-        SMNNForecaster(state_dim=2, context_steps=3).rollout(pendulums.x[:, :2].float(), pendulums.t.float(),
-                                                             pendulums.edge_index)
+        SMNNForecaster(state_dim=2, context_steps=3).rollout(
+            pendulums.x[:, :2].float(), pendulums.t.float(), pendulums.edge_index
+        )
 
 
 def test_runs_on_any_graph_and_with_controls():
@@ -97,8 +98,9 @@ def test_whole_state_couples_every_node_and_keeps_its_graph_size(pendulums):
     model.set_normalisation(*fit_normalisation(pendulums))
     assert model.encoder[0].in_features == 3 * 4 + 4 and not model.transfers_across_graphs
     x = pendulums.x
-    assert torch.allclose(model.rollout(x[:, :3], pendulums.t, pendulums.edge_index)[:, 3:],
-                          x[:, 2:3].expand_as(x[:, 3:]), atol=1e-10)  # untrained: persistence
+    assert torch.allclose(
+        model.rollout(x[:, :3], pendulums.t, pendulums.edge_index)[:, 3:], x[:, 2:3].expand_as(x[:, 3:]), atol=1e-10
+    )  # untrained: persistence
     with torch.no_grad():
         model.encoder[-1].weight.normal_(0, 0.1)
     pred = model.rollout(x[:, :3], pendulums.t, pendulums.edge_index)

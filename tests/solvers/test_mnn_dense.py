@@ -57,16 +57,30 @@ def mnn_oracle(coef, rhs, init, steps, gamma_alpha=0.0):
         for i in range(K):
             for t in range(T - 1):  # forward Taylor rows
                 h = steps[t]
-                add([(col(t, d, j), h**j / math.factorial(j - i)) for j in range(i, O)]
-                    + [(col(t + 1, d, i), -(h**i))], 0.0, 1.0)
+                add(
+                    [(col(t, d, j), h**j / math.factorial(j - i)) for j in range(i, O)] + [(col(t + 1, d, i), -(h**i))],
+                    0.0,
+                    1.0,
+                )
             for t in range(1, T):  # backward Taylor rows
                 h = steps[t - 1]
-                add([(col(t, d, j), (-h) ** j / math.factorial(j - i)) for j in range(i, O)]
-                    + [(col(t - 1, d, i), -((-h) ** i))], 0.0, 1.0)
+                add(
+                    [(col(t, d, j), (-h) ** j / math.factorial(j - i)) for j in range(i, O)]
+                    + [(col(t - 1, d, i), -((-h) ** i))],
+                    0.0,
+                    1.0,
+                )
         for t in range(1, T - 1):  # central rows
             H = steps[t - 1] + steps[t]
-            add([(col(t - 1, d, K - 1), -(H ** (K - 2))), (col(t + 1, d, K - 1), H ** (K - 2)),
-                 (col(t, d, K), -(H ** (K - 1)))], 0.0, 1.0)
+            add(
+                [
+                    (col(t - 1, d, K - 1), -(H ** (K - 2))),
+                    (col(t + 1, d, K - 1), H ** (K - 2)),
+                    (col(t, d, K), -(H ** (K - 1))),
+                ],
+                0.0,
+                1.0,
+            )
     M, b = np.array(rows), np.array(vals)
     rhs_vec = M.T @ b
     rhs_vec[0] += gamma_alpha
@@ -130,8 +144,9 @@ def test_mnn_linear_slack_cost_and_shared_lhs():
 def test_mnn_solves_a_linear_ode():
     """Harmonic oscillator x'' = −2.1 x from (0.4, −0.03), 200 steps of 0.01: close to the closed form."""
     coef = torch.tensor([[[[0, 1, 0], [-1, 0, 0]], [[2.1, 0, 0], [0, 1, 0]]]], dtype=F64)
-    u, eps = mnn_dense_solve(coef, torch.zeros(1, 2, dtype=F64), torch.tensor([[[0.4], [-0.03]]], dtype=F64),
-                             0.01, n_steps=200)
+    u, eps = mnn_dense_solve(
+        coef, torch.zeros(1, 2, dtype=F64), torch.tensor([[[0.4], [-0.03]]], dtype=F64), 0.01, n_steps=200
+    )
     t, w = torch.arange(200, dtype=F64) * 0.01, math.sqrt(2.1)
     exact = 0.4 * torch.cos(w * t) - 0.03 / w * torch.sin(w * t)
     assert rel_err(u[:, 0, 0], exact) < 1e-4 and abs(float(eps)) < 1e-6

@@ -16,7 +16,7 @@ class Oscillator(nn.Module):
         self.omega = omega
 
     def forward(self, t, y):  # y: [B, 2]
-        return torch.stack([y[..., 1], -self.omega**2 * y[..., 0]], dim=-1)
+        return torch.stack([y[..., 1], -(self.omega**2) * y[..., 0]], dim=-1)
 
 
 def _exact(t, omega=2.0):
@@ -48,8 +48,9 @@ def test_blow_up_is_a_divergence_error():
             return y**2  # y = 1 / (1 − t) from y0 = 1: infinite at t = 1
 
     with pytest.raises(DivergenceError, match="stiff or blew up"):
-        ODESolver("dopri5", max_num_steps=200)(Blowup(), torch.ones(1, 1, dtype=torch.float64),
-                                               torch.tensor([0.0, 2.0], dtype=torch.float64))
+        ODESolver("dopri5", max_num_steps=200)(
+            Blowup(), torch.ones(1, 1, dtype=torch.float64), torch.tensor([0.0, 2.0], dtype=torch.float64)
+        )
 
 
 def test_unknown_method_lists_choices():

@@ -79,8 +79,15 @@ def oracle_rows(coef, rhs, init, steps, weights=(1.0, 1.0, 1.0), central=False):
         for t in range(T - 2):
             H = steps[t] + steps[t + 1]
             for d in range(D):
-                add([(col(t, d, K - 1), H ** (K - 2)), (col(t + 1, d, K), H ** (K - 1)),
-                     (col(t + 2, d, K - 1), -(H ** (K - 2)))], 0.0, weights[2])
+                add(
+                    [
+                        (col(t, d, K - 1), H ** (K - 2)),
+                        (col(t + 1, d, K), H ** (K - 1)),
+                        (col(t + 2, d, K - 1), -(H ** (K - 2))),
+                    ],
+                    0.0,
+                    weights[2],
+                )
     return np.array(rows), np.array(vals)
 
 
@@ -93,8 +100,17 @@ def test_blocks_match_row_by_row_least_squares(central, O):
     A, b = oracle_rows(coef.numpy(), rhs.numpy(), init.numpy(), steps.numpy(), weights, central)
     ref = torch.from_numpy(np.linalg.lstsq(A, b, rcond=None)[0].reshape(7, 3, O))
     for method in METHODS:
-        u = smnn_solve(coef, rhs, init, steps, weight_equation=1.3, weight_init_var=0.7, weight_smooth=1.9,
-                       central=central, method=method)
+        u = smnn_solve(
+            coef,
+            rhs,
+            init,
+            steps,
+            weight_equation=1.3,
+            weight_init_var=0.7,
+            weight_smooth=1.9,
+            central=central,
+            method=method,
+        )
         # O = 5 with h ≈ 0.2: cond(AᵀA) ~ h^-16, so only ~1e-8 is meaningful
         assert rel_err(u, ref) < (1e-7 if O == 5 else 1e-11), method
 
@@ -144,8 +160,7 @@ def test_table3_dense_full_length(name):
 @pytest.mark.parametrize("T", [2, 3, 5, 8, 33])
 def test_three_solvers_agree_with_broadcast_lhs(central, T):
     # left-hand sides shared over the leading batch dim: batch_lhs = (1, 2), batch = (3, 2)
-    coef, rhs, init, steps = random_problem(T, E=2, D=2, O=3, S=1, I=2, batch=(3, 2), lhs_batch=(1, 2),
-                                            seed=T)
+    coef, rhs, init, steps = random_problem(T, E=2, D=2, O=3, S=1, I=2, batch=(3, 2), lhs_batch=(1, 2), seed=T)
     kw = dict(central=central, weight_smooth=0.8, weight_equation=1.2)
     ref = dense_solve(coef, rhs, init, steps, **kw)
     assert ref.shape == (3, 2, T, 2, 3)
@@ -159,8 +174,9 @@ def test_three_solvers_agree_with_broadcast_lhs(central, T):
 def test_step_dim_first_layout_and_dtype():
     coef, rhs, init, steps = random_problem(6, E=1, D=2, O=3, S=2, I=1, batch=(4,), seed=3)
     u = smnn_solve(coef, rhs, init, steps)
-    first = smnn_solve(coef.movedim(-4, 0), rhs.movedim(-2, 0), init.movedim(-3, 0), steps.movedim(-1, 0),
-                       step_dim_first=True)
+    first = smnn_solve(
+        coef.movedim(-4, 0), rhs.movedim(-2, 0), init.movedim(-3, 0), steps.movedim(-1, 0), step_dim_first=True
+    )
     assert torch.equal(u, first)
     u32 = smnn_solve(coef.float(), rhs.float(), init.float(), steps.float())
     assert u32.dtype == torch.float32 and rel_err(u32.double(), u) < 1e-6  # computed in float64
@@ -171,8 +187,9 @@ def test_step_dim_first_layout_and_dtype():
 def test_broadcast_coefficients_over_time_and_iv_steps():
     """Size-1 step dims (coefficients, rhs, steps) and n_steps/n_init_var_steps overrides."""
     coef = torch.tensor([[[[0.3, 1.0, 0.0]]]], dtype=F64)  # 0.3 u + u' = 1
-    u = smnn_solve(coef, torch.ones(1, 1, dtype=F64), torch.zeros(1, 1, 1, dtype=F64), 0.05, n_steps=40,
-                   n_init_var_steps=1)
+    u = smnn_solve(
+        coef, torch.ones(1, 1, dtype=F64), torch.zeros(1, 1, 1, dtype=F64), 0.05, n_steps=40, n_init_var_steps=1
+    )
     t = torch.arange(40, dtype=F64) * 0.05
     assert rel_err(u[:, 0, 0], (1 - torch.exp(-0.3 * t)) / 0.3) < 1e-4  # discretisation error at h = 0.05
     two = smnn_solve(coef, torch.ones(1, 1, dtype=F64), u[None, :2, :, :1], 0.05, n_steps=40)
@@ -196,18 +213,30 @@ def test_auto_picks_cyclic_for_thin_steps_and_banded_for_many_rhs():
 
 
 # ---- chunked cyclic reduction ------------------------------------------------------------------------------
-@pytest.mark.parametrize(("T", "central", "lhs", "chunk"), [
-    (40, False, (), 3),  # 10 full chunks, no tail
-    (43, False, (2,), 2),  # two left-hand sides (step-major work buffer), a tail of one block
-    (100, True, (), 4),  # central rows: paired 2B blocks
-    (101, True, (3,), 5),  # odd T with central rows, tail
-    (37, False, (), 16),  # the default chunk: two chunks and a long tail
-])
+@pytest.mark.parametrize(
+    ("T", "central", "lhs", "chunk"),
+    [
+        (40, False, (), 3),  # 10 full chunks, no tail
+        (43, False, (2,), 2),  # two left-hand sides (step-major work buffer), a tail of one block
+        (100, True, (), 4),  # central rows: paired 2B blocks
+        (101, True, (3,), 5),  # odd T with central rows, tail
+        (37, False, (), 16),  # the default chunk: two chunks and a long tail
+    ],
+)
 def test_chunked_cyclic_matches_banded(T, central, lhs, chunk):
-    coef, rhs, init, steps = random_problem(T, E=1, D=2, O=3, S=1, I=1, batch=(4, *lhs), lhs_batch=lhs or (1,),
-                                            seed=T)
-    prob = prepare_problem(coef, rhs, init, steps, n_steps=None, n_init_var_steps=None, weights=(1.0, 1.0, 1.0),
-                           central=central, step_dim_first=False, dtype=F64)
+    coef, rhs, init, steps = random_problem(T, E=1, D=2, O=3, S=1, I=1, batch=(4, *lhs), lhs_batch=lhs or (1,), seed=T)
+    prob = prepare_problem(
+        coef,
+        rhs,
+        init,
+        steps,
+        n_steps=None,
+        n_init_var_steps=None,
+        weights=(1.0, 1.0, 1.0),
+        central=central,
+        step_dim_first=False,
+        dtype=F64,
+    )
     a0, a1, a2, beta = assemble_blocks(prob)
     fac, bad = cyclic_factor(a0, a1, a2, chunk=chunk)
     assert isinstance(fac.core, Chunked) and not bool(bad.any())
@@ -251,12 +280,14 @@ def test_gradgradcheck_banded():
 
 @pytest.mark.parametrize("central", [False, True])
 def test_gradients_match_dense_autograd(central):
-    coef, rhs, init, steps = random_problem(T=12, E=2, D=2, O=3, S=2, I=2, batch=(3, 2), lhs_batch=(1, 2),
-                                            seed=11)
+    coef, rhs, init, steps = random_problem(T=12, E=2, D=2, O=3, S=2, I=2, batch=(3, 2), lhs_batch=(1, 2), seed=11)
     weight = torch.randn(3, 2, 12, 2, 3, generator=torch.Generator().manual_seed(0), dtype=F64)
     grads = {}
-    for name, solve in (("dense", dense_solve), ("banded", smnn_solve),
-                        ("cyclic", lambda *a, **k: smnn_solve(*a, method="cyclic", **k))):
+    for name, solve in (
+        ("dense", dense_solve),
+        ("banded", smnn_solve),
+        ("cyclic", lambda *a, **k: smnn_solve(*a, method="cyclic", **k)),
+    ):
         args = [x.detach().requires_grad_() for x in (coef, rhs, init, steps)]
         (solve(*args, central=central, weight_init_var=2.0) * weight).sum().backward()
         grads[name] = [a.grad for a in args]
@@ -276,8 +307,10 @@ def test_singular_without_initial_value_names_the_missing_rows():
 
 def test_singular_without_any_rows():
     coef = torch.zeros(1, 0, 2, 3, dtype=F64)  # E = 0 equations, I = 0 orders
-    msg = ("6 solution direction.*dimension 1: value, first derivative, second derivative.*"
-           "no initial-value rows and no governing-equation rows")
+    msg = (
+        "6 solution direction.*dimension 1: value, first derivative, second derivative.*"
+        "no initial-value rows and no governing-equation rows"
+    )
     with pytest.raises(SolverError, match=msg):
         smnn_solve(coef, torch.zeros(1, 0, dtype=F64), torch.zeros(1, 2, 0, dtype=F64), 0.1, n_steps=10)
 

@@ -29,20 +29,30 @@ def _same_trajectories(builtin, twin, t):
 
 def test_pendulums_twin():
     builtin = CoupledPendulums(n_nodes=4, graph="ring", mass=1.3, length=1.1, spring=2.5, gravity=9.7)
-    twin = EquationsSystem({
-        "states": ["theta", "omega"],
-        "equations": {"theta": "omega",
-                      "omega": "-(g/l)*sin(theta) - (k/m)*cos(theta)*sum_nbr(sin(theta) - sin(theta_j))"},
-        "params": {"g": 9.7, "l": 1.1, "k": 2.5, "m": 1.3}, "nodes": 4, "graph": "ring"})
+    twin = EquationsSystem(
+        {
+            "states": ["theta", "omega"],
+            "equations": {
+                "theta": "omega",
+                "omega": "-(g/l)*sin(theta) - (k/m)*cos(theta)*sum_nbr(sin(theta) - sin(theta_j))",
+            },
+            "params": {"g": 9.7, "l": 1.1, "k": 2.5, "m": 1.3},
+            "nodes": 4,
+            "graph": "ring",
+        }
+    )
     assert _same_trajectories(builtin, twin, torch.linspace(0, 5, 51, dtype=torch.float64)) < 1e-10
 
 
 def test_lorenz_twin_with_a_given_coupling_matrix():
     builtin = CoupledLorenz(n_nodes=3, coupling=1.0)
-    twin = EquationsSystem({
-        "states": ["x", "y", "z"],
-        "equations": {"x": "sigma*(y - x) + lin(H)", "y": "x*(rho - z) - y + lin(H)", "z": "x*y - beta*z + lin(H)"},
-        "params": {"sigma": 10.0, "rho": 28.0, "beta": 8.0 / 3.0, "H": builtin.H.tolist()}})
+    twin = EquationsSystem(
+        {
+            "states": ["x", "y", "z"],
+            "equations": {"x": "sigma*(y - x) + lin(H)", "y": "x*(rho - z) - y + lin(H)", "z": "x*y - beta*z + lin(H)"},
+            "params": {"sigma": 10.0, "rho": 28.0, "beta": 8.0 / 3.0, "H": builtin.H.tolist()},
+        }
+    )
     assert twin.n_nodes == 3
     assert _same_trajectories(builtin, twin, torch.linspace(0, 2.5, 51, dtype=torch.float64)) < 1e-10
 
@@ -50,17 +60,27 @@ def test_lorenz_twin_with_a_given_coupling_matrix():
 def test_kuramoto_twin_on_the_same_graph():
     builtin = Kuramoto(n_nodes=10, dim=3)
     w = builtin.omega.tolist()
-    twin = EquationsSystem({
-        "states": ["theta1", "theta2", "theta3"],
-        "equations": {f"theta{c}": f"w{c} + K*sum_nbr(sin(theta{c}_j - theta{c}))" for c in (1, 2, 3)},
-        "params": {"w1": w[0], "w2": w[1], "w3": w[2], "K": 1.0 / 3.0},
-        "edges": builtin.edge_index.T.tolist(), "directed": True, "nodes": 10})
+    twin = EquationsSystem(
+        {
+            "states": ["theta1", "theta2", "theta3"],
+            "equations": {f"theta{c}": f"w{c} + K*sum_nbr(sin(theta{c}_j - theta{c}))" for c in (1, 2, 3)},
+            "params": {"w1": w[0], "w2": w[1], "w3": w[2], "K": 1.0 / 3.0},
+            "edges": builtin.edge_index.T.tolist(),
+            "directed": True,
+            "nodes": 10,
+        }
+    )
     assert torch.equal(twin.edge_index, builtin.edge_index)
     assert _same_trajectories(builtin, twin, torch.linspace(0, 2.5, 51, dtype=torch.float64)) < 1e-10
 
 
 def test_effects_and_graph_options():
-    spec = {"states": ["x", "v"], "equations": {"x": "v", "v": "-x"}, "nodes": 2, "init": {"x": [1.0, 1.0], "v": [0, 0]}}
+    spec = {
+        "states": ["x", "v"],
+        "equations": {"x": "v", "v": "-x"},
+        "nodes": 2,
+        "init": {"x": [1.0, 1.0], "v": [0, 0]},
+    }
     damped = EquationsSystem(spec, effects=[LinearDamping(0.5, target="v")]).generate(1, 0, dt=0.1, horizon=100)
     free = EquationsSystem(spec).generate(1, 0, dt=0.1, horizon=100)
     assert free.x[0, -1, 0, 0].abs() > 0.5 > damped.x[0, -1, 0, 0].abs()  # cos(10) = -0.84; damped ≈ e^{-2.5}
@@ -88,8 +108,13 @@ def test_example_specs_simulate(name):
 
 def test_examples_cover_what_the_issue_lists():
     assert {p.stem for p in EXAMPLES.glob("*.yaml")} >= {
-        "pendulum_inertia", "pendulums_linear_spring", "pendulums_bob_spring", "kuramoto_frequencies",
-        "lorenz_network", "fitzhugh_nagumo"}
+        "pendulum_inertia",
+        "pendulums_linear_spring",
+        "pendulums_bob_spring",
+        "kuramoto_frequencies",
+        "lorenz_network",
+        "fitzhugh_nagumo",
+    }
 
 
 OSCILLATOR = {"states": ["x", "v"], "equations": {"x": "v", "v": "-x"}, "nodes": 1}
@@ -112,8 +137,9 @@ def test_semi_implicit_euler_is_the_symplectic_euler_map():
 
 def test_semi_implicit_euler_includes_effects_and_uses_the_declared_kinematic_rows():
     h = 0.01
-    damped = EquationsSystem(OSCILLATOR, integrator="semi_implicit_euler", substep=h,
-                             effects=[LinearDamping(0.5, target="v")])
+    damped = EquationsSystem(
+        OSCILLATOR, integrator="semi_implicit_euler", substep=h, effects=[LinearDamping(0.5, target="v")]
+    )
     x0 = torch.tensor([[[1.0, 0.0]]], dtype=torch.float64)
     t = torch.arange(11, dtype=torch.float64) * 0.1
     step = torch.tensor([[1 - h * h, h * (1 - 0.5 * h)], [-h, 1 - 0.5 * h]], dtype=torch.float64)  # v' = -x - 0.5v
@@ -153,6 +179,11 @@ def test_integrator_keys_are_checked():
     with pytest.raises(ConfigError, match=r"\(system.dt or data.dt\) = 0.05 is not a whole multiple"):
         system.generate(1, seed=0, dt=0.05, horizon=3)
     from mpsim.effects import DelayedFeedback
+
     with pytest.raises(ConfigError, match="cannot integrate a DelayedFeedback"):
-        EquationsSystem(OSCILLATOR, integrator="semi_implicit_euler", substep=0.01,
-                        effects=[DelayedFeedback(0.1, delay=0.5, target="v", source="x")])
+        EquationsSystem(
+            OSCILLATOR,
+            integrator="semi_implicit_euler",
+            substep=0.01,
+            effects=[DelayedFeedback(0.1, delay=0.5, target="v", source="x")],
+        )

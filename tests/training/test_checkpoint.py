@@ -8,8 +8,12 @@ from mpsim.training.checkpoint import load_checkpoint, save_checkpoint
 
 def _payload(model):
     return {
-        "model": {"config": {"_target_": "mpsim.models.MPNODE", "hidden": 32}, "state_dim": 2, "control_dim": 0,
-                  "state_dict": model.state_dict()},
+        "model": {
+            "config": {"_target_": "mpsim.models.MPNODE", "hidden": 32},
+            "state_dim": 2,
+            "control_dim": 0,
+            "state_dict": model.state_dict(),
+        },
         "normalisation": {"mean": torch.zeros(2), "std": torch.ones(2)},
         "system": {"system": "pendulum2", "state_names": ["theta", "omega"], "params": {"g": 9.81}},
         "trainer": {"optimizer": torch.optim.Adam(model.parameters()).state_dict(), "rng": torch.get_rng_state()},
@@ -93,9 +97,18 @@ def test_targets_outside_mpsim_need_the_users_own_config(tmp_path):
     assert load_checkpoint(path, allowed_targets={"collections.OrderedDict"})["model"]["config"]["effects"]
 
 
-@pytest.mark.parametrize("target, ok", [("mpsim.models.MPNODE", True), ("mpsim.effects.LinearDamping", True),
-                                        ("mpsim.files.atomic_write", False), ("mpsim.training.checkpoint.torch", False),
-                                        ("mpsim..x", False), ("pathlib.Path", False), ("builtins.eval", False)])
+@pytest.mark.parametrize(
+    "target, ok",
+    [
+        ("mpsim.models.MPNODE", True),
+        ("mpsim.effects.LinearDamping", True),
+        ("mpsim.files.atomic_write", False),
+        ("mpsim.training.checkpoint.torch", False),
+        ("mpsim..x", False),
+        ("pathlib.Path", False),
+        ("builtins.eval", False),
+    ],
+)
 def test_only_mpsim_classes_are_allowed(target, ok):
     from mpsim.training.checkpoint import check_config_targets, is_mpsim_class
 

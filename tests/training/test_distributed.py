@@ -22,9 +22,21 @@ from mpsim.training.distributed import DistContext
 # the gradient all-reduce (measured: ~1e-15 relative); 5 trajectories per batch of 12 gives uneven shards
 # (3 + 2, and 1 + 1 for the last batch), 5 validation trajectories uneven evaluation shards, and 1 test
 # trajectory an empty evaluation shard on rank 1
-TINY_DDP = ["trainer=quick", "trainer.progress=false", "trainer.max_epochs=8", "trainer.batch_size=5",
-            "data.n_train=12", "data.n_val=5", "data.n_test=1", "data.horizon=10", "solver=rk4", "dtype=float64",
-            "export=false", "eval.plots=false", "eval.horizons=[1,5,10]"]
+TINY_DDP = [
+    "trainer=quick",
+    "trainer.progress=false",
+    "trainer.max_epochs=8",
+    "trainer.batch_size=5",
+    "data.n_train=12",
+    "data.n_val=5",
+    "data.n_test=1",
+    "data.horizon=10",
+    "solver=rk4",
+    "dtype=float64",
+    "export=false",
+    "eval.plots=false",
+    "eval.horizons=[1,5,10]",
+]
 RTOL = 1e-6  # the stated tolerance of 2-process vs 1-process curves (float64)
 
 
@@ -55,8 +67,17 @@ def test_non_zero_ranks_get_no_run_directory(monkeypatch):
 
 
 def _torchrun(args: list[str]) -> list[str]:
-    return [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "mpsim",
-            "train", *args]
+    return [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc_per_node=2",
+        "-m",
+        "mpsim",
+        "train",
+        *args,
+    ]
 
 
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
@@ -82,8 +103,14 @@ def test_two_processes_follow_the_one_process_loss_curve(cfg_factory, tmp_path):
     one = run_train(cfg_factory("train", *args), output_dir=tmp_path / "one")
     ws = tmp_path / "ws"
     ws.mkdir()
-    proc = subprocess.run(_torchrun([*args, f"paths.cache_dir={tmp_path}/cache"]), cwd=ws, env=ENV,
-                          capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        _torchrun([*args, f"paths.cache_dir={tmp_path}/cache"]),
+        cwd=ws,
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     _check_follows(ws, tmp_path / "one", one, 4)
 
@@ -95,8 +122,15 @@ def test_two_processes_resume_after_an_interrupt(cfg_factory, tmp_path):
     ws = tmp_path / "ws"
     ws.mkdir()
     args = [*TINY_DDP, f"paths.cache_dir={tmp_path}/cache"]
-    proc = subprocess.Popen(_torchrun(args), cwd=ws, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True, start_new_session=True)
+    proc = subprocess.Popen(
+        _torchrun(args),
+        cwd=ws,
+        env=ENV,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+    )
     deadline = time.time() + 120
     while time.time() < deadline and proc.poll() is None:
         metrics = list((ws / "outputs").rglob("metrics.csv"))
@@ -109,8 +143,9 @@ def test_two_processes_resume_after_an_interrupt(cfg_factory, tmp_path):
     if proc.returncode == 0:
         pytest.skip("the 2-process run finished before it could be interrupted")
     assert list((ws / "outputs").rglob("last.ckpt")), out
-    resumed = subprocess.run(_torchrun([*args, "resume=true"]), cwd=ws, env=ENV, capture_output=True, text=True,
-                             timeout=300)
+    resumed = subprocess.run(
+        _torchrun([*args, "resume=true"]), cwd=ws, env=ENV, capture_output=True, text=True, timeout=300
+    )
     assert resumed.returncode == 0, resumed.stdout + resumed.stderr
     _check_follows(ws, tmp_path / "one", one, 8)
 
@@ -130,7 +165,13 @@ def test_two_gpus_follow_the_one_process_loss_curve(cfg_factory, tmp_path):
     one = run_train(cfg_factory("train", *args, "device=cpu"), output_dir=tmp_path / "one")
     ws = tmp_path / "ws"
     ws.mkdir()
-    proc = subprocess.run(_torchrun([*args, "device=cuda", f"paths.cache_dir={tmp_path}/cache"]), cwd=ws, env=ENV,
-                          capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        _torchrun([*args, "device=cuda", f"paths.cache_dir={tmp_path}/cache"]),
+        cwd=ws,
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     _check_follows(ws, tmp_path / "one", one, 4, backend="nccl")

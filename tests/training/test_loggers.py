@@ -94,5 +94,11 @@ def test_logger_group_calls_every_logger_in_order():
     group.start("unused", {"k": 1})
     group.log_epoch({"epoch": 3})
     group.finish({"x": 7})
-    assert calls == [("a", "start", {"k": 1}), ("b", "start", {"k": 1}), ("a", "epoch", 3), ("b", "epoch", 3),
-                     ("a", "finish", 7), ("b", "finish", 7)]
+    assert calls == [
+        ("a", "start", {"k": 1}),
+        ("b", "start", {"k": 1}),
+        ("a", "epoch", 3),
+        ("b", "epoch", 3),
+        ("a", "finish", 7),
+        ("b", "finish", 7),
+    ]

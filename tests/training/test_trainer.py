@@ -25,8 +25,9 @@ def _model(train):
 
 
 def _trainer(epochs, **kw):
-    return Trainer(max_epochs=epochs, batch_size=5, lr=1e-2, plateau_patience=2, early_stop_patience=0,
-                   progress=False, **kw)
+    return Trainer(
+        max_epochs=epochs, batch_size=5, lr=1e-2, plateau_patience=2, early_stop_patience=0, progress=False, **kw
+    )
 
 
 def test_training_reduces_the_validation_error(tmp_path):

@@ -74,8 +74,9 @@ class DDPBench(Suite):
         if unknown or not cases:
             raise ConfigError(f"bench.cases={list(cases)}: choose from {', '.join(CASES)}.")
         if min(processes) < 1 or steps < 1 or repeats < 1:
-            raise ConfigError(f"need bench.processes, bench.steps and bench.repeats >= 1; got {list(processes)}, "
-                              f"{steps}, {repeats}.")
+            raise ConfigError(
+                f"need bench.processes, bench.steps and bench.repeats >= 1; got {list(processes)}, {steps}, {repeats}."
+            )
         self.cases, self.processes = list(cases), sorted(set(int(p) for p in processes))
         self.nbody_n, self.nbody_batch, self.nbody_graph = nbody_n, nbody_batch, nbody_graph
         self.mpnode_batch, self.mpnode_steps = mpnode_batch, mpnode_steps
@@ -91,8 +92,14 @@ class DDPBench(Suite):
         for case in self.cases:
             for p in self.processes:
                 if self.device.startswith("cuda") and p > torch.cuda.device_count():
-                    rows.append({"case": case, "processes": p, "device": self.device, "note":
-                                 f"skipped: {p} processes need {p} GPUs, found {torch.cuda.device_count()}"})
+                    rows.append(
+                        {
+                            "case": case,
+                            "processes": p,
+                            "device": self.device,
+                            "note": f"skipped: {p} processes need {p} GPUs, found {torch.cuda.device_count()}",
+                        }
+                    )
                     continue
                 rows.append(self._measure(case, p))
         for row in rows:
@@ -102,24 +109,41 @@ class DDPBench(Suite):
         return rows
 
     def _measure(self, case: str, processes: int) -> dict[str, Any]:
-        spec = {"case": case, "nbody_n": self.nbody_n, "nbody_batch": self.nbody_batch,
-                "nbody_graph": self.nbody_graph, "mpnode_batch": self.mpnode_batch,
-                "mpnode_steps": self.mpnode_steps, "steps": self.steps, "repeats": self.repeats, "warmup": self.warmup,
-                "threads": self.threads, "device": self.device}
+        spec = {
+            "case": case,
+            "nbody_n": self.nbody_n,
+            "nbody_batch": self.nbody_batch,
+            "nbody_graph": self.nbody_graph,
+            "mpnode_batch": self.mpnode_batch,
+            "mpnode_steps": self.mpnode_steps,
+            "steps": self.steps,
+            "repeats": self.repeats,
+            "warmup": self.warmup,
+            "threads": self.threads,
+            "device": self.device,
+        }
         ctx = mp.get_context("spawn")
         queue = ctx.SimpleQueue()
         with tempfile.TemporaryDirectory() as tmp:
             init = (Path(tmp) / "rendezvous").as_uri()
-            mp.start_processes(_worker, args=(processes, spec, init, queue), nprocs=processes, join=True,
-                               start_method="spawn")
+            mp.start_processes(
+                _worker, args=(processes, spec, init, queue), nprocs=processes, join=True, start_method="spawn"
+            )
         result = queue.get()
         batch = self.nbody_batch if case == "nbody" else self.mpnode_batch
         step_s = min(result["seconds"]) / self.steps
-        return {"case": case, "processes": processes, "device": self.device, "backend": result["backend"],
-                "global_batch": batch, "size": f"N={self.nbody_n}" if case == "nbody" else
-                f"Lorenz10, {self.mpnode_steps} steps", "step_s": step_s,
-                "median_step_s": statistics.median(result["seconds"]) / self.steps, "samples_per_s": batch / step_s,
-                "final_loss": result["loss"]}
+        return {
+            "case": case,
+            "processes": processes,
+            "device": self.device,
+            "backend": result["backend"],
+            "global_batch": batch,
+            "size": f"N={self.nbody_n}" if case == "nbody" else f"Lorenz10, {self.mpnode_steps} steps",
+            "step_s": step_s,
+            "median_step_s": statistics.median(result["seconds"]) / self.steps,
+            "samples_per_s": batch / step_s,
+            "final_loss": result["loss"],
+        }
 
     def summarise(self, rows: list[dict[str, Any]]) -> list[str]:
         lines = []
@@ -128,8 +152,10 @@ class DDPBench(Suite):
             for r in sub:
                 if r["processes"] > 1:
                     eff = r["speedup"] / r["processes"]
-                    lines.append(f"- {case}: {r['processes']} processes run {r['samples_per_s']:.3g} samples/s, "
-                                 f"{r['speedup']:.2f}× one process ({100 * eff:.0f}% parallel efficiency)")
+                    lines.append(
+                        f"- {case}: {r['processes']} processes run {r['samples_per_s']:.3g} samples/s, "
+                        f"{r['speedup']:.2f}× one process ({100 * eff:.0f}% parallel efficiency)"
+                    )
         return lines
 
 
@@ -151,8 +177,12 @@ def _build(spec: dict[str, Any], device: torch.device) -> tuple[torch.nn.Module,
         x1 = x0.clone()
         x1[..., :2] = torch.remainder(x0[..., :2] + dt * x0[..., 2:] + box / 2, box) - box / 2  # a drift step
         x = torch.stack([x0, x1], dim=1)  # [B, 2, N, 4]
-        data = Trajectories(t=torch.tensor([0.0, dt], dtype=torch.float64), x=x,
-                            edge_index=torch.zeros(2, 0, dtype=torch.long), meta={"box_size": box})
+        data = Trajectories(
+            t=torch.tensor([0.0, dt], dtype=torch.float64),
+            x=x,
+            edge_index=torch.zeros(2, 0, dtype=torch.long),
+            meta={"box_size": box},
+        )
         model = DeltaGN(graph=spec["nbody_graph"], pairs_per_trajectory=1)
     else:
         from mpsim.models.mpnode import MPNODE

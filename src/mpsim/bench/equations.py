@@ -27,14 +27,19 @@ from mpsim.training.metrics import LOSSES
 
 PENDULUM_SPEC = {
     "states": ["theta", "omega"],
-    "equations": {"theta": "omega",
-                  "omega": "-(gravity/length)*sin(theta) - (spring/mass)*cos(theta)*sum_nbr(sin(theta) - sin(theta_j))"},
+    "equations": {
+        "theta": "omega",
+        "omega": "-(gravity/length)*sin(theta) - (spring/mass)*cos(theta)*sum_nbr(sin(theta) - sin(theta_j))",
+    },
     "learnable": ["gravity", "spring"],
 }
 LORENZ_SPEC = {
     "states": ["x", "y", "z"],
-    "equations": {"x": "sigma*(y - x) + coupling*lin(H)", "y": "x*(rho - z) - y + coupling*lin(H)",
-                  "z": "x*y - beta*z + coupling*lin(H)"},
+    "equations": {
+        "x": "sigma*(y - x) + coupling*lin(H)",
+        "y": "x*(rho - z) - y + coupling*lin(H)",
+        "z": "x*y - beta*z + coupling*lin(H)",
+    },
     "learnable": ["sigma", "rho", "beta", "coupling"],
 }
 
@@ -47,12 +52,21 @@ def twins(case: str, solver: ODESolver) -> tuple[System, Model, Model]:
         spec = {**PENDULUM_SPEC, "params": {k: p[k] for k in ("gravity", "length", "spring", "mass")}}
     elif case == "lorenz10":
         system = CoupledLorenz(name="lorenz10", n_nodes=10, coupling=1.0)
-        spec = {**LORENZ_SPEC, "params": {"sigma": system.sigma, "rho": system.rho, "beta": system.beta,
-                                          "coupling": system.coupling, "H": system.H_unit.tolist()}}
+        spec = {
+            **LORENZ_SPEC,
+            "params": {
+                "sigma": system.sigma,
+                "rho": system.rho,
+                "beta": system.beta,
+                "coupling": system.coupling,
+                "H": system.H_unit.tolist(),
+            },
+        }
     else:
         raise ValueError(f"unknown case {case!r}; choose pendulum2 or lorenz10.")
-    physics = PhysicsModel(system.state_dim, system=type(system)(**_args(system)), learnable=spec["learnable"],
-                           solver=solver)
+    physics = PhysicsModel(
+        system.state_dim, system=type(system)(**_args(system)), learnable=spec["learnable"], solver=solver
+    )
     equations = EquationsModel(system.state_dim, spec=spec, solver=solver)
     return system, physics, equations
 
@@ -98,8 +112,11 @@ class EquationsBench(Suite):
             for model in models.values():
                 model.set_normalisation(x.reshape(-1, x.shape[-1]).mean(0), x.reshape(-1, x.shape[-1]).std(0))
             with torch.no_grad():  # the same equations: the same prediction
-                gap = float((physics.rollout(x[:, 0], t, data.edge_index)
-                             - equations.rollout(x[:, 0], t, data.edge_index)).abs().max())
+                gap = float(
+                    (physics.rollout(x[:, 0], t, data.edge_index) - equations.rollout(x[:, 0], t, data.edge_index))
+                    .abs()
+                    .max()
+                )
 
             def step(model: Model, x=x, t=t, ei=data.edge_index) -> None:  # x: [B, T, N, D]
                 model.zero_grad()
@@ -111,15 +128,29 @@ class EquationsBench(Suite):
                     times[name].append(timeit(lambda model=model: step(model), repeats=1, warmup=1)["min_s"])
             phys, eq = sorted(times["physics"]), sorted(times["equations"])
             med_p, med_e = phys[len(phys) // 2], eq[len(eq) // 2]
-            rows.append({"case": case, "N": system.n_nodes, "B": self.batch, "steps": self.steps, "solver": self.solver,
-                         "physics_step_s": med_p, "equations_step_s": med_e, "ratio": med_e / med_p,
-                         "ratio_min": eq[0] / phys[0], "max_prediction_gap": gap})
+            rows.append(
+                {
+                    "case": case,
+                    "N": system.n_nodes,
+                    "B": self.batch,
+                    "steps": self.steps,
+                    "solver": self.solver,
+                    "physics_step_s": med_p,
+                    "equations_step_s": med_e,
+                    "ratio": med_e / med_p,
+                    "ratio_min": eq[0] / phys[0],
+                    "max_prediction_gap": gap,
+                }
+            )
         return rows
 
     def summarise(self, rows: list[dict[str, Any]]) -> list[str]:
-        return [f"- {r['case']} (N={r['N']}, B={r['B']}, {r['steps']} steps, {r['solver']}): spec model / hand-written "
-                f"physics model = {r['ratio']:.2f}× per training step (median; {r['ratio_min']:.2f}× of the minima); "
-                f"predictions agree to {r['max_prediction_gap']:.1e}" for r in rows]
+        return [
+            f"- {r['case']} (N={r['N']}, B={r['B']}, {r['steps']} steps, {r['solver']}): spec model / hand-written "
+            f"physics model = {r['ratio']:.2f}× per training step (median; {r['ratio_min']:.2f}× of the minima); "
+            f"predictions agree to {r['max_prediction_gap']:.1e}"
+            for r in rows
+        ]
 
     def plot(self, rows: list[dict[str, Any]], out_dir: Path) -> list[str]:
         import matplotlib.pyplot as plt

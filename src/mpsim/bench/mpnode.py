@@ -38,7 +38,13 @@ class MPNODEBench(Suite):
         steps: int = 50,
         repeats: int = 3,
     ) -> None:
-        self.nodes, self.batches, self.graph, self.steps, self.repeats = list(nodes), list(batches), graph, steps, repeats
+        self.nodes, self.batches, self.graph, self.steps, self.repeats = (
+            list(nodes),
+            list(batches),
+            graph,
+            steps,
+            repeats,
+        )
 
     def run(self) -> list[dict[str, Any]]:
         torch.manual_seed(0)
@@ -59,11 +65,18 @@ class MPNODEBench(Suite):
                     model.rollout(x0, t, edges).pow(2).mean().backward()
 
                 fwd, bwd = timeit(forward, self.repeats), timeit(backward, self.repeats)
-                rows.append({
-                    "graph": self.graph, "N": n, "E": int(edges.shape[1]), "B": b, "steps": self.steps,
-                    "forward_s": fwd["median_s"], "fwd_bwd_s": bwd["median_s"],
-                    "us_per_node_traj_step": 1e6 * bwd["median_s"] / (n * b * self.steps),
-                })
+                rows.append(
+                    {
+                        "graph": self.graph,
+                        "N": n,
+                        "E": int(edges.shape[1]),
+                        "B": b,
+                        "steps": self.steps,
+                        "forward_s": fwd["median_s"],
+                        "fwd_bwd_s": bwd["median_s"],
+                        "us_per_node_traj_step": 1e6 * bwd["median_s"] / (n * b * self.steps),
+                    }
+                )
         return rows
 
     def summarise(self, rows: list[dict[str, Any]]) -> list[str]:
@@ -77,7 +90,9 @@ class MPNODEBench(Suite):
             a = next(r for r in rows if r["N"] == n and r["B"] == small)
             c = next(r for r in rows if r["N"] == n and r["B"] == large)
             ratio = a["us_per_node_traj_step"] / c["us_per_node_traj_step"]
-            lines.append(f"- N={n}: batching {large} trajectories is {ratio:.1f}× cheaper per node-trajectory than {small}")
+            lines.append(
+                f"- N={n}: batching {large} trajectories is {ratio:.1f}× cheaper per node-trajectory than {small}"
+            )
         return lines
 
     def plot(self, rows: list[dict[str, Any]], out_dir: Path) -> list[str]:

@@ -37,7 +37,9 @@ GRAPH_KINDS = ("full", "knn", "hierarchical")
 REFERENCE_STEP_S = {20: 0.15, 100: 0.5, 1000: 8.8}
 
 
-def uniform_state(n: int, seed: int = 0, dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor, float]:
+def uniform_state(
+    n: int, seed: int = 0, dtype: torch.dtype = torch.float32
+) -> tuple[torch.Tensor, torch.Tensor, float]:
     """([1, N, 4] state with uniform positions and U(-1, 1) velocities, [1, N, 2] unit masses, box side L)."""
     box = math.sqrt(12 * n)
     g = torch.Generator().manual_seed(seed)
@@ -115,7 +117,11 @@ class NBodyBench(Suite):
         self.graph_sizes, self.forward_sizes, self.sim_sizes = list(graph_sizes), list(forward_sizes), list(sim_sizes)
         self.full_max, self.full_forward_max = full_max, full_forward_max
         self.sim_steps, self.sim_full_max, self.sim_steps_large, self.sim_batch = (
-            sim_steps, sim_full_max, sim_steps_large, sim_batch)
+            sim_steps,
+            sim_full_max,
+            sim_steps_large,
+            sim_batch,
+        )
         self.model, self.k, self.repeats, self.memory, self.fit_min = model, k, repeats, memory, fit_min
 
     def run(self) -> list[dict[str, Any]]:
@@ -131,9 +137,17 @@ class NBodyBench(Suite):
                     continue
                 edges = build(kind, x, nf, box, self.k)
                 t = timeit(functools.partial(build, kind, x, nf, box, self.k), self.repeats, max_seconds=20)
-                rows.append({"part": "graph", "kind": kind, "N": n, "time_ms": 1e3 * t["min_s"],
-                             "median_ms": 1e3 * t["median_s"], "edges_per_particle": edges / n,
-                             "detail": f"depth {hierarchy_depth(n)}" if kind == "hierarchical" else ""})
+                rows.append(
+                    {
+                        "part": "graph",
+                        "kind": kind,
+                        "N": n,
+                        "time_ms": 1e3 * t["min_s"],
+                        "median_ms": 1e3 * t["median_s"],
+                        "edges_per_particle": edges / n,
+                        "detail": f"depth {hierarchy_depth(n)}" if kind == "hierarchical" else "",
+                    }
+                )
         return rows
 
     def _forward(self) -> list[dict[str, Any]]:
@@ -146,21 +160,32 @@ class NBodyBench(Suite):
                 x, nf, box = uniform_state(n)
                 with torch.no_grad():
                     graph = model.build_graph(x[..., :2], nf, x[..., 2:], box)
-                    fwd = timeit(functools.partial(model.advance, x, nf, graph, box, 0.01), self.repeats,
-                                 max_seconds=30)
+                    fwd = timeit(
+                        functools.partial(model.advance, x, nf, graph, box, 0.01), self.repeats, max_seconds=30
+                    )
                     full_step = timeit(functools.partial(model.step, x, nf, box, 0.01), self.repeats, max_seconds=30)
                 per = graph.edge_index.shape[1] / n + (1 if graph.hierarchy is not None else 0)
-                mem = (peak_memory_mb(functools.partial(forward_step, kind, n, self.model)) if self.memory
-                       else math.nan)
-                rows.append({"part": "forward", "kind": kind, "N": n, "time_ms": 1e3 * fwd["min_s"],
-                             "median_ms": 1e3 * fwd["median_s"], "step_ms": 1e3 * full_step["min_s"],
-                             "edges_per_particle": per,
-                             "memory_mb": mem, "detail": f"{self.model}, batch 1, incoming particle edges"})
+                mem = peak_memory_mb(functools.partial(forward_step, kind, n, self.model)) if self.memory else math.nan
+                rows.append(
+                    {
+                        "part": "forward",
+                        "kind": kind,
+                        "N": n,
+                        "time_ms": 1e3 * fwd["min_s"],
+                        "median_ms": 1e3 * fwd["median_s"],
+                        "step_ms": 1e3 * full_step["min_s"],
+                        "edges_per_particle": per,
+                        "memory_mb": mem,
+                        "detail": f"{self.model}, batch 1, incoming particle edges",
+                    }
+                )
         return rows
 
     def _simulator(self) -> list[dict[str, Any]]:
         rows = []
-        cases = [(n, 1) for n in self.sim_sizes] + ([(min(self.sim_sizes), self.sim_batch)] if self.sim_batch > 1 else [])
+        cases = [(n, 1) for n in self.sim_sizes] + (
+            [(min(self.sim_sizes), self.sim_batch)] if self.sim_batch > 1 else []
+        )
         for n, b in cases:
             steps = self.sim_steps if n <= self.sim_full_max else self.sim_steps_large
             system = NBody(n_particles=n)
@@ -173,11 +198,22 @@ class NBodyBench(Suite):
             per_step = t["median_s"] / steps
             drift = max(out["traj"].meta["energy_drift"])
             ref = REFERENCE_STEP_S.get(n)
-            rows.append({"part": "simulator", "kind": "gravity", "N": n, "B": b, "steps": steps,
-                         "time_ms": 1e3 * per_step / b, "trajectory_200_s": 200 * per_step / b,
-                         "energy_drift": drift,
-                         "detail": (f"{ref / (per_step / b):.0f}x faster than the reference's ~{ref:g} s/step"
-                                    if ref else "") + ("" if steps >= 200 else f"; drift after {steps} steps")})
+            rows.append(
+                {
+                    "part": "simulator",
+                    "kind": "gravity",
+                    "N": n,
+                    "B": b,
+                    "steps": steps,
+                    "time_ms": 1e3 * per_step / b,
+                    "trajectory_200_s": 200 * per_step / b,
+                    "energy_drift": drift,
+                    "detail": (
+                        f"{ref / (per_step / b):.0f}x faster than the reference's ~{ref:g} s/step" if ref else ""
+                    )
+                    + ("" if steps >= 200 else f"; drift after {steps} steps"),
+                }
+            )
         return rows
 
     # ---- summary -------------------------------------------------------------------------------------
@@ -195,22 +231,29 @@ class NBodyBench(Suite):
             if len(sub) >= 2:
                 p, span = self._fit(sub)
                 epp = [r["edges_per_particle"] for r in sub]
-                lines.append(f"- {kind}: build time ∝ N^{p:.2f} ({span}); edges per particle "
-                             f"{min(epp):.1f}…{max(epp):.1f}")
+                lines.append(
+                    f"- {kind}: build time ∝ N^{p:.2f} ({span}); edges per particle {min(epp):.1f}…{max(epp):.1f}"
+                )
         hier = {r["N"]: r for r in graph if r["kind"] == "hierarchical"}
         if 1000 in hier:
             ok = "meets" if hier[1000]["time_ms"] <= 10 else "MISSES"
-            lines.append(f"- hierarchical build at N = 1000: {hier[1000]['time_ms']:.2f} ms ({ok} the ≤ 10 ms target; "
-                         "the reference's per-cell loop: ~320 ms)")
+            lines.append(
+                f"- hierarchical build at N = 1000: {hier[1000]['time_ms']:.2f} ms ({ok} the ≤ 10 ms target; "
+                "the reference's per-cell loop: ~320 ms)"
+            )
         if hier:
             top = max(hier)
             if top >= 100_000:
                 ok = "meets" if hier[top]["time_ms"] <= 2000 else "MISSES"
-                lines.append(f"- hierarchical build at N = {top}: {hier[top]['time_ms'] / 1e3:.3f} s ({ok} the ≤ 2 s target)")
+                lines.append(
+                    f"- hierarchical build at N = {top}: {hier[top]['time_ms'] / 1e3:.3f} s ({ok} the ≤ 2 s target)"
+                )
             epp = [r["edges_per_particle"] for r in hier.values()]
             ratio = max(epp) / min(epp)
-            lines.append(f"- hierarchical edges per particle vary {ratio:.2f}× over N = {min(hier)}…{top} "
-                         f"({'within' if ratio <= 2 else 'OUTSIDE'} the 2× target)")
+            lines.append(
+                f"- hierarchical edges per particle vary {ratio:.2f}× over N = {min(hier)}…{top} "
+                f"({'within' if ratio <= 2 else 'OUTSIDE'} the 2× target)"
+            )
         lines += ["", f"**Forward pass** ({self.model}, batch 1, graph prebuilt; fastest of the repeats):"]
         fwd = [r for r in rows if r["part"] == "forward"]
         for kind in GRAPH_KINDS:
@@ -219,23 +262,28 @@ class NBodyBench(Suite):
                 p, span = self._fit(sub)
                 q, _ = self._fit(sub, "step_ms")
                 want = "≈ 2 (quadratic)" if kind == "full" else "≈ 1 (linear)"
-                lines.append(f"- {kind}: forward time ∝ N^{p:.2f} ({span}; expected {want}); with the graph "
-                             f"build ∝ N^{q:.2f}")
+                lines.append(
+                    f"- {kind}: forward time ∝ N^{p:.2f} ({span}; expected {want}); with the graph build ∝ N^{q:.2f}"
+                )
         sim = [r for r in rows if r["part"] == "simulator" and r["B"] == 1]
         if sim:
             lines += ["", "**Simulator** (float64, 8 velocity-Verlet substeps per base step, one thread):"]
             p, span = self._fit(sim)
             lines.append(f"- time per base step ∝ N^{p:.2f} ({span}; all pairs: expected ≈ 2)")
             for r in sim:
-                lines.append(f"- N = {r['N']}: {r['trajectory_200_s']:.2f} s per 200-step trajectory"
-                             f"{'' if r['steps'] >= 200 else ' (extrapolated)'}, energy drift "
-                             f"{r['energy_drift']:.1e} after {r['steps']} steps")
+                lines.append(
+                    f"- N = {r['N']}: {r['trajectory_200_s']:.2f} s per 200-step trajectory"
+                    f"{'' if r['steps'] >= 200 else ' (extrapolated)'}, energy drift "
+                    f"{r['energy_drift']:.1e} after {r['steps']} steps"
+                )
             batched = [r for r in rows if r["part"] == "simulator" and r["B"] > 1]
             for r in batched:
                 single = next((s for s in sim if s["N"] == r["N"]), None)
                 if single:
-                    lines.append(f"- N = {r['N']}, {r['B']} trajectories at once: "
-                                 f"{single['time_ms'] / r['time_ms']:.1f}× the per-trajectory throughput of one")
+                    lines.append(
+                        f"- N = {r['N']}, {r['B']} trajectories at once: "
+                        f"{single['time_ms'] / r['time_ms']:.1f}× the per-trajectory throughput of one"
+                    )
         return lines
 
     def plot(self, rows: list[dict[str, Any]], out_dir: Path) -> list[str]:
@@ -244,9 +292,11 @@ class NBodyBench(Suite):
         from mpsim.plotting import _save
 
         fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
-        for ax, part, key, label in ((axes[0], "graph", "time_ms", "graph build (ms)"),
-                                     (axes[1], "forward", "time_ms", "forward step (ms)"),
-                                     (axes[2], "graph", "edges_per_particle", "edges per particle")):
+        for ax, part, key, label in (
+            (axes[0], "graph", "time_ms", "graph build (ms)"),
+            (axes[1], "forward", "time_ms", "forward step (ms)"),
+            (axes[2], "graph", "edges_per_particle", "edges per particle"),
+        ):
             for kind in GRAPH_KINDS:
                 sub = [r for r in rows if r["part"] == part and r["kind"] == kind]
                 if sub:

@@ -47,8 +47,13 @@ PAPER: dict[tuple[str, str, str, int], tuple[float, float, float, float, str]] =
 }
 # Models evaluated at another N than they were trained at: (force, model, graph, trained N, evaluated N) -> as PAPER.
 PAPER_TRANSFER: dict[tuple[str, str, str, int, int], tuple[float, float, float, float, str]] = {
-    ("gravity", "DeltaGN", "hierarchical", 1000, 100): (NA, NA, 0.117, 2.3e-3,
-                                                        "notebook: 1000-trained, 2 test trajectories"),
+    ("gravity", "DeltaGN", "hierarchical", 1000, 100): (
+        NA,
+        NA,
+        0.117,
+        2.3e-3,
+        "notebook: 1000-trained, 2 test trajectories",
+    ),
 }
 
 
@@ -111,8 +116,11 @@ class NBodyTable(Suite):
         self._costs: dict[tuple[str, int], dict[str, float]] = {}
 
     def run(self) -> list[dict[str, Any]]:
-        dirs = [Path(p).parent for pattern in self.runs
-                for p in sorted(glob.glob(str(Path(pattern) / "**" / "summary.json"), recursive=True))]
+        dirs = [
+            Path(p).parent
+            for pattern in self.runs
+            for p in sorted(glob.glob(str(Path(pattern) / "**" / "summary.json"), recursive=True))
+        ]
         rows = [self._row(d) for d in dict.fromkeys(dirs)]
         return [r for r in rows if r is not None] + [self._cost_row(entry) for entry in self.cost_only]
 
@@ -122,15 +130,34 @@ class NBodyTable(Suite):
             name, graph, n = entry.split(":")
             cls = {"deltagn": "DeltaGN", "hogn": "HOGN"}[name]
         except (ValueError, KeyError):
-            raise ConfigError(f"bench.cost_only entry {entry!r}: expected '<deltagn|hogn>:<graph>:<N>', "
-                              "e.g. 'deltagn:full:1000'.") from None
+            raise ConfigError(
+                f"bench.cost_only entry {entry!r}: expected '<deltagn|hogn>:<graph>:<N>', e.g. 'deltagn:full:1000'."
+            ) from None
         config = {"_target_": f"mpsim.models.{name}.{cls}", "graph": graph}
         paper = PAPER.get(("gravity", cls, graph, int(n)), (NA, NA, NA, NA, ""))
-        row = {"system": f"nbody{n}", "model": cls, "graph": graph, "N": int(n), "trained_on": "not trained (cost only)",
-               "n_test": 0, "rmse20": NA, "energy20": NA, "rmse200": NA, "energy200": NA, "data_drift20": NA,
-               "data_drift200": NA, "n_diverged": 0, "ill_conditioned_h0": 0, "edges_per_particle": NA,
-               "paper_rmse20": paper[0], "paper_energy20": paper[1], "paper_rmse200": paper[2],
-               "paper_energy200": paper[3], "paper_source": paper[4], "run": ""}
+        row = {
+            "system": f"nbody{n}",
+            "model": cls,
+            "graph": graph,
+            "N": int(n),
+            "trained_on": "not trained (cost only)",
+            "n_test": 0,
+            "rmse20": NA,
+            "energy20": NA,
+            "rmse200": NA,
+            "energy200": NA,
+            "data_drift20": NA,
+            "data_drift200": NA,
+            "n_diverged": 0,
+            "ill_conditioned_h0": 0,
+            "edges_per_particle": NA,
+            "paper_rmse20": paper[0],
+            "paper_energy20": paper[1],
+            "paper_rmse200": paper[2],
+            "paper_energy200": paper[3],
+            "paper_source": paper[4],
+            "run": "",
+        }
         if self.measure:
             row.update(self._cost(config, int(n)))
         return row
@@ -154,15 +181,27 @@ class NBodyTable(Suite):
         else:
             paper = PAPER.get((force, cls, graph, n), (NA, NA, NA, NA, ""))
         row = {
-            "system": s["system"]["name"], "model": cls, "graph": graph, "N": n, "trained_on": trained,
+            "system": s["system"]["name"],
+            "model": cls,
+            "graph": graph,
+            "N": n,
+            "trained_on": trained,
             "n_test": s.get("data", {}).get("n_test", s.get("data", {}).get("test")),
-            "rmse20": hz.get("20", {}).get("rmse_raw", NA), "energy20": energy.get("20", NA),
-            "rmse200": hz.get("200", {}).get("rmse_raw", NA), "energy200": energy.get("200", NA),
-            "data_drift20": drift.get("20", NA), "data_drift200": drift.get("200", NA),
-            "n_diverged": s.get("test", {}).get("n_diverged", 0), "ill_conditioned_h0": report.get("n_ill_conditioned", 0),
+            "rmse20": hz.get("20", {}).get("rmse_raw", NA),
+            "energy20": energy.get("20", NA),
+            "rmse200": hz.get("200", {}).get("rmse_raw", NA),
+            "energy200": energy.get("200", NA),
+            "data_drift20": drift.get("20", NA),
+            "data_drift200": drift.get("200", NA),
+            "n_diverged": s.get("test", {}).get("n_diverged", 0),
+            "ill_conditioned_h0": report.get("n_ill_conditioned", 0),
             "edges_per_particle": report.get("edges_per_particle", NA),
-            "paper_rmse20": paper[0], "paper_energy20": paper[1], "paper_rmse200": paper[2],
-            "paper_energy200": paper[3], "paper_source": paper[4], "run": str(run),
+            "paper_rmse20": paper[0],
+            "paper_energy20": paper[1],
+            "paper_rmse200": paper[2],
+            "paper_energy200": paper[3],
+            "paper_source": paper[4],
+            "run": str(run),
         }
         if self.measure and cls != "ConstantVelocity":
             row.update(self._cost(config, n))
@@ -186,21 +225,27 @@ class NBodyTable(Suite):
 
             tr = timeit(step, self.repeats, max_seconds=60)
             mem = peak_memory_mb(functools.partial(train_step, config, n, self.train_states))
-            self._costs[key] = {"rollout_step_ms": 1e3 * roll["median_s"],
-                                "train_ms_per_state": 1e3 * tr["median_s"] / self.train_states,
-                                "train_peak_mb": mem}
+            self._costs[key] = {
+                "rollout_step_ms": 1e3 * roll["median_s"],
+                "train_ms_per_state": 1e3 * tr["median_s"] / self.train_states,
+                "train_peak_mb": mem,
+            }
         return self._costs[key]
 
     def summarise(self, rows: list[dict[str, Any]]) -> list[str]:
         def f(v: Any, digits: int = 2) -> str:
             return "—" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}g}"
 
-        lines = ["", "**Paper comparison** (ours / published; RMSE over (x, y, vx, vy), energy error |ΔH/H0|; "
-                     f"cost: rollout step at batch 1, training step per state, peak memory of a {self.train_states}-"
-                     "state training step):", "",
-                 "| system | model | graph | trained on | RMSE@20 | E@20 | RMSE@200 | E@200 | data drift @20 / @200 "
-                 "| diverged | step ms | train ms/state | MB | paper source |",
-                 "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        lines = [
+            "",
+            "**Paper comparison** (ours / published; RMSE over (x, y, vx, vy), energy error |ΔH/H0|; "
+            f"cost: rollout step at batch 1, training step per state, peak memory of a {self.train_states}-"
+            "state training step):",
+            "",
+            "| system | model | graph | trained on | RMSE@20 | E@20 | RMSE@200 | E@200 | data drift @20 / @200 "
+            "| diverged | step ms | train ms/state | MB | paper source |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        ]
         for r in rows:
             lines.append(
                 f"| {r['system']} | {r['model']} | {r['graph']} | {r['trained_on']} "
@@ -208,5 +253,6 @@ class NBodyTable(Suite):
                 f"| {f(r['rmse200'], 3)} / {f(r['paper_rmse200'])} | {f(r['energy200'])} / {f(r['paper_energy200'])} "
                 f"| {f(r['data_drift20'])} / {f(r['data_drift200'])} | {r['n_diverged']}/{r['n_test']} "
                 f"| {f(r.get('rollout_step_ms', NA), 3)} | {f(r.get('train_ms_per_state', NA), 3)} "
-                f"| {f(r.get('train_peak_mb', NA), 3)} | {r['paper_source']} |")
+                f"| {f(r.get('train_peak_mb', NA), 3)} | {r['paper_source']} |"
+            )
         return lines

@@ -30,8 +30,12 @@ from mpsim.solvers.mnn_dense import DenseSizeError, dense_solve, mnn_dense_solve
 from mpsim.solvers.smnn import smnn_solve
 
 SOLVERS = ("banded", "cyclic", "dense", "mnn")
-SOLVER_NAMES = {"banded": "S-MNN banded", "cyclic": "S-MNN cyclic reduction", "dense": "S-MNN dense",
-                "mnn": "MNN dense (slack)"}
+SOLVER_NAMES = {
+    "banded": "S-MNN banded",
+    "cyclic": "S-MNN cyclic reduction",
+    "dense": "S-MNN dense",
+    "mnn": "MNN dense (slack)",
+}
 LHS_MODES = ("shared", "per_sample")
 
 
@@ -116,8 +120,7 @@ class SMNNBench(Suite):
     ) -> None:
         bad = [m for m in methods if m not in SOLVERS] + [m for m in lhs_modes if m not in LHS_MODES]
         if bad:
-            raise ValueError(f"bench.methods must be among {SOLVERS} and bench.lhs_modes among {LHS_MODES}; "
-                             f"got {bad}.")
+            raise ValueError(f"bench.methods must be among {SOLVERS} and bench.lhs_modes among {LHS_MODES}; got {bad}.")
         self.lengths, self.batches = [int(n) for n in lengths], [int(b) for b in batches]
         self.base_batch, self.base_length, self.full_grid = int(base_batch), int(base_length), bool(full_grid)
         self.methods, self.lhs_modes, self.n_orders = list(methods), list(lhs_modes), int(n_orders)
@@ -147,16 +150,24 @@ class SMNNBench(Suite):
 
     def _measure(self, method: str, batch: int, length: int, lhs: str) -> dict[str, Any]:
         fn = functools.partial(fwd_bwd, method, batch, length, lhs, self.n_orders, self.max_bytes)
-        row: dict[str, Any] = {"lhs": lhs, "method": method, "batch": batch, "T": length, "status": "ok",
-                               "fwd_bwd_ms": math.nan, "peak_mib": math.nan}
+        row: dict[str, Any] = {
+            "lhs": lhs,
+            "method": method,
+            "batch": batch,
+            "T": length,
+            "status": "ok",
+            "fwd_bwd_ms": math.nan,
+            "peak_mib": math.nan,
+        }
         inputs = lorenz_inputs(batch, length, lhs, self.n_orders)
         step = functools.partial(solve_and_backward, method, *inputs, self.max_bytes)
         try:
             # two warm-up calls: the first ones grow the heap that later calls reuse (see `mpsim._keep_freed_cpu_memory`)
             stats = timeit(step, repeats=self.repeats, warmup=2, max_seconds=20.0)
         except DenseSizeError as err:
-            row["status"] = (f"refused: needs {err.need_bytes / 2**30:.1f} GiB "
-                             f"(budget {err.limit_bytes / 2**30:.1f} GiB)")
+            row["status"] = (
+                f"refused: needs {err.need_bytes / 2**30:.1f} GiB (budget {err.limit_bytes / 2**30:.1f} GiB)"
+            )
             return row
         row["fwd_bwd_ms"] = 1e3 * stats["median_s"]
         if self.memory:
@@ -173,8 +184,10 @@ class SMNNBench(Suite):
     def summarise(self, rows: list[dict[str, Any]]) -> list[str]:
         lines = []
         if self.load is not None:
-            lines.append(f"- 1-minute load average {self.load[0]:.1f} before and {self.load[1]:.1f} after the run "
-                         f"on {os.cpu_count()} CPU(s): absolute times scale with it, ratios much less")
+            lines.append(
+                f"- 1-minute load average {self.load[0]:.1f} before and {self.load[1]:.1f} after the run "
+                f"on {os.cpu_count()} CPU(s): absolute times scale with it, ratios much less"
+            )
         lines += ["", *self.table1(rows), "", *self.exponents(rows), ""]
         b0, t0 = self.base_batch, self.base_length
         for lhs in self.lhs_modes:
@@ -183,13 +196,17 @@ class SMNNBench(Suite):
                 slow = self._find(rows, lhs=lhs, method=other, batch=b0, T=t0)
                 if fast and slow:
                     ratio = slow["fwd_bwd_ms"] / fast["fwd_bwd_ms"]
-                    lines.append(f"- {lhs} LHS, batch {b0}, T={t0}: banded is {ratio:.1f}× "
-                                 f"faster than {other} ({fast['fwd_bwd_ms']:.1f} vs {slow['fwd_bwd_ms']:.1f} ms)")
+                    lines.append(
+                        f"- {lhs} LHS, batch {b0}, T={t0}: banded is {ratio:.1f}× "
+                        f"faster than {other} ({fast['fwd_bwd_ms']:.1f} vs {slow['fwd_bwd_ms']:.1f} ms)"
+                    )
         fast = self._find(rows, lhs="shared", method="banded", batch=b0, T=t0)
         slow = self._find(rows, lhs="per_sample", method="mnn", batch=b0, T=t0)
         if fast and slow:  # paper Table 1: S-MNN with its frozen left-hand side vs mech-nn's dense MNN
-            lines.append(f"- paper's comparison (S-MNN shared LHS vs dense MNN per sample), batch {b0}, T={t0}: "
-                         f"{slow['fwd_bwd_ms'] / fast['fwd_bwd_ms']:.0f}× faster")
+            lines.append(
+                f"- paper's comparison (S-MNN shared LHS vs dense MNN per sample), batch {b0}, T={t0}: "
+                f"{slow['fwd_bwd_ms'] / fast['fwd_bwd_ms']:.0f}× faster"
+            )
         for r in rows:
             if r["status"] != "ok":
                 lines.append(f"- {r['method']} ({r['lhs']} LHS) at batch {r['batch']}, T={r['T']}: {r['status']}")
@@ -197,8 +214,10 @@ class SMNNBench(Suite):
             for method in ("banded", "cyclic"):
                 r = self._find(rows, lhs="shared", method=method, batch=b0, T=length)
                 if r:
-                    lines.append(f"- T={length}, batch {b0}, shared LHS: {method} {r['fwd_bwd_ms'] / 1e3:.2f} s "
-                                 f"forward + backward, peak {r['peak_mib']:.0f} MiB")
+                    lines.append(
+                        f"- T={length}, batch {b0}, shared LHS: {method} {r['fwd_bwd_ms'] / 1e3:.2f} s "
+                        f"forward + backward, peak {r['peak_mib']:.0f} MiB"
+                    )
         return lines
 
     def table1(self, rows: list[dict[str, Any]]) -> list[str]:
@@ -208,15 +227,20 @@ class SMNNBench(Suite):
         cols = [c for c in paper if c in measured] + [c for c in measured if c not in paper]
         series = list(dict.fromkeys((r["method"], r["lhs"]) for r in rows))
         head = "| (batch, T) | " + " | ".join(f"({b}, {t})" for b, t in cols) + " |"
-        out = ["Forward + backward of the solver on the Lorenz discovery shapes (paper Table 1 layout; the paper "
-               "times a whole optimisation step on an H100). —: not run.", "", head,
-               "|---|" + "---|" * len(cols)]
+        out = [
+            "Forward + backward of the solver on the Lorenz discovery shapes (paper Table 1 layout; the paper "
+            "times a whole optimisation step on an H100). —: not run.",
+            "",
+            head,
+            "|---|" + "---|" * len(cols),
+        ]
         for key, unit, fmt in (("fwd_bwd_ms", "time, ms", "{:.1f}"), ("peak_mib", "peak memory, MiB", "{:.0f}")):
             for method, lhs in series:
                 cells = []
                 for b, t in cols:
-                    r = next((r for r in rows if (r["method"], r["lhs"], r["batch"], r["T"]) == (method, lhs, b, t)),
-                             None)
+                    r = next(
+                        (r for r in rows if (r["method"], r["lhs"], r["batch"], r["T"]) == (method, lhs, b, t)), None
+                    )
                     if r is None:
                         cells.append("—")
                     elif r["status"] != "ok":
@@ -231,15 +255,21 @@ class SMNNBench(Suite):
         """Least-squares slopes of log(time) and log(memory) against log(T) at the base batch, and of log(time)
         against log(batch) at the base T."""
         b0, t0 = self.base_batch, self.base_length
-        out = [f"Fitted scaling exponents (1 = linear): time over T ≥ {self.fit_from} and peak memory over "
-               f"T ≥ {self.fit_memory_from} at batch {b0}, time over batch at T = {t0}.", "",
-               "| solver | time ∝ T^k | memory ∝ T^k | time ∝ batch^k |", "|---|---|---|---|"]
+        out = [
+            f"Fitted scaling exponents (1 = linear): time over T ≥ {self.fit_from} and peak memory over "
+            f"T ≥ {self.fit_memory_from} at batch {b0}, time over batch at T = {t0}.",
+            "",
+            "| solver | time ∝ T^k | memory ∝ T^k | time ∝ batch^k |",
+            "|---|---|---|---|",
+        ]
         for method, lhs in dict.fromkeys((r["method"], r["lhs"]) for r in rows):
             ok = [r for r in rows if r["method"] == method and r["lhs"] == lhs and r["status"] == "ok"]
             cells = []
-            for key, axis, fixed, start in (("fwd_bwd_ms", "T", ("batch", b0), self.fit_from),
-                                            ("peak_mib", "T", ("batch", b0), self.fit_memory_from),
-                                            ("fwd_bwd_ms", "batch", ("T", t0), 0)):
+            for key, axis, fixed, start in (
+                ("fwd_bwd_ms", "T", ("batch", b0), self.fit_from),
+                ("peak_mib", "T", ("batch", b0), self.fit_memory_from),
+                ("fwd_bwd_ms", "batch", ("T", t0), 0),
+            ):
                 pts = sorted((r[axis], r[key]) for r in ok if r[fixed[0]] == fixed[1] and r[axis] >= start)
                 k = scaling_exponent([p for p, _ in pts], [v for _, v in pts]) if len(pts) >= 2 else math.nan
                 cells.append("—" if k != k else f"{k:.2f} ({axis} = {pts[0][0]}…{pts[-1][0]})")
@@ -255,10 +285,19 @@ class SMNNBench(Suite):
         for lhs, style in zip(self.lhs_modes, ("-", "--"), strict=False):
             for method in self.methods:
                 label = f"{method} ({lhs})"
-                by_t = sorted((r["T"], r["fwd_bwd_ms"], r["peak_mib"]) for r in rows if r["lhs"] == lhs
-                              and r["method"] == method and r["batch"] == self.base_batch and r["status"] == "ok")
-                by_b = sorted((r["batch"], r["fwd_bwd_ms"]) for r in rows if r["lhs"] == lhs
-                              and r["method"] == method and r["T"] == self.base_length and r["status"] == "ok")
+                by_t = sorted(
+                    (r["T"], r["fwd_bwd_ms"], r["peak_mib"])
+                    for r in rows
+                    if r["lhs"] == lhs
+                    and r["method"] == method
+                    and r["batch"] == self.base_batch
+                    and r["status"] == "ok"
+                )
+                by_b = sorted(
+                    (r["batch"], r["fwd_bwd_ms"])
+                    for r in rows
+                    if r["lhs"] == lhs and r["method"] == method and r["T"] == self.base_length and r["status"] == "ok"
+                )
                 if by_t:
                     axes[0].loglog([p[0] for p in by_t], [p[1] for p in by_t], "o" + style, label=label)
                     axes[1].loglog([p[0] for p in by_t], [max(p[2], 1e-1) for p in by_t], "o" + style, label=label)

@@ -38,33 +38,66 @@ def table3_systems() -> dict[str, LinearODE]:
     """The six ODEs of paper Table 3 by their column letter (constants and initial values of spec §4.1)."""
     out = {}
     c0, c1, c2 = 0.7, 1.2, 2.31
-    out["R"] = LinearODE("RC circuit", [[[[1 / c1, c2, 0]]]], [[c0]], [10.0],
-                         lambda t, i: c0 * c1 + (i[0] - c0 * c1) * torch.exp(-t / (c1 * c2)),
-                         (4.8e-12, 4.8e-12, 2.2e-7))
+    out["R"] = LinearODE(
+        "RC circuit",
+        [[[[1 / c1, c2, 0]]]],
+        [[c0]],
+        [10.0],
+        lambda t, i: c0 * c1 + (i[0] - c0 * c1) * torch.exp(-t / (c1 * c2)),
+        (4.8e-12, 4.8e-12, 2.2e-7),
+    )
     p0 = 0.23
-    out["P"] = LinearODE("population growth", [[[[p0, -1, 0]]]], [[0.0]], [4.78],
-                         lambda t, i: i[0] * torch.exp(p0 * t), (9.4e-12, 9.4e-12, 9.6e-8))
+    out["P"] = LinearODE(
+        "population growth",
+        [[[[p0, -1, 0]]]],
+        [[0.0]],
+        [4.78],
+        lambda t, i: i[0] * torch.exp(p0 * t),
+        (9.4e-12, 9.4e-12, 9.6e-8),
+    )
     l0, l1 = 0.32, 0.28
-    out["L"] = LinearODE("language death", [[[[l0 + l1, 1, 0]]]], [[l0]], [0.14],
-                         lambda t, i: l0 / (l0 + l1) - (l0 / (l0 + l1) - i[0]) * torch.exp(-(l0 + l1) * t),
-                         (2.6e-11, 2.6e-11, 7.1e-7))
+    out["L"] = LinearODE(
+        "language death",
+        [[[[l0 + l1, 1, 0]]]],
+        [[l0]],
+        [0.14],
+        lambda t, i: l0 / (l0 + l1) - (l0 / (l0 + l1) - i[0]) * torch.exp(-(l0 + l1) * t),
+        (2.6e-11, 2.6e-11, 7.1e-7),
+    )
     h0, w0 = 2.1, math.sqrt(2.1)
-    out["H"] = LinearODE("harmonic oscillator", [[[[0, 1, 0], [-1, 0, 0]], [[h0, 0, 0], [0, 1, 0]]]], [[0.0, 0.0]],
-                         [0.4, -0.03], lambda t, i: i[0] * torch.cos(w0 * t) + i[1] / w0 * torch.sin(w0 * t),
-                         (9.5e-8, 7.7e-8, 5.1e-7))
+    out["H"] = LinearODE(
+        "harmonic oscillator",
+        [[[[0, 1, 0], [-1, 0, 0]], [[h0, 0, 0], [0, 1, 0]]]],
+        [[0.0, 0.0]],
+        [0.4, -0.03],
+        lambda t, i: i[0] * torch.cos(w0 * t) + i[1] / w0 * torch.sin(w0 * t),
+        (9.5e-8, 7.7e-8, 5.1e-7),
+    )
     d0, d1 = 4.5, 0.43
     w = math.sqrt(d0 - d1**2 / 4)
-    out["D"] = LinearODE("damped oscillator", [[[[0, 1, 0], [-1, 0, 0]], [[d0, 0, 0], [d1, 1, 0]]]], [[0.0, 0.0]],
-                         [0.12, 0.043],
-                         lambda t, i: torch.exp(-d1 * t / 2) * (i[0] * torch.cos(w * t)
-                                                                 + (d1 * i[0] / 2 + i[1]) / w * torch.sin(w * t)),
-                         (2.1e-7, 2.3e-7, 4.0e-7))
+    out["D"] = LinearODE(
+        "damped oscillator",
+        [[[[0, 1, 0], [-1, 0, 0]], [[d0, 0, 0], [d1, 1, 0]]]],
+        [[0.0, 0.0]],
+        [0.12, 0.043],
+        lambda t, i: torch.exp(-d1 * t / 2) * (i[0] * torch.cos(w * t) + (d1 * i[0] / 2 + i[1]) / w * torch.sin(w * t)),
+        (2.1e-7, 2.3e-7, 4.0e-7),
+    )
     r3 = math.sqrt(0.75)
-    out["T"] = LinearODE("third order", [[[[0, 1, 0], [-1, 0, 0], [0, 0, 0]], [[0, 0, 0], [0, 1, 0], [-1, 0, 0]],
-                                          [[0, 0, 0], [1, 0, 0], [1, 1, 0]]]], [[0.0, 0.0, 0.0]], [0.0, -1.0, 1.0],
-                         lambda t, i: i[0] + i[1] + i[2] + torch.exp(-t / 2) * (
-                             -(i[1] + i[2]) * torch.cos(r3 * t) + (i[1] - i[2]) / math.sqrt(3) * torch.sin(r3 * t)),
-                         (1.0e-9, 6.8e-10, 4.3e-9))
+    out["T"] = LinearODE(
+        "third order",
+        [[[[0, 1, 0], [-1, 0, 0], [0, 0, 0]], [[0, 0, 0], [0, 1, 0], [-1, 0, 0]], [[0, 0, 0], [1, 0, 0], [1, 1, 0]]]],
+        [[0.0, 0.0, 0.0]],
+        [0.0, -1.0, 1.0],
+        lambda t, i: (
+            i[0]
+            + i[1]
+            + i[2]
+            + torch.exp(-t / 2)
+            * (-(i[1] + i[2]) * torch.cos(r3 * t) + (i[1] - i[2]) / math.sqrt(3) * torch.sin(r3 * t))
+        ),
+        (1.0e-9, 6.8e-10, 4.3e-9),
+    )
     return out
 
 
@@ -106,8 +139,13 @@ class Table3Bench(Suite):
 
     name = "smnn_table3"
 
-    def __init__(self, methods: Sequence[str] = ("banded", "cyclic", "dense"), n_steps: int = 1000,
-                 step: float = 0.01, repeats: int = 5) -> None:
+    def __init__(
+        self,
+        methods: Sequence[str] = ("banded", "cyclic", "dense"),
+        n_steps: int = 1000,
+        step: float = 0.01,
+        repeats: int = 5,
+    ) -> None:
         bad = [m for m in methods if m not in ("banded", "cyclic", "dense")]
         if bad:
             raise ValueError(f"bench.methods must be among banded, cyclic, dense; got {bad}.")
@@ -123,26 +161,49 @@ class Table3Bench(Suite):
                 stats = timeit(lambda m=method, o=ode: solve(m, o, self.n_steps, self.step), repeats=self.repeats)
                 err = relative_mse(u, exact)
                 for k, order in enumerate(ORDERS):
-                    rows.append({"ode": key, "title": ode.title, "method": method, "order": order,
-                                 "rel_mse": float(err[k]), "published": ode.published[k],
-                                 "ratio": float(err[k]) / ode.published[k], "solve_ms": 1e3 * stats["median_s"]})
+                    rows.append(
+                        {
+                            "ode": key,
+                            "title": ode.title,
+                            "method": method,
+                            "order": order,
+                            "rel_mse": float(err[k]),
+                            "published": ode.published[k],
+                            "ratio": float(err[k]) / ode.published[k],
+                            "solve_ms": 1e3 * stats["median_s"],
+                        }
+                    )
         return rows
 
     def summarise(self, rows: list[dict[str, Any]]) -> list[str]:
         odes = list(dict.fromkeys(r["ode"] for r in rows))
-        lines = [f"Relative MSE of x₀ and its derivatives, {self.n_steps} steps of {self.step:g} (paper Table 3 "
-                 "layout; published S-MNN values in brackets).", "",
-                 "| order | " + " | ".join(odes) + " |", "|---|" + "---|" * len(odes)]
+        lines = [
+            f"Relative MSE of x₀ and its derivatives, {self.n_steps} steps of {self.step:g} (paper Table 3 "
+            "layout; published S-MNN values in brackets).",
+            "",
+            "| order | " + " | ".join(odes) + " |",
+            "|---|" + "---|" * len(odes),
+        ]
         for method in self.methods:
             for order in ORDERS:
-                cells = [next(f"{r['rel_mse']:.1e} ({r['published']:.1e})" for r in rows
-                              if (r["ode"], r["method"], r["order"]) == (o, method, order)) for o in odes]
+                cells = [
+                    next(
+                        f"{r['rel_mse']:.1e} ({r['published']:.1e})"
+                        for r in rows
+                        if (r["ode"], r["method"], r["order"]) == (o, method, order)
+                    )
+                    for o in odes
+                ]
                 lines.append(f"| {order}, {method} | " + " | ".join(cells) + " |")
         ratios = [r["ratio"] for r in rows]
-        lines += ["", f"- measured / published: {min(ratios):.2f} … {max(ratios):.2f} over all {len(ratios)} entries "
-                  "(target: within a factor 3)"]
+        lines += [
+            "",
+            f"- measured / published: {min(ratios):.2f} … {max(ratios):.2f} over all {len(ratios)} entries "
+            "(target: within a factor 3)",
+        ]
         for method in self.methods:
             ms = sorted({r["ode"]: r["solve_ms"] for r in rows if r["method"] == method}.values())
-            lines.append(f"- {method}: {ms[0]:.1f} … {ms[-1]:.1f} ms per solve (paper, S-MNN on an AMD EPYC 7513: "
-                         "22–26 ms)")
+            lines.append(
+                f"- {method}: {ms[0]:.1f} … {ms[-1]:.1f} ms per solve (paper, S-MNN on an AMD EPYC 7513: 22–26 ms)"
+            )
         return lines

@@ -39,8 +39,10 @@ def run_bench(cfg: DictConfig, output_dir: str | Path | None = None, overrides: 
     plots = suite.plot(rows, out_dir / "plots")
     text = "\n".join([f"# mpsim bench: {suite.name}", "", f"Machine: {machine}.", "", markdown(frame), "", *notes, ""])
     atomic_write(out_dir / "bench.md", lambda f: f.write(text), mode="w")
-    write_json(out_dir / "summary.json", {"task": "bench", "suite": suite.name, "rows": rows, "notes": notes,
-                                          "plots": plots, "machine": machine})
+    write_json(
+        out_dir / "summary.json",
+        {"task": "bench", "suite": suite.name, "rows": rows, "notes": notes, "plots": plots, "machine": machine},
+    )
     print(text)
     return {"n_rows": len(rows), "bench": str(out_dir / "bench.md")}
 
@@ -56,5 +58,7 @@ def _device_arg(cfg: DictConfig) -> dict[str, str]:
     if "device" in params:
         return {"device": device}
     if device != "cpu":
-        raise ConfigError(f"bench={target} runs on the CPU only; drop device={device} (suites with a device: bench=ddp).")
+        raise ConfigError(
+            f"bench={target} runs on the CPU only; drop device={device} (suites with a device: bench=ddp)."
+        )
     return {}

@@ -135,7 +135,9 @@ def resolve_init(init: str, rt: Runtime, ckpt_dir: str) -> Path:
         if candidate.is_file():
             return candidate
     available = sorted(p.name for p in ckpt_root.glob("*.ckpt")) if ckpt_root.is_dir() else []
-    listing = f" Available in {ckpt_root}: {', '.join(available)}." if available else f" {ckpt_root} has no checkpoints."
+    listing = (
+        f" Available in {ckpt_root}: {', '.join(available)}." if available else f" {ckpt_root} has no checkpoints."
+    )
     raise CheckpointError(f"init={init}: no such checkpoint (looked for {', '.join(map(str, candidates))}).{listing}")
 
 
@@ -178,8 +180,10 @@ def load_splits(cfg: DictConfig, rt: Runtime, system: System | None) -> Splits:
             raise ConfigError(f"data.graph={data.graph!r}: use null (graph from the file) or 'system'.")
         edges = resolve_path(data.edges, rt.start_dir) if data.edges else None
         loaded = load_trajectories(resolve_path(data.path, rt.start_dir), edges, graph, list(data.control_columns))
-        log.info(f"loaded {len(loaded)} trajectories from {data.path}: T={loaded.n_times}, N={loaded.n_nodes}, "
-                 f"D={loaded.state_dim}")
+        log.info(
+            f"loaded {len(loaded)} trajectories from {data.path}: T={loaded.n_times}, N={loaded.n_nodes}, "
+            f"D={loaded.state_dim}"
+        )
         check_representable(loaded, str(cfg.dtype), str(data.path))
         fit_horizons(cfg, rt, loaded.n_times - 1, f"data.path={data.path}")
         return split_trajectories(loaded, tuple(data.split), data.seed)
@@ -189,8 +193,20 @@ def load_splits(cfg: DictConfig, rt: Runtime, system: System | None) -> Splits:
     fit_horizons(cfg, rt, horizon, f"system={system.name} with {horizon} steps per trajectory")
     check_simulation_memory(cfg, system, [data.n_train, data.n_val, data.n_test], int(data.burn_in) + horizon + 1)
     cache_dir = resolve_path(cfg.paths.cache_dir, rt.start_dir) if data.cache else None
-    return simulate_splits(system, system_spec(cfg), data.n_train, data.n_val, data.n_test, data.seed, data.dt,
-                           data.horizon, data.gt_rtol, data.gt_atol, cache_dir, data.burn_in)
+    return simulate_splits(
+        system,
+        system_spec(cfg),
+        data.n_train,
+        data.n_val,
+        data.n_test,
+        data.seed,
+        data.dt,
+        data.horizon,
+        data.gt_rtol,
+        data.gt_atol,
+        cache_dir,
+        data.burn_in,
+    )
 
 
 def fit_horizons(cfg: DictConfig, rt: Runtime, steps: int, source: str) -> None:
@@ -201,24 +217,36 @@ def fit_horizons(cfg: DictConfig, rt: Runtime, steps: int, source: str) -> None:
     if not beyond:
         return
     if any(a.split("=", 1)[0].lstrip("+~") == "eval.horizons" for a in rt.overrides):
-        raise ConfigError(f"eval.horizons={horizons}: {beyond} go beyond the record ({source}: steps 1..{steps}). "
-                          f"Give horizons <= {steps}, or a longer record (data.horizon=...).")
+        raise ConfigError(
+            f"eval.horizons={horizons}: {beyond} go beyond the record ({source}: steps 1..{steps}). "
+            f"Give horizons <= {steps}, or a longer record (data.horizon=...)."
+        )
     cfg.eval.horizons = [h for h in horizons if h <= steps] or [steps]
-    log.warning(f"eval.horizons: default horizons {beyond} go beyond the record ({steps} steps); reporting "
-                f"{list(cfg.eval.horizons)}")
+    log.warning(
+        f"eval.horizons: default horizons {beyond} go beyond the record ({steps} steps); reporting "
+        f"{list(cfg.eval.horizons)}"
+    )
 
 
 def check_simulation_memory(cfg: DictConfig, system: System, sizes: list[int], n_times: int) -> None:
     """Refuse, before simulating, data whose float64 arrays would not fit in memory (`memory_check=false` skips)."""
     need = simulation_bytes(sizes, n_times, system.n_nodes, system.state_dim)
-    what = (f"simulating {' + '.join(map(str, sizes))} trajectories × {n_times} time points × {system.n_nodes:,} "
-            f"nodes × {system.state_dim} states of system={system.name} (float64)")
-    check_fits(need, what, "cpu", bool(cfg.get("memory_check", True)),
-               "fewer trajectories: data.n_train/n_val/n_test or n; a shorter data.horizon; a smaller system")
+    what = (
+        f"simulating {' + '.join(map(str, sizes))} trajectories × {n_times} time points × {system.n_nodes:,} "
+        f"nodes × {system.state_dim} states of system={system.name} (float64)"
+    )
+    check_fits(
+        need,
+        what,
+        "cpu",
+        bool(cfg.get("memory_check", True)),
+        "fewer trajectories: data.n_train/n_val/n_test or n; a shorter data.horizon; a smaller system",
+    )
 
 
-def check_training_memory(cfg: DictConfig, rt: Runtime, model: Model, model_cfg: dict[str, Any],
-                          train: Trajectories) -> None:
+def check_training_memory(
+    cfg: DictConfig, rt: Runtime, model: Model, model_cfg: dict[str, Any], train: Trajectories
+) -> None:
     """Refuse, before training, a step whose crude estimate (`mpsim.memory.training_bytes`) does not fit."""
     window = cfg.trainer.get("window")
     n_times = min(train.n_times, int(window) + 1) if window else train.n_times
@@ -227,12 +255,20 @@ def check_training_memory(cfg: DictConfig, rt: Runtime, model: Model, model_cfg:
     batch = min(int(cfg.trainer.batch_size), len(train))
     itemsize = torch.finfo(rt.dtype).bits // 8
     values = train.x.numel() + (0 if train.u is None else train.u.numel())
-    need = training_bytes(sum(p.numel() for p in model.parameters()), values, batch, n_times, train.n_nodes, width,
-                          itemsize)
-    what = (f"training ({batch} trajectories × {n_times} time points × {train.n_nodes:,} nodes × {width} features "
-            f"per step, {rt.dtype})")
-    check_fits(need, what, str(rt.device), bool(cfg.get("memory_check", True)),
-               "trainer.batch_size; trainer.window; a smaller model or system")
+    need = training_bytes(
+        sum(p.numel() for p in model.parameters()), values, batch, n_times, train.n_nodes, width, itemsize
+    )
+    what = (
+        f"training ({batch} trajectories × {n_times} time points × {train.n_nodes:,} nodes × {width} features "
+        f"per step, {rt.dtype})"
+    )
+    check_fits(
+        need,
+        what,
+        str(rt.device),
+        bool(cfg.get("memory_check", True)),
+        "trainer.batch_size; trainer.window; a smaller model or system",
+    )
 
 
 def noisy_train(splits: Splits, std: torch.Tensor, scale: float, seed: int) -> Splits:
@@ -298,8 +334,11 @@ def load_weights(model: Model, ckpt: dict[str, Any], model_cfg: dict[str, Any]) 
     missing = [k for k in own if k not in state and not k.startswith("effects.")]
     if mismatched or missing:
         saved_cfg = ckpt["model"]["config"]
-        differ = [f"model.{k}: checkpoint {saved_cfg[k]!r}, config {model_cfg[k]!r}"
-                  for k in saved_cfg if k in model_cfg and saved_cfg[k] != model_cfg[k] and not k.startswith("_")]
+        differ = [
+            f"model.{k}: checkpoint {saved_cfg[k]!r}, config {model_cfg[k]!r}"
+            for k in saved_cfg
+            if k in model_cfg and saved_cfg[k] != model_cfg[k] and not k.startswith("_")
+        ]
         detail = "; ".join(differ) if differ else f"tensors {(mismatched + missing)[:3]} do not fit"
         raise CheckpointError(
             f"{ckpt['path']} does not fit this model ({detail}). Drop the override(s) to use the checkpoint's "
@@ -326,7 +365,10 @@ def checkpoint_base(
     """The static part of every checkpoint a run writes."""
     return {
         "model": {"config": model_cfg, "state_dim": model.state_dim, "control_dim": model.control_dim},
-        "normalisation": {"mean": model.state_mean.detach().cpu().clone(), "std": model.state_std.detach().cpu().clone()},
+        "normalisation": {
+            "mean": model.state_mean.detach().cpu().clone(),
+            "std": model.state_std.detach().cpu().clone(),
+        },
         "system": _plain(system_meta),
         **(extra or {}),
     }

@@ -58,7 +58,8 @@ def _compare(found: dict[str, Any], truths: list[dict[str, Any]]) -> dict[str, A
         keys = ("amplitude", "omega") if "omega" in found else ("coef",)
         out = {"true": {k: true.get(k) for k in keys}}
         out["relative_error"] = {
-            k: abs(found[k] - true[k]) / abs(true[k]) for k in keys
+            k: abs(found[k] - true[k]) / abs(true[k])
+            for k in keys
             if isinstance(true.get(k), int | float) and isinstance(found.get(k), int | float) and true[k]
         }
         return out
@@ -81,18 +82,21 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
     model.latent_reset = cfg.trainer.window  # latent states (messages) were trained over windows this long
     params = _params(cfg)
     horizons = list(cfg.eval.horizons)
-    log.info(f"diagnosing {Path(ckpt['path']).name} on {len(splits.train)} held-in trajectories "
-             f"({len(splits.test)} held out)")
+    log.info(
+        f"diagnosing {Path(ckpt['path']).name} on {len(splits.train)} held-in trajectories "
+        f"({len(splits.test)} held out)"
+    )
 
     def fixed_config(fixed: Model) -> dict[str, Any]:
         """The model config with the effects the loop added (fitted values) after the configured ones."""
         configured = list(model_cfg.get("effects") or [])
-        return {**model_cfg, "effects": configured + [e.config() for e in fixed.effects[len(configured):]]}
+        return {**model_cfg, "effects": configured + [e.config() for e in fixed.effects[len(configured) :]]}
 
     def finetune(fixed: Model, k: int) -> tuple[Model, str]:
         fixed_cfg = fixed_config(fixed)
-        built, _ = build_model_for(cfg, rt, Shape.of(splits.train),
-                                   {**ckpt, "model": {**ckpt["model"], "config": fixed_cfg}})
+        built, _ = build_model_for(
+            cfg, rt, Shape.of(splits.train), {**ckpt, "model": {**ckpt["model"], "config": fixed_cfg}}
+        )
         built.load_state_dict(fixed.state_dict())  # fitted coefficients and refit own parameters
         built.latent_reset = model.latent_reset
         trainer = build(cfg.trainer, "trainer", lr=cfg.trainer.lr * params.fix_lr_factor)
@@ -113,8 +117,16 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
     truths = _true_effects(cfg)
     error: DivergenceError | None = None
     try:
-        result = run_loop(model, splits, params, horizons, cfg.seed, finetune if cfg.fix else None,
-                          save if cfg.fix else None, log.info)
+        result = run_loop(
+            model,
+            splits,
+            params,
+            horizons,
+            cfg.seed,
+            finetune if cfg.fix else None,
+            save if cfg.fix else None,
+            log.info,
+        )
     except DivergenceError as err:  # the report of what was found is still written, then the error is raised
         error, result = err, None
     if result is None:
@@ -133,18 +145,25 @@ def _summary(cfg, ckpt, splits, result: LoopResult, truths) -> dict[str, Any]:
     named = [{**t.as_dict(), "vs_truth": _compare(t.effect, truths)} for t in j.named]
     fixed = []
     if result.model is not None and result.after is not None:
-        fixed = [{"effect": e.config(), "describe": e.describe(), "vs_truth": _compare(e.config(), truths)}
-                 for e in result.model.effects]
+        fixed = [
+            {"effect": e.config(), "describe": e.describe(), "vs_truth": _compare(e.config(), truths)}
+            for e in result.model.effects
+        ]
     verdict = result.verdict
     verdict_note = ""
     if cfg.fix and verdict == EFFECTS_NAMED and result.after is None:
-        verdict_note = (result.rejected[0]["why"] if result.rejected else "no fix was kept") + \
-            "; the model is returned unchanged"
+        verdict_note = (
+            result.rejected[0]["why"] if result.rejected else "no fix was kept"
+        ) + "; the model is returned unchanged"
     return {
         "task": "diagnose",
         "init": ckpt["path"],
-        "data": {"name": splits.train.system_name, "source": cfg.data.path or "simulated",
-                 "n_heldin": len(splits.train), "n_heldout": len(splits.test)},
+        "data": {
+            "name": splits.train.system_name,
+            "source": cfg.data.path or "simulated",
+            "n_heldin": len(splits.train),
+            "n_heldout": len(splits.test),
+        },
         "verdict": verdict,
         "verdict_note": verdict_note,
         "exit_code": result.exit_code,
@@ -182,58 +201,97 @@ def _values_text(values: dict[str, float], interval: dict[str, Any]) -> str:
 
 def _markdown(s: dict[str, Any]) -> str:
     j, screen = s["judgement"], s["screen"]
-    lines = [f"# mpsim diagnose: {s['data']['name']}", "",
-             f"Model: `{s['init']}`. Held-in trajectories: {s['data']['n_heldin']}; held-out: {s['data']['n_heldout']}.",
-             "", f"**Verdict: {s['verdict']}** (exit code {s['exit_code']}). {s['verdict_note']}", "",
-             "## How to read the verdict", "",
-             "- *effects named*: each named effect, fitted by multiple shooting through the model's own integrator, "
-             "lowered the held-out multi-step error by more than the same fit does on null data, and together they "
-             "remove most of the error above the null level.",
-             "- *nothing missing*: the model (its own parameters refit) predicts held-out data at the null level.",
-             "- *unexplained structured residual*: the error is above the null level and no candidate explains it; "
-             "nothing is claimed (the best candidate and what it would leave are shown).", "",
-             "## Held-out multi-step error (MSE, normalised)", "",
-             f"Windows of {j['horizon']} steps. Model as given {j['error_given']:.4g}; its own parameters refit "
-             f"{j['error_refit']:.4g}; null level {j['error_null']:.4g}; with the named effects {j['error_final']:.4g} "
-             f"(share of the excess removed: {j['explained']:.0%}).", ""]
+    lines = [
+        f"# mpsim diagnose: {s['data']['name']}",
+        "",
+        f"Model: `{s['init']}`. Held-in trajectories: {s['data']['n_heldin']}; held-out: {s['data']['n_heldout']}.",
+        "",
+        f"**Verdict: {s['verdict']}** (exit code {s['exit_code']}). {s['verdict_note']}",
+        "",
+        "## How to read the verdict",
+        "",
+        "- *effects named*: each named effect, fitted by multiple shooting through the model's own integrator, "
+        "lowered the held-out multi-step error by more than the same fit does on null data, and together they "
+        "remove most of the error above the null level.",
+        "- *nothing missing*: the model (its own parameters refit) predicts held-out data at the null level.",
+        "- *unexplained structured residual*: the error is above the null level and no candidate explains it; "
+        "nothing is claimed (the best candidate and what it would leave are shown).",
+        "",
+        "## Held-out multi-step error (MSE, normalised)",
+        "",
+        f"Windows of {j['horizon']} steps. Model as given {j['error_given']:.4g}; its own parameters refit "
+        f"{j['error_refit']:.4g}; null level {j['error_null']:.4g}; with the named effects {j['error_final']:.4g} "
+        f"(share of the excess removed: {j['explained']:.0%}).",
+        "",
+    ]
     lines += [f"- {n}" for n in j["notes"]]
-    lines += ["", "## Candidates tested on held-out data", "",
-              "| effect | fitted (95 % interval) | held-out MSE before → after | gain ± se | null gain | named | why |",
-              "|---|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "## Candidates tested on held-out data",
+        "",
+        "| effect | fitted (95 % interval) | held-out MSE before → after | gain ± se | null gain | named | why |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for t in j["trials"]:
-        lines.append(f"| {t['label']} | {_values_text(t['values'], t['interval'])} | {t['error_before']:.4g} → "
-                     f"{t['error_after']:.4g} | {t['gain']:.3g} ± {t['gain_se']:.2g} | {t['null_gain']:.3g} | "
-                     f"{'yes' if t['accepted'] else 'no'} | {t['reason']} |")
+        lines.append(
+            f"| {t['label']} | {_values_text(t['values'], t['interval'])} | {t['error_before']:.4g} → "
+            f"{t['error_after']:.4g} | {t['gain']:.3g} ± {t['gain_se']:.2g} | {t['null_gain']:.3g} | "
+            f"{'yes' if t['accepted'] else 'no'} | {t['reason']} |"
+        )
     if not j["trials"]:
         lines.append("| (none tested) | | | | | | |")
-    lines += ["", "## One-step screen", "", f"Rows searched: {', '.join(screen['searched_rows'])} (kinematic rows are "
-              "not searched unless `diagnose.targets` names them).", "",
-              "| state | residual RMS | null residual RMS | null level | estimated noise |", "|---|---|---|---|---|"]
+    lines += [
+        "",
+        "## One-step screen",
+        "",
+        f"Rows searched: {', '.join(screen['searched_rows'])} (kinematic rows are "
+        "not searched unless `diagnose.targets` names them).",
+        "",
+        "| state | residual RMS | null residual RMS | null level | estimated noise |",
+        "|---|---|---|---|---|",
+    ]
     for d, n in enumerate(screen["state_names"]):
-        lines.append(f"| {n} | {screen['residual_rms'][d]:.4g} | {screen['null_rms'][d]:.4g} | "
-                     f"{screen['null_level'][d]:.3g} | {screen['noise_std_estimate'][d]:.3g} |")
-    lines += ["", "| target: effect | one-step coefficients | share of its row | bootstrap | screened | why |",
-              "|---|---|---|---|---|---|"]
+        lines.append(
+            f"| {n} | {screen['residual_rms'][d]:.4g} | {screen['null_rms'][d]:.4g} | "
+            f"{screen['null_level'][d]:.3g} | {screen['noise_std_estimate'][d]:.3g} |"
+        )
+    lines += [
+        "",
+        "| target: effect | one-step coefficients | share of its row | bootstrap | screened | why |",
+        "|---|---|---|---|---|---|",
+    ]
     for f in screen["candidates_considered"]:
-        lines.append(f"| {f['label']} | {', '.join(f'{c:.4g}' for c in f['coef'])} | {f['gain']:.1%} | "
-                     f"{f['inclusion']:.0%} | {'yes' if f['accepted'] else 'no'} | {f['reason']} |")
+        lines.append(
+            f"| {f['label']} | {', '.join(f'{c:.4g}' for c in f['coef'])} | {f['gain']:.1%} | "
+            f"{f['inclusion']:.0%} | {'yes' if f['accepted'] else 'no'} | {f['reason']} |"
+        )
     for r in s["rounds"]:
-        lines += ["", f"## Fix, round {r['round']}", "",
-                  f"Added {'; '.join(r['added'])}; held-out MSE before {r['heldout_mse_before']:.4g}, "
-                  + ", ".join(f"{k} {v:.4g}" for k, v in r["heldout_mse"].items()) + f"; kept: {r['kept']}."]
+        lines += [
+            "",
+            f"## Fix, round {r['round']}",
+            "",
+            f"Added {'; '.join(r['added'])}; held-out MSE before {r['heldout_mse_before']:.4g}, "
+            + ", ".join(f"{k} {v:.4g}" for k, v in r["heldout_mse"].items())
+            + f"; kept: {r['kept']}.",
+        ]
         if "then" in r:
             lines.append(f"Then: {r['then']['verdict']} ({'; '.join(r['then']['named']) or 'nothing named'}).")
     for r in s["rejected_fixes"]:
         lines += ["", f"Rejected fix (round {r['round']}): {r['why']}."]
     if s["fixed_effects"]:
         lines += ["", "## Effects in the returned model", ""]
-        lines += [f"- {e['describe']}" + (f" ({_truth_text(e['vs_truth'])})" if e["vs_truth"] else "")
-                  for e in s["fixed_effects"]]
+        lines += [
+            f"- {e['describe']}" + (f" ({_truth_text(e['vs_truth'])})" if e["vs_truth"] else "")
+            for e in s["fixed_effects"]
+        ]
         lines.append(f"- checkpoint: `{s['fixed_checkpoint']}`")
     lines += ["", "## Held-out error (normalised)", "", "| | before | after |", "|---|---|---|"]
     before, after = s["before"], s["after"] or {}
-    for label, key in (("one-step RMSE", "one_step_rmse"), ("rollout RMSE (full horizon)", "rollout_rmse"),
-                       ("valid prediction time", "valid_prediction_time")):
+    for label, key in (
+        ("one-step RMSE", "one_step_rmse"),
+        ("rollout RMSE (full horizon)", "rollout_rmse"),
+        ("valid prediction time", "valid_prediction_time"),
+    ):
         lines.append(f"| {label} | {fmt(before[key])} | {fmt(after.get(key))} |")
     for h, v in before["horizons"].items():
         a = (after.get("horizons") or {}).get(h, {}).get("rmse")
@@ -251,9 +309,14 @@ def _print(s: dict[str, Any], out: Path) -> None:
     for t in s["effects_named"]:
         truth = f"  ({_truth_text(t['vs_truth'])})" if t.get("vs_truth") else ""
         rows.append(("effect", f"{t['label']}: {_values_text(t['values'], t['interval'])}{truth}"))
-    rows.append(("held-out MSE", f"given {j['error_given']:.3g}, own parameters refit {j['error_refit']:.3g}, null "
-                                 f"level {j['error_null']:.3g}" + (f", with the effects {j['error_final']:.3g}"
-                                                                   if s["verdict"] == EFFECTS_NAMED else "")))
+    rows.append(
+        (
+            "held-out MSE",
+            f"given {j['error_given']:.3g}, own parameters refit {j['error_refit']:.3g}, null "
+            f"level {j['error_null']:.3g}"
+            + (f", with the effects {j['error_final']:.3g}" if s["verdict"] == EFFECTS_NAMED else ""),
+        )
+    )
     for note in j["notes"]:
         rows.append(("", note))
     if s["verdict"] != EFFECTS_NAMED and s["verdict"] != NOTHING_MISSING:
@@ -263,10 +326,19 @@ def _print(s: dict[str, Any], out: Path) -> None:
     for e in s["fixed_effects"]:
         rows.append(("returned model", e["describe"] + (f"  ({_truth_text(e['vs_truth'])})" if e["vs_truth"] else "")))
     before, after = s["before"], s["after"]
-    for label, key in (("one-step RMSE", "one_step_rmse"), ("rollout RMSE", "rollout_rmse"),
-                       ("valid pred. time", "valid_prediction_time")):
+    for label, key in (
+        ("one-step RMSE", "one_step_rmse"),
+        ("rollout RMSE", "rollout_rmse"),
+        ("valid pred. time", "valid_prediction_time"),
+    ):
         value = before[key]
-        rows.append((label, f"{fmt(value)}" + (f" → {fmt(after[key])}" if after else "")
-                     + ("" if math.isfinite(value) else " (diverged)")))
+        rows.append(
+            (
+                label,
+                f"{fmt(value)}"
+                + (f" → {fmt(after[key])}" if after else "")
+                + ("" if math.isfinite(value) else " (diverged)"),
+            )
+        )
     rows.append(("report", str(out / "diagnosis.md")))
     print_summary(f"mpsim diagnose: {s['data']['name']}", rows)

@@ -41,16 +41,25 @@ def evaluate_model(
     pred, aux = predict(model, test, aux=True)
     true = test.x.to(pred.dtype)
     std = model.state_std.detach().cpu().to(pred.dtype)
-    metrics = rollout_metrics(pred, true, std, test.t, horizons, periods=test.meta.get("periods"),
-                              first=model.context_steps)
+    metrics = rollout_metrics(
+        pred, true, std, test.t, horizons, periods=test.meta.get("periods"), first=model.context_steps
+    )
     features = test.node_features  # [N, F] or [B, N, F]
     probe = None if features is None else (features[:1] if features.dim() == 3 else features)
     if system is not None and system.energy(test.x[:1, :1], probe) is not None:
         metrics.update(relative_energy_error(lambda x: system.energy(x, features), pred, true))
     if plots:
         plot_dir = output_dir / "plots"
-        plotting.trajectories(test.t, true, pred, plot_dir / "trajectories.png", test.state_names,
-                              messages=aux.get("messages"), n_traj=n_plot, title=title)
+        plotting.trajectories(
+            test.t,
+            true,
+            pred,
+            plot_dir / "trajectories.png",
+            test.state_names,
+            messages=aux.get("messages"),
+            n_traj=n_plot,
+            title=title,
+        )
         plotting.error_growth(test.t, metrics["per_step_rmse"], plot_dir / "error_growth.png", title=title)
     return metrics
 
@@ -80,8 +89,16 @@ def evaluate_checkpoint(cfg: DictConfig, rt: Runtime, task: str) -> dict:
     model, model_cfg, splits = model_and_data(cfg, rt, system, ckpt, refit=False)
     test = splits.test
     title = f"{test.system_name}: {ckpt['system'].get('system')} checkpoint, no training"
-    metrics = evaluate_model(model, test, rt.output_dir, list(cfg.eval.horizons),
-                             None if cfg.data.path else system, cfg.eval.n_plot, cfg.eval.plots, title)
+    metrics = evaluate_model(
+        model,
+        test,
+        rt.output_dir,
+        list(cfg.eval.horizons),
+        None if cfg.data.path else system,
+        cfg.eval.n_plot,
+        cfg.eval.plots,
+        title,
+    )
     summary = {
         "task": task,
         "mode": "zeroshot",
@@ -90,8 +107,12 @@ def evaluate_checkpoint(cfg: DictConfig, rt: Runtime, task: str) -> dict:
         "trained_on": ckpt["system"].get("system"),
         "system": {"name": test.system_name, "n_nodes": test.n_nodes, "state_names": test.state_names},
         "model": {**model.describe(), "config": model_cfg, **model.report()},
-        "data": {"n_test": len(test), "n_times": test.n_times, "dt": test.meta.get("dt"),
-                 "source": cfg.data.path or "simulated"},
+        "data": {
+            "n_test": len(test),
+            "n_times": test.n_times,
+            "dt": test.meta.get("dt"),
+            "source": cfg.data.path or "simulated",
+        },
         "test": metrics,
         "test_error": metrics["rmse"],
         "wall_time": time.perf_counter() - t0,
@@ -100,16 +121,22 @@ def evaluate_checkpoint(cfg: DictConfig, rt: Runtime, task: str) -> dict:
     write_json(rt.output_dir / "summary.json", summary)
     rows = [
         ("checkpoint", f"{ckpt['path']} (trained on {summary['trained_on']})"),
-        ("evaluated on", f"{test.system_name}: {len(test)} test trajectories, N={test.n_nodes}, "
-                         f"{test.n_times - 1} steps"),
+        (
+            "evaluated on",
+            f"{test.system_name}: {len(test)} test trajectories, N={test.n_nodes}, {test.n_times - 1} steps",
+        ),
         ("model", f"{summary['model']['model']} ({summary['model']['n_params']:,} params)"),
         ("test RMSE", f"{fmt(metrics['rmse'])} normalised, {fmt(metrics['rmse_raw'])} raw units"),
         *horizon_rows(metrics),
         *model.report_lines(),
     ]
     if "energy_error" in metrics:
-        rows.append(("energy error", f"{fmt(metrics['energy_error'])} (data's own drift "
-                                     f"{fmt(metrics['data_energy_drift'], 2)})"))
+        rows.append(
+            (
+                "energy error",
+                f"{fmt(metrics['energy_error'])} (data's own drift {fmt(metrics['data_energy_drift'], 2)})",
+            )
+        )
     if metrics.get("n_diverged"):
         rows.append(("diverged", f"{metrics['n_diverged']} of {len(test)} test trajectories"))
     rows.append(("run dir", str(rt.output_dir)))

@@ -31,17 +31,39 @@ from mpsim.training.metrics import first_epoch_below
 
 log = logging.getLogger(__name__)
 
-METRICS = ("mode", "status", "epochs_run", "min_test_error", "min_test_error_epoch", "epochs_x_min_error",
-           "initial_test_error", "test_error", "wall_time")
-NUMERIC = ("epochs_to_target", "min_test_error", "min_test_error_epoch", "epochs_x_min_error", "initial_test_error", "test_error",
-           "epochs_run", "wall_time")
+METRICS = (
+    "mode",
+    "status",
+    "epochs_run",
+    "min_test_error",
+    "min_test_error_epoch",
+    "epochs_x_min_error",
+    "initial_test_error",
+    "test_error",
+    "wall_time",
+)
+NUMERIC = (
+    "epochs_to_target",
+    "min_test_error",
+    "min_test_error_epoch",
+    "epochs_x_min_error",
+    "initial_test_error",
+    "test_error",
+    "epochs_run",
+    "wall_time",
+)
 
 
 def collect(roots: list[Path], facts: bool = False) -> pd.DataFrame:
     """One row per run found under `roots`: overrides as columns plus the summary's scalar metrics (and, with
     `facts`, what the built-in layouts sort runs by: model class, message size, training-set size, ...)."""
-    runs = sorted({p.parent for root in roots for p in ([root / "summary.json"] if (root / "summary.json").is_file()
-                                                        else root.rglob("summary.json"))})
+    runs = sorted(
+        {
+            p.parent
+            for root in roots
+            for p in ([root / "summary.json"] if (root / "summary.json").is_file() else root.rglob("summary.json"))
+        }
+    )
     return pd.DataFrame([_row(run, facts) for run in runs])
 
 
@@ -50,11 +72,15 @@ def read_summary(path: Path) -> dict[str, Any]:
     try:
         summary = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise DataError(f"{path} is not valid JSON ({err}). The run did not finish writing it or it was edited: "
-                        "rerun that run, or move its directory out of the report's runs.") from None
+        raise DataError(
+            f"{path} is not valid JSON ({err}). The run did not finish writing it or it was edited: "
+            "rerun that run, or move its directory out of the report's runs."
+        ) from None
     if not isinstance(summary, dict):
-        raise DataError(f"{path} must hold a JSON object (a run summary); got a JSON {type(summary).__name__}. "
-                        "Rerun that run, or move its directory out of the report's runs.")
+        raise DataError(
+            f"{path} must hold a JSON object (a run summary); got a JSON {type(summary).__name__}. "
+            "Rerun that run, or move its directory out of the report's runs."
+        )
     return summary
 
 
@@ -67,8 +93,10 @@ def _row(run: Path, facts: bool = False) -> dict[str, Any]:
         try:
             saved = yaml.safe_load(overrides_path.read_text())
         except yaml.YAMLError as err:
-            raise DataError(f"{overrides_path} is not valid YAML ({str(err).splitlines()[0]}). Restore it (a list of "
-                            "key=value overrides) or move the run out of the report's runs.") from None
+            raise DataError(
+                f"{overrides_path} is not valid YAML ({str(err).splitlines()[0]}). Restore it (a list of "
+                "key=value overrides) or move the run out of the report's runs."
+            ) from None
         if saved is not None and not isinstance(saved, list):
             raise DataError(f"{overrides_path} must be a list of key=value overrides; got {type(saved).__name__}.")
     if saved:
@@ -119,8 +147,9 @@ def aggregate(frame: pd.DataFrame, group_by: list[str]) -> pd.DataFrame:
     numeric = [c for c in NUMERIC if c in frame.columns]
     grouped = frame.groupby(group_by, dropna=False)[numeric]
     mean, std = grouped.mean(), grouped.std()
-    out = pd.DataFrame({c: [_pm(m, s) for m, s in zip(mean[c], std[c], strict=True)] for c in numeric},
-                       index=mean.index)
+    out = pd.DataFrame(
+        {c: [_pm(m, s) for m, s in zip(mean[c], std[c], strict=True)] for c in numeric}, index=mean.index
+    )
     out["runs"] = grouped.size()
     return out.reset_index()
 
@@ -182,11 +211,17 @@ def _run_layout(cfg: DictConfig, layout: str, frame: pd.DataFrame, roots: list[P
     result = LAYOUT_FUNCS[layout](frame, out_dir)
     title = cfg.title if cfg.title != "mpsim report" else DEFAULT_TITLES[layout]
     figures = "".join(f"\n\n![{p.stem}]({p.name})" for p in result.figures)
-    text = (f"# {title}\n\n{len(frame)} runs under {', '.join(map(str, roots))}. Settings of the runs:\n\n"
-            f"{settings_caption(frame)}\n\n{result.markdown}{figures}\n")
+    text = (
+        f"# {title}\n\n{len(frame)} runs under {', '.join(map(str, roots))}. Settings of the runs:\n\n"
+        f"{settings_caption(frame)}\n\n{result.markdown}{figures}\n"
+    )
     atomic_write(out_dir / "report.md", lambda f: f.write(text), mode="w")
     atomic_write(out_dir / "report.csv", lambda f: result.table.to_csv(f, index=False), mode="w")
     atomic_write(out_dir / "runs.csv", lambda f: frame.to_csv(f, index=False), mode="w")
     print(text)
-    return {"n_runs": len(frame), "report": str(out_dir / "report.md"), "table": result.table,
-            "figures": [str(p) for p in result.figures]}
+    return {
+        "n_runs": len(frame),
+        "report": str(out_dir / "report.md"),
+        "table": result.table,
+        "figures": [str(p) for p in result.figures],
+    }

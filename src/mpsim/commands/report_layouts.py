@@ -40,17 +40,37 @@ LAYOUTS = ("table2", "table1", "curves", "message_size")
 
 #: the paper's Table 2 (epochs to the minimum test error × that error; N/A where the paper has none)
 PAPER_TABLE2 = {
-    "MP-NODE finetuned": {"Lorenz10 ds=50": 632.70, "Lorenz10 ds=100": 833.91, "Lorenz10 ds=500": 477.75,
-                          "Kuramoto ds=50": 1358.50, "Kuramoto ds=100": 1264.83, "Kuramoto ds=500": 874.80,
-                          "Gene": 12.53, "Quadrotors": 236.00},
-    "MP-NODE scratch": {"Lorenz10 ds=50": 12800, "Lorenz10 ds=100": 10454, "Lorenz10 ds=500": 5656,
-                        "Kuramoto ds=50": 5008, "Kuramoto ds=100": 5268, "Kuramoto ds=500": 3974, "Gene": 28},
+    "MP-NODE finetuned": {
+        "Lorenz10 ds=50": 632.70,
+        "Lorenz10 ds=100": 833.91,
+        "Lorenz10 ds=500": 477.75,
+        "Kuramoto ds=50": 1358.50,
+        "Kuramoto ds=100": 1264.83,
+        "Kuramoto ds=500": 874.80,
+        "Gene": 12.53,
+        "Quadrotors": 236.00,
+    },
+    "MP-NODE scratch": {
+        "Lorenz10 ds=50": 12800,
+        "Lorenz10 ds=100": 10454,
+        "Lorenz10 ds=500": 5656,
+        "Kuramoto ds=50": 5008,
+        "Kuramoto ds=100": 5268,
+        "Kuramoto ds=500": 3974,
+        "Gene": 28,
+    },
     "L2S": {"Gene": 46.64, "Quadrotors": 476.0},
 }
 #: the paper's Table 1 (gene 4×4, trained on BA with 5 adjacency matrices)
-PAPER_TABLE1 = {"MP-NODE": {"Validation BA": "0.0051 ± 0.0001", "Test BA": "0.0045 ± 0.0004",
-                            "Test ER (unseen)": "0.0026 ± 0.0008", "Test WS (unseen)": "0.0023 ± 0.0002"},
-                "L2S": {"Validation BA": "0.0106"}}
+PAPER_TABLE1 = {
+    "MP-NODE": {
+        "Validation BA": "0.0051 ± 0.0001",
+        "Test BA": "0.0045 ± 0.0004",
+        "Test ER (unseen)": "0.0026 ± 0.0008",
+        "Test WS (unseen)": "0.0023 ± 0.0002",
+    },
+    "L2S": {"Validation BA": "0.0106"},
+}
 FAMILIES = (("lorenz", None), ("kuramoto", "Kuramoto"), ("gene", "Gene"), ("quad", "Quadrotors"))
 MODEL_NAMES = {"MPNODE": "MP-NODE", "L2S": "L2S", "NODE": "NODE"}
 
@@ -115,7 +135,7 @@ def _stats(values: pd.Series) -> tuple[float, float, int]:
 
 
 def pm(mean: float, std: float, digits: int = 4) -> str:
-    """"mean ± std" (std omitted for a single value, "N/A" without a value)."""
+    """ "mean ± std" (std omitted for a single value, "N/A" without a value)."""
     if mean is None or (isinstance(mean, float) and math.isnan(mean)):
         return "N/A"
     text = f"{mean:.{digits}g}"
@@ -137,7 +157,9 @@ def settings_caption(frame: pd.DataFrame) -> str:
         sizes = sorted({int(v) for v in pd.to_numeric(trained.get("n_train"), errors="coerce").dropna()})
         steps = sorted({int(v) - 1 for v in pd.to_numeric(part.get("n_times"), errors="coerce").dropna()})
         epochs = pd.to_numeric(trained.get("epochs_run"), errors="coerce").dropna()
-        seeds = sorted({int(s) for s in pd.to_numeric(part["seed_"], errors="coerce").dropna()}) if "seed_" in part else []
+        seeds = (
+            sorted({int(s) for s in pd.to_numeric(part["seed_"], errors="coerce").dropna()}) if "seed_" in part else []
+        )
         bits = [f"{len(part)} run{'s' if len(part) > 1 else ''}"]
         if sizes:
             bits.append(f"{'/'.join(map(str, sizes))} training trajectories")
@@ -189,41 +211,62 @@ def table2(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
     clash = {lab for lab in labels.values() if list(labels.values()).count(lab) > 1}
     labels = {s: (s if lab in clash else lab) for s, lab in labels.items()}
     sizes = train.groupby("system")["n_train"].nunique()
-    train["column"] = [labels[s] + (f" ds={int(n)}" if sizes[s] > 1 else "")
-                       for s, n in zip(train["system"], train["n_train"], strict=True)]
+    train["column"] = [
+        labels[s] + (f" ds={int(n)}" if sizes[s] > 1 else "")
+        for s, n in zip(train["system"], train["n_train"], strict=True)
+    ]
     train["row"] = [row_label(c, m) for c, m in zip(train["model_class"], train["mode"], strict=True)]
     records = []
     for (row, column), part in train.groupby(["row", "column"], sort=False):
         mean, std, n = _stats(part["epochs_x_min_error"])
         err, err_sd, _ = _stats(part["min_test_error"])
         ep, ep_sd, _ = _stats(part["min_test_error_epoch"])
-        records.append({"row": row, "column": column, "system": part["system"].iloc[0],
-                        "n_train": part["n_train"].iloc[0], "runs": n, "epochs_x_min_error": mean,
-                        "epochs_x_min_error_std": std, "min_test_error": err, "min_test_error_std": err_sd,
-                        "min_test_error_epoch": ep, "min_test_error_epoch_std": ep_sd,
-                        "paper": PAPER_TABLE2.get(row, {}).get(column, math.nan)})
+        records.append(
+            {
+                "row": row,
+                "column": column,
+                "system": part["system"].iloc[0],
+                "n_train": part["n_train"].iloc[0],
+                "runs": n,
+                "epochs_x_min_error": mean,
+                "epochs_x_min_error_std": std,
+                "min_test_error": err,
+                "min_test_error_std": err_sd,
+                "min_test_error_epoch": ep,
+                "min_test_error_epoch_std": ep_sd,
+                "paper": PAPER_TABLE2.get(row, {}).get(column, math.nan),
+            }
+        )
     table = pd.DataFrame(records)
-    columns = sorted(table["column"].unique(), key=lambda c: (_column_key(table.loc[table["column"] == c, "system"]
-                                                                              .iloc[0]), _ds(c)))
+    columns = sorted(
+        table["column"].unique(), key=lambda c: (_column_key(table.loc[table["column"] == c, "system"].iloc[0]), _ds(c))
+    )
     rows = sorted(table["row"].unique(), key=_row_order)
     cell = {(r["row"], r["column"]): r for r in records}
 
     def grid(fmt: Callable[[dict], str]) -> str:
-        return md_table(["model", *columns], [[r, *[fmt(cell[(r, c)]) if (r, c) in cell else "N/A"
-                                                     for c in columns]] for r in rows])
+        return md_table(
+            ["model", *columns], [[r, *[fmt(cell[(r, c)]) if (r, c) in cell else "N/A" for c in columns]] for r in rows]
+        )
 
     paper_rows = [[r, *[_num(PAPER_TABLE2[r].get(c)) for c in columns]] for r in PAPER_TABLE2]
-    text = "\n\n".join([
-        "**epochs_x_min_error** (epoch of the minimum test error × that error; lower is better), mean ± std over "
-        "seeds:",
-        grid(lambda r: pm(r["epochs_x_min_error"], r["epochs_x_min_error_std"])),
-        "Minimum test error (normalised rollout RMSE) and its epoch:",
-        grid(lambda r: f"{pm(r['min_test_error'], r['min_test_error_std'], 3)} @ "
-                       f"{pm(r['min_test_error_epoch'], r['min_test_error_epoch_std'], 3)}"),
-        "The paper's Table 2 (MPNODE.jl, 4000 epochs for MP-NODE, 10000 for L2S; its own error units):",
-        md_table(["model", *columns], paper_rows),
-        "Orderings the paper reports:\n" + "\n".join(_orderings(cell, columns)),
-    ])
+    text = "\n\n".join(
+        [
+            "**epochs_x_min_error** (epoch of the minimum test error × that error; lower is better), mean ± std over "
+            "seeds:",
+            grid(lambda r: pm(r["epochs_x_min_error"], r["epochs_x_min_error_std"])),
+            "Minimum test error (normalised rollout RMSE) and its epoch:",
+            grid(
+                lambda r: (
+                    f"{pm(r['min_test_error'], r['min_test_error_std'], 3)} @ "
+                    f"{pm(r['min_test_error_epoch'], r['min_test_error_epoch_std'], 3)}"
+                )
+            ),
+            "The paper's Table 2 (MPNODE.jl, 4000 epochs for MP-NODE, 10000 for L2S; its own error units):",
+            md_table(["model", *columns], paper_rows),
+            "Orderings the paper reports:\n" + "\n".join(_orderings(cell, columns)),
+        ]
+    )
     return LayoutResult(text, table, [_bars(table, columns, rows, out_dir / "table2.png")])
 
 
@@ -247,14 +290,18 @@ def _orderings(cell: dict, columns: list[str]) -> list[str]:
         fine, scratch = cell.get(("MP-NODE finetuned", c)), cell.get(("MP-NODE scratch", c))
         if fine and scratch:
             a, b = fine["epochs_x_min_error"], scratch["epochs_x_min_error"]
-            lines.append(f"- {c}: finetuned {'<' if a < b else '≥'} scratch ({a:.4g} vs {b:.4g}, "
-                         f"{b / a:.2g}×) — {'holds' if a < b else 'does NOT hold'}")
+            lines.append(
+                f"- {c}: finetuned {'<' if a < b else '≥'} scratch ({a:.4g} vs {b:.4g}, "
+                f"{b / a:.2g}×) — {'holds' if a < b else 'does NOT hold'}"
+            )
         l2s = cell.get(("L2S", c))
         best = min((r for r in (fine, scratch) if r), key=lambda r: r["epochs_x_min_error"], default=None)
         if l2s and best:
             a, b = best["epochs_x_min_error"], l2s["epochs_x_min_error"]
-            lines.append(f"- {c}: {best['row']} {'<' if a < b else '≥'} L2S ({a:.4g} vs {b:.4g}) — "
-                         f"{'holds' if a < b else 'does NOT hold'}")
+            lines.append(
+                f"- {c}: {best['row']} {'<' if a < b else '≥'} L2S ({a:.4g} vs {b:.4g}) — "
+                f"{'holds' if a < b else 'does NOT hold'}"
+            )
             ea, eb = best["min_test_error"], l2s["min_test_error"]
             lines.append(f"  (minimum test error: {best['row']} {ea:.3g} vs L2S {eb:.3g})")
     return lines or ["- no column has both a finetuned and a scratch run"]
@@ -267,8 +314,11 @@ def _bars(table: pd.DataFrame, columns: list[str], rows: list[str], path: Path) 
         part = table[table["row"] == r].set_index("column")
         xs = [i + (k - (len(rows) - 1) / 2) * width for i, c in enumerate(columns) if c in part.index]
         ys = [part.loc[c, "epochs_x_min_error"] for c in columns if c in part.index]
-        es = [0.0 if math.isnan(part.loc[c, "epochs_x_min_error_std"]) else part.loc[c, "epochs_x_min_error_std"]
-              for c in columns if c in part.index]
+        es = [
+            0.0 if math.isnan(part.loc[c, "epochs_x_min_error_std"]) else part.loc[c, "epochs_x_min_error_std"]
+            for c in columns
+            if c in part.index
+        ]
         ax.bar(xs, ys, width, yerr=es, label=r, capsize=2)
     ax.set_xticks(range(len(columns)), columns, rotation=20, ha="right")
     ax.set(yscale="log", ylabel="epochs × min test error", title="Table 2: lower is better")
@@ -295,17 +345,29 @@ def table1(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
     unseen = zero[(zero["trained_on"] == home) & (zero["system"] != home)]
     for (cls, system), part in unseen.groupby(["model_class", "system"]):
         name = MODEL_NAMES.get(str(cls), str(cls))
-        records.append({"row": name, "column": f"Test {graph_family(system)} (unseen)", "system": system,
-                        **_named_stats(part["test_rmse"])})
+        records.append(
+            {
+                "row": name,
+                "column": f"Test {graph_family(system)} (unseen)",
+                "system": system,
+                **_named_stats(part["test_rmse"]),
+            }
+        )
     table = pd.DataFrame(records)
     columns = list(dict.fromkeys(table["column"]))
     rows = sorted(table["row"].unique(), key=lambda r: (r != "MP-NODE", r))
     cell = {(r["row"], r["column"]): r for r in records}
-    ours = md_table(["model", *columns], [[r, *[pm(cell[(r, c)]["mean"], cell[(r, c)]["std"], 3)
-                                                if (r, c) in cell else "N/A" for c in columns]] for r in rows])
+    ours = md_table(
+        ["model", *columns],
+        [
+            [r, *[pm(cell[(r, c)]["mean"], cell[(r, c)]["std"], 3) if (r, c) in cell else "N/A" for c in columns]]
+            for r in rows
+        ],
+    )
     paper_cols = ["Validation BA", "Test BA", "Test ER (unseen)", "Test WS (unseen)"]
-    paper = md_table(["model", *paper_cols], [[r, *[v.get(c, "N/A") for c in paper_cols]]
-                                              for r, v in PAPER_TABLE1.items()])
+    paper = md_table(
+        ["model", *paper_cols], [[r, *[v.get(c, "N/A") for c in paper_cols]] for r, v in PAPER_TABLE1.items()]
+    )
     checks = []
     base = cell.get(("MP-NODE", f"Test {fam}"))
     for c in columns:
@@ -317,16 +379,20 @@ def table1(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
     val_mp, val_l2s = cell.get(("MP-NODE", f"Validation {fam}")), cell.get(("L2S", f"Validation {fam}"))
     if val_mp and val_l2s:
         holds = val_mp["mean"] < val_l2s["mean"]
-        checks.append(f"- validation: MP-NODE {val_mp['mean']:.3g} {'<' if holds else '≥'} L2S {val_l2s['mean']:.3g} "
-                      f"— {'holds' if holds else 'does NOT hold'}")
-    text = "\n\n".join([
-        f"Trained on `{home}`; errors are normalised rollout RMSE over the full horizon (validation: the best "
-        "epoch's; test: the best checkpoint's), mean ± std over seeds:",
-        ours,
-        "The paper's Table 1 (its own error units, likely a squared error; compare orders and ratios, not values):",
-        paper,
-        "Checks:\n" + ("\n".join(checks) if checks else "- nothing to compare"),
-    ])
+        checks.append(
+            f"- validation: MP-NODE {val_mp['mean']:.3g} {'<' if holds else '≥'} L2S {val_l2s['mean']:.3g} "
+            f"— {'holds' if holds else 'does NOT hold'}"
+        )
+    text = "\n\n".join(
+        [
+            f"Trained on `{home}`; errors are normalised rollout RMSE over the full horizon (validation: the best "
+            "epoch's; test: the best checkpoint's), mean ± std over seeds:",
+            ours,
+            "The paper's Table 1 (its own error units, likely a squared error; compare orders and ratios, not values):",
+            paper,
+            "Checks:\n" + ("\n".join(checks) if checks else "- nothing to compare"),
+        ]
+    )
     return LayoutResult(text, table, [_error_bars(table, columns, rows, out_dir / "table1.png")])
 
 
@@ -375,12 +441,22 @@ def curves(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
             means[row] = mean
             ax.plot(mean.index, mean.values, label=f"{row} ({len(loaded)})")
             ax.fill_between(mean.index, wide.min(axis=1), wide.max(axis=1), alpha=0.2)
-            records += [{"system": system, "n_train": n_train, "row": row, "epoch": int(e), "test_error_mean": v,
-                         "test_error_std": wide.loc[e].std(), "runs": len(loaded)} for e, v in mean.items()]
+            records += [
+                {
+                    "system": system,
+                    "n_train": n_train,
+                    "row": row,
+                    "epoch": int(e),
+                    "test_error_mean": v,
+                    "test_error_std": wide.loc[e].std(),
+                    "runs": len(loaded),
+                }
+                for e, v in mean.items()
+            ]
         ax.set(yscale="log", xlabel="epoch", ylabel="test rollout RMSE", title=f"{system}, ds={n_train}")
         ax.legend(fontsize=7)
         sections.append(_reach_table(system, n_train, means))
-    for ax in list(axes.flat)[len(panels):]:
+    for ax in list(axes.flat)[len(panels) :]:
         ax.axis("off")
     fig.suptitle("Finetuned vs from scratch (mean over seeds, band: min–max)")
     figure = _save(fig, out_dir / "curves.png")
@@ -396,8 +472,14 @@ def _reach_table(system: str, n_train: Any, means: dict[str, pd.Series]) -> str:
     rows = []
     for k, v in trained.items():
         reach = v[v <= level]
-        rows.append([k, f"{float(means[k].iloc[0]):.3g}", int(reach.index[0]) if len(reach) else "never",
-                     f"{float(v.min()):.3g} @ {int(v.idxmin())}"])
+        rows.append(
+            [
+                k,
+                f"{float(means[k].iloc[0]):.3g}",
+                int(reach.index[0]) if len(reach) else "never",
+                f"{float(v.min()):.3g} @ {int(v.idxmin())}",
+            ]
+        )
     head = f"**{system}, ds={n_train}** — target: {level:.3g}, the best mean test error every curve reaches"
     return head + "\n\n" + md_table(["run", "epoch-0 error", "epochs to target", "min mean error @ epoch"], rows)
 
@@ -421,23 +503,47 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
             exm, exm_sd, _ = _stats(runs["epochs_x_min_error"])
             loaded = [c for c in (_curve(r) for r in runs["run"]) if c is not None]
             final_loss = _stats(pd.Series([float(c["train_loss"].iloc[-1]) for c in loaded]))
-            records.append({"system": system, "message_size": int(m), "runs": n, "min_test_error": err,
-                            "min_test_error_std": err_sd, "epochs_x_min_error": exm, "epochs_x_min_error_std": exm_sd,
-                            "final_train_loss": final_loss[0], "final_train_loss_std": final_loss[1]})
+            records.append(
+                {
+                    "system": system,
+                    "message_size": int(m),
+                    "runs": n,
+                    "min_test_error": err,
+                    "min_test_error_std": err_sd,
+                    "epochs_x_min_error": exm,
+                    "epochs_x_min_error_std": exm_sd,
+                    "final_train_loss": final_loss[0],
+                    "final_train_loss_std": final_loss[1],
+                }
+            )
             rows.append([int(m), n, pm(err, err_sd, 3), pm(final_loss[0], final_loss[1], 3), pm(exm, exm_sd, 4)])
             for key, ax in (("train_loss", caxes[0, k]), ("test_error", caxes[1, k])):
                 if loaded:
                     mean = pd.concat([c.set_index("epoch")[key] for c in loaded], axis=1).mean(axis=1).dropna()
                     ax.plot(mean.index, mean.values, label=f"m={int(m)}")
         table = pd.DataFrame([r for r in records if r["system"] == system])
-        axes[0, k].errorbar(table["message_size"], table["min_test_error"],
-                            yerr=table["min_test_error_std"].fillna(0.0), marker="o", capsize=3, label="MP-NODE")
+        axes[0, k].errorbar(
+            table["message_size"],
+            table["min_test_error"],
+            yerr=table["min_test_error_std"].fillna(0.0),
+            marker="o",
+            capsize=3,
+            label="MP-NODE",
+        )
         l2s = train[(train["system"] == system) & (train["model_class"] == "L2S")]
         if len(l2s):
             ref, ref_sd, n = _stats(l2s["min_test_error"])
             axes[0, k].axhline(ref, color="tab:red", linestyle="--", label="L2S")
-            records.append({"system": system, "message_size": None, "model": "L2S", "runs": n, "min_test_error": ref,
-                            "min_test_error_std": ref_sd})
+            records.append(
+                {
+                    "system": system,
+                    "message_size": None,
+                    "model": "L2S",
+                    "runs": n,
+                    "min_test_error": ref,
+                    "min_test_error_std": ref_sd,
+                }
+            )
             rows.append(["L2S", n, pm(ref, ref_sd, 3), "", ""])
             for c in (c for c in (_curve(r) for r in l2s["run"]) if c is not None):
                 caxes[1, k].plot(c["epoch"], c["test_error"], color="tab:red", linestyle="--", linewidth=0.8)
@@ -446,8 +552,10 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
         caxes[0, k].set(yscale="log", ylabel="train loss", title=system)
         caxes[1, k].set(yscale="log", xlabel="epoch", ylabel="test rollout RMSE")
         caxes[0, k].legend(fontsize=8)
-        sections.append(f"**{system}**\n\n" + md_table(
-            ["message size", "runs", "min test error", "final train loss", "epochs_x_min_error"], rows))
+        sections.append(
+            f"**{system}**\n\n"
+            + md_table(["message size", "runs", "min test error", "final train loss", "epochs_x_min_error"], rows)
+        )
     fig.suptitle("Effect of message size (Figure 8; Figure 7 for quadrotors)")
     cfig.suptitle("Train loss and test error per message size (mean over seeds; L2S dashed)")
     figures = [_save(fig, out_dir / "message_size.png"), _save(cfig, out_dir / "message_size_curves.png")]
@@ -455,7 +563,11 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
 
 
 LAYOUT_FUNCS: dict[str, Callable[[pd.DataFrame, Path], LayoutResult]] = {
-    "table2": table2, "table1": table1, "curves": curves, "message_size": message_size}
+    "table2": table2,
+    "table1": table1,
+    "curves": curves,
+    "message_size": message_size,
+}
 DEFAULT_TITLES = {
     "table2": "Table 2: MP-NODE finetuned vs from scratch vs L2S",
     "table1": "Table 1: zero-shot generalisation of MP-NODE (gene 4×4, trained on BA)",

@@ -48,32 +48,60 @@ def run_simulate(cfg: DictConfig, output_dir: str | Path | None = None, override
         raise ConfigError(f"n must be >= 1; got {cfg.n}.")
     system = build_system(cfg)
     check_simulation_memory(cfg, system, [cfg.n], int(cfg.data.horizon or system.horizon) + 1)
-    truth = system.generate(cfg.n, cfg.data.seed, dt=cfg.data.dt, horizon=cfg.data.horizon,
-                            rtol=cfg.data.gt_rtol, atol=cfg.data.gt_atol)
+    truth = system.generate(
+        cfg.n, cfg.data.seed, dt=cfg.data.dt, horizon=cfg.data.horizon, rtol=cfg.data.gt_rtol, atol=cfg.data.gt_atol
+    )
     stem = rt.output_dir / cfg.out
     files = _export(truth, stem, cfg.format)
-    summary = {"task": "simulate", "system": system.name, "n": cfg.n, "n_times": truth.n_times,
-               "dt": truth.meta.get("dt"), "files": files, "run_dir": str(rt.output_dir)}
+    summary = {
+        "task": "simulate",
+        "system": system.name,
+        "n": cfg.n,
+        "n_times": truth.n_times,
+        "dt": truth.meta.get("dt"),
+        "files": files,
+        "run_dir": str(rt.output_dir),
+    }
     rows = [("system", repr(system)), ("trajectories", f"{cfg.n} × {truth.n_times} time points")]
     ckpt = load_init(cfg, rt)
     if ckpt is not None:
         model, _ = build_model_for(cfg, rt, Shape.of(truth), ckpt)
         pred, aux = predict(model, truth, aux=True)
-        model_traj = Trajectories(t=truth.t, x=pred.double(), edge_index=truth.edge_index, u=truth.u,
-                                  meta={**truth.meta, "model": ckpt["path"]})
+        model_traj = Trajectories(
+            t=truth.t,
+            x=pred.double(),
+            edge_index=truth.edge_index,
+            u=truth.u,
+            meta={**truth.meta, "model": ckpt["path"]},
+        )
         summary["model_files"] = _export(model_traj, rt.output_dir / f"{cfg.out}_model", cfg.format)
         metrics = rollout_metrics(pred, truth.x.to(pred.dtype), model.state_std.cpu().to(pred.dtype), truth.t)
         summary["model_rmse"] = metrics["rmse"]
         summary["model_rmse_raw"] = metrics["rmse_raw"]
-        plotting.trajectories(truth.t, truth.x, pred, rt.output_dir / "plots" / "trajectories.png",
-                              truth.state_names, messages=aux.get("messages"), n_traj=min(cfg.n, 3),
-                              title=f"{system.name}: truth vs {Path(ckpt['path']).name}")
-        rows.append(("model", f"{ckpt['path']}: rollout RMSE {fmt(metrics['rmse'])} normalised, "
-                              f"{fmt(metrics['rmse_raw'])} raw"))
+        plotting.trajectories(
+            truth.t,
+            truth.x,
+            pred,
+            rt.output_dir / "plots" / "trajectories.png",
+            truth.state_names,
+            messages=aux.get("messages"),
+            n_traj=min(cfg.n, 3),
+            title=f"{system.name}: truth vs {Path(ckpt['path']).name}",
+        )
+        rows.append(
+            ("model", f"{ckpt['path']}: rollout RMSE {fmt(metrics['rmse'])} normalised, {fmt(metrics['rmse_raw'])} raw")
+        )
         files = files + summary["model_files"]
     else:
-        plotting.trajectories(truth.t, truth.x, truth.x, rt.output_dir / "plots" / "trajectories.png",
-                              truth.state_names, n_traj=min(cfg.n, 3), title=f"{system.name}: ground truth")
+        plotting.trajectories(
+            truth.t,
+            truth.x,
+            truth.x,
+            rt.output_dir / "plots" / "trajectories.png",
+            truth.state_names,
+            n_traj=min(cfg.n, 3),
+            title=f"{system.name}: ground truth",
+        )
     write_json(rt.output_dir / "summary.json", summary)
     rows += [("files", "\n".ljust(16).join(files)), ("run dir", str(rt.output_dir))]
     print_summary(f"mpsim simulate: {system.name}", rows)

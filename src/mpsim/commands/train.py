@@ -43,8 +43,19 @@ log = logging.getLogger(__name__)
 
 MODES = ("scratch", "finetune", "zeroshot")
 # summary.json entries that `objective=` may name (a dotted path goes inside a mapping: test.rmse, final.val_error)
-OBJECTIVES = ("best_val_error", "min_test_error", "epochs_x_min_error", "initial_test_error", "final", "test",
-              "min_test_error_epoch", "best_epoch", "epochs_run", "wall_time", "command_time")
+OBJECTIVES = (
+    "best_val_error",
+    "min_test_error",
+    "epochs_x_min_error",
+    "initial_test_error",
+    "final",
+    "test",
+    "min_test_error_epoch",
+    "best_epoch",
+    "epochs_run",
+    "wall_time",
+    "command_time",
+)
 
 
 def resolve_mode(name: str, init: str | None) -> str:
@@ -94,28 +105,53 @@ def _run(cfg: DictConfig, rt: Runtime, ctx: DistContext) -> dict:
         splits = noisy_train(splits, model.state_std.detach().cpu().double(), cfg.data.noise_std, cfg.data.seed)
     train, val, test = splits.train, splits.val, splits.test
     if last is None:
-        log.info(f"{mode}: {model.describe()['model']} ({model.describe()['n_params']:,} params) on "
-                 f"{train.system_name}: {len(train)}/{len(val)}/{len(test)} trajectories, N={train.n_nodes}, "
-                 f"{train.n_times - 1} steps of {fmt(train.meta.get('dt'))}")
+        log.info(
+            f"{mode}: {model.describe()['model']} ({model.describe()['n_params']:,} params) on "
+            f"{train.system_name}: {len(train)}/{len(val)}/{len(test)} trajectories, N={train.n_nodes}, "
+            f"{train.n_times - 1} steps of {fmt(train.meta.get('dt'))}"
+        )
     base = checkpoint_base(
-        model_cfg, model, train.meta,
+        model_cfg,
+        model,
+        train.meta,
         {"mode": mode, "init": init_path, "mpsim_version": __version__},
     )
     check_training_memory(cfg, rt, model, model_cfg, train)
     trainer = build(cfg.trainer, "trainer")
     loggers = build_loggers(cfg) if ctx.is_main else LoggerGroup()
-    loggers.start(rt.output_dir, flatten(OmegaConf.to_container(cfg, resolve=True)),
-                  [] if last is None else last["trainer"]["history"])
-    trainer.fit(model, train, val, test, run_dir=rt.output_dir, seed=cfg.seed, checkpoint_base=base,
-                resume_state=None if last is None else last["trainer"], on_epoch=loggers.log_epoch, dist=ctx)
+    loggers.start(
+        rt.output_dir,
+        flatten(OmegaConf.to_container(cfg, resolve=True)),
+        [] if last is None else last["trainer"]["history"],
+    )
+    trainer.fit(
+        model,
+        train,
+        val,
+        test,
+        run_dir=rt.output_dir,
+        seed=cfg.seed,
+        checkpoint_base=base,
+        resume_state=None if last is None else last["trainer"],
+        on_epoch=loggers.log_epoch,
+        dist=ctx,
+    )
     if not ctx.is_main:  # rank 0 evaluates the trained model and writes the run's files
         return {"task": "train", "rank": ctx.rank, "status": trainer.status_, "best_val_error": trainer.best_val_}
     history = trainer.history_
-    plotting.learning_curves(history, rt.output_dir / "plots" / "learning_curves.png",
-                             title=f"{train.system_name}: {mode}")
-    metrics = evaluate_model(model, test, rt.output_dir, list(cfg.eval.horizons),
-                             None if cfg.data.path else system, cfg.eval.n_plot, cfg.eval.plots,
-                             title=f"{train.system_name}: {mode}, best epoch {trainer.best_epoch_}")
+    plotting.learning_curves(
+        history, rt.output_dir / "plots" / "learning_curves.png", title=f"{train.system_name}: {mode}"
+    )
+    metrics = evaluate_model(
+        model,
+        test,
+        rt.output_dir,
+        list(cfg.eval.horizons),
+        None if cfg.data.path else system,
+        cfg.eval.n_plot,
+        cfg.eval.plots,
+        title=f"{train.system_name}: {mode}, best epoch {trainer.best_epoch_}",
+    )
     trained = [r for r in history if r["epoch"] >= 1]
     table2 = epochs_x_min_error([r["epoch"] for r in trained], [r["test_error"] for r in trained])
     best_path = rt.output_dir / "checkpoints" / "best.ckpt"
@@ -133,11 +169,21 @@ def _run(cfg: DictConfig, rt: Runtime, ctx: DistContext) -> dict:
         "status": trainer.status_,
         "divergence": trainer.divergence_,
         "init": init_path,
-        "system": {"name": train.system_name, "n_nodes": train.n_nodes, "state_names": train.state_names,
-                   "params": {k: v for k, v in train.meta.get("params", {}).items() if k != "H"}},
+        "system": {
+            "name": train.system_name,
+            "n_nodes": train.n_nodes,
+            "state_names": train.state_names,
+            "params": {k: v for k, v in train.meta.get("params", {}).items() if k != "H"},
+        },
         "model": {**model.describe(), "config": model_cfg, **model.report()},
-        "data": {**splits.sizes(), "n_times": train.n_times, "dt": train.meta.get("dt"),
-                 "source": cfg.data.path or "simulated", "seed": cfg.data.seed, "noise_std": cfg.data.noise_std},
+        "data": {
+            **splits.sizes(),
+            "n_times": train.n_times,
+            "dt": train.meta.get("dt"),
+            "source": cfg.data.path or "simulated",
+            "seed": cfg.data.seed,
+            "noise_std": cfg.data.noise_std,
+        },
         "seed": cfg.seed,
         "epochs_run": history[-1]["epoch"],
         "best_epoch": trainer.best_epoch_,
@@ -160,8 +206,10 @@ def _run(cfg: DictConfig, rt: Runtime, ctx: DistContext) -> dict:
     loggers.finish(summary)
     _print(summary, train, model.report_lines())
     if export_error is not None:
-        raise OutputError(f"{export_error} The run itself is complete: its model is {best_path} and its summary "
-                          f"{rt.output_dir / 'summary.json'}.")
+        raise OutputError(
+            f"{export_error} The run itself is complete: its model is {best_path} and its summary "
+            f"{rt.output_dir / 'summary.json'}."
+        )
     return summary
 
 
@@ -181,8 +229,10 @@ def build_loggers(cfg: DictConfig) -> LoggerGroup:
 
 def _check_objective(name: str | None) -> None:
     if not name or name.split(".")[0] not in OBJECTIVES:
-        raise ConfigError(f"objective={name!r} is not a result of mpsim train; choose one of {', '.join(OBJECTIVES)} "
-                          "(a dotted name reads inside final/test, e.g. objective=test.rmse).")
+        raise ConfigError(
+            f"objective={name!r} is not a result of mpsim train; choose one of {', '.join(OBJECTIVES)} "
+            "(a dotted name reads inside final/test, e.g. objective=test.rmse)."
+        )
 
 
 def objective_value(summary: dict[str, Any], name: str) -> float:
@@ -194,7 +244,9 @@ def objective_value(summary: dict[str, Any], name: str) -> float:
     value: Any = summary
     for part in name.split("."):
         if not isinstance(value, dict) or part not in value:
-            numbers = sorted(k for k, v in flatten(summary).items() if isinstance(v, int | float) and not isinstance(v, bool))
+            numbers = sorted(
+                k for k, v in flatten(summary).items() if isinstance(v, int | float) and not isinstance(v, bool)
+            )
             raise ConfigError(f"objective={name!r} is not in this run's summary; numbers it has: {', '.join(numbers)}.")
         value = value[part]
     if value is None:
@@ -246,13 +298,21 @@ def _export(best: Path, cfg: DictConfig, rt: Runtime, name: str) -> tuple[Path |
 def _print(s: dict[str, Any], train, model_lines: list[tuple[str, str]]) -> None:
     title = f"mpsim train: {s['system']['name']} ({s['mode']})"
     rows = [
-        ("model", f"{s['model']['model']} ({s['model']['n_params']:,} params)"
-                  + (f", from {s['init']}" if s["init"] else "")),
-        ("data", f"{s['data']['train']}/{s['data']['val']}/{s['data']['test']} train/val/test trajectories, "
-                 f"N={train.n_nodes}, {train.n_times - 1} steps of {fmt(train.meta.get('dt'))}"),
+        (
+            "model",
+            f"{s['model']['model']} ({s['model']['n_params']:,} params)" + (f", from {s['init']}" if s["init"] else ""),
+        ),
+        (
+            "data",
+            f"{s['data']['train']}/{s['data']['val']}/{s['data']['test']} train/val/test trajectories, "
+            f"N={train.n_nodes}, {train.n_times - 1} steps of {fmt(train.meta.get('dt'))}",
+        ),
         ("epochs", f"{s['epochs_run']} ({s['status'].replace('_', ' ')}), wall time {duration(s['wall_time'])}"),
-        ("min test error", f"{fmt(s['min_test_error'])} at epoch {s['min_test_error_epoch']} "
-                           f"(untrained/initial: {fmt(s['initial_test_error'])})"),
+        (
+            "min test error",
+            f"{fmt(s['min_test_error'])} at epoch {s['min_test_error_epoch']} "
+            f"(untrained/initial: {fmt(s['initial_test_error'])})",
+        ),
         ("epochs_x_min_error", fmt(s["epochs_x_min_error"])),
         ("final val/test error", f"{fmt(s['final']['val_error'])} / {fmt(s['final']['test_error'])}"),
         ("best model test RMSE", f"{fmt(s['test']['rmse'])} normalised, {fmt(s['test']['rmse_raw'])} raw"),
@@ -260,8 +320,12 @@ def _print(s: dict[str, Any], train, model_lines: list[tuple[str, str]]) -> None
         *model_lines,
     ]
     if "energy_error" in s["test"]:
-        rows.append(("energy error", f"{fmt(s['test']['energy_error'])} (data's own drift "
-                                     f"{fmt(s['test']['data_energy_drift'], 2)})"))
+        rows.append(
+            (
+                "energy error",
+                f"{fmt(s['test']['energy_error'])} (data's own drift {fmt(s['test']['data_energy_drift'], 2)})",
+            )
+        )
     if s["divergence"]:
         rows.append(("diverged", s["divergence"]))
     rows.append(("run dir", s["run_dir"]))

@@ -69,14 +69,23 @@ def simulate_splits(
     out = {}
     for k, name in enumerate(SPLITS):
         split_seed = 3 * int(seed) + k
-        spec = {"system": system_spec, "n": sizes[name], "seed": split_seed, "dt": dt, "horizon": horizon,
-                "rtol": rtol, "atol": atol, **({"burn_in": burn_in} if burn_in else {})}
+        spec = {
+            "system": system_spec,
+            "n": sizes[name],
+            "seed": split_seed,
+            "dt": dt,
+            "horizon": horizon,
+            "rtol": rtol,
+            "atol": atol,
+            **({"burn_in": burn_in} if burn_in else {}),
+        }
         extra = {"burn_in": burn_in} if burn_in else {}  # only systems that support it are asked for it
         out[name] = cached(
             cache_dir,
             spec,
-            lambda n=sizes[name], s=split_seed, e=extra: system.generate(n, s, dt=dt, horizon=horizon, rtol=rtol,
-                                                                         atol=atol, **e),
+            lambda n=sizes[name], s=split_seed, e=extra: system.generate(
+                n, s, dt=dt, horizon=horizon, rtol=rtol, atol=atol, **e
+            ),
         )
     return Splits(**out)
 
@@ -120,5 +129,11 @@ def add_noise(data: Trajectories, std: torch.Tensor, scale: float, seed: int) ->
         return data
     gen = torch.Generator().manual_seed(int(seed) + 7919)
     noise = torch.randn(data.x.shape, generator=gen, dtype=torch.float64) * (scale * std.double())
-    return Trajectories(t=data.t, x=data.x + noise.to(data.x), edge_index=data.edge_index, u=data.u,
-                        node_features=data.node_features, meta={**data.meta, "noise_std": scale})
+    return Trajectories(
+        t=data.t,
+        x=data.x + noise.to(data.x),
+        edge_index=data.edge_index,
+        u=data.u,
+        node_features=data.node_features,
+        meta={**data.meta, "noise_std": scale},
+    )

@@ -303,8 +303,10 @@ def _build(path: Path, **kwargs: Any) -> Trajectories:
     x = kwargs["x"]
     if x.dim() == 4 and 0 in x.shape:
         axis = ["trajectories (B)", "time points (T)", "nodes (N)", "state variables (D)"][list(x.shape).index(0)]
-        raise DataError(f"{path}: `x` has shape {tuple(x.shape)}: zero {axis}. The file holds no data to learn from; "
-                        "x must be [B, T, N, D] with every size >= 1.")
+        raise DataError(
+            f"{path}: `x` has shape {tuple(x.shape)}: zero {axis}. The file holds no data to learn from; "
+            "x must be [B, T, N, D] with every size >= 1."
+        )
     try:
         return Trajectories(**kwargs)
     except DataError as err:
@@ -332,15 +334,20 @@ def check_meta(meta: Any, where: str) -> dict[str, Any]:
         DataError: names the file (`where`), the key and the type expected.
     """
     if not isinstance(meta, dict):
-        raise DataError(f"{where} must be a JSON object ({{\"system\": ..., \"dt\": ...}}); got a JSON "
-                        f"{type(meta).__name__}. Wrap the values in an object with named keys.")
+        raise DataError(
+            f'{where} must be a JSON object ({{"system": ..., "dt": ...}}); got a JSON '
+            f"{type(meta).__name__}. Wrap the values in an object with named keys."
+        )
     for key, kinds in META_TYPES.items():
         value = meta.get(key)
         if value is None:
             continue
         if not isinstance(value, kinds) or isinstance(value, bool):
-            names = " or ".join("number" if k in (int, float) else {str: "string", list: "list", dict: "object"}[k]
-                                for k in kinds if k is not int)
+            names = " or ".join(
+                "number" if k in (int, float) else {str: "string", list: "list", dict: "object"}[k]
+                for k in kinds
+                if k is not int
+            )
             raise DataError(f"{where}: key '{key}' must be a {names}; got {json.dumps(value)[:80]}.")
         if key in ("state_names", "control_names", "control_columns", "node_feature_names") and not all(
             isinstance(v, str) for v in value
@@ -358,15 +365,19 @@ def _read_sidecar(sidecar: Path) -> dict[str, Any]:
     try:
         meta = json.loads(sidecar.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise DataError(f"{sidecar}: the metadata file beside the CSV is not valid JSON ({err}). Fix it, or delete "
-                        "it to load the CSV without metadata.") from None
+        raise DataError(
+            f"{sidecar}: the metadata file beside the CSV is not valid JSON ({err}). Fix it, or delete "
+            "it to load the CSV without metadata."
+        ) from None
     return check_meta(meta, str(sidecar))
 
 
 def _check_real(array: np.ndarray, key: str, path: Path) -> None:
     if np.iscomplexobj(array):
-        raise DataError(f"{path}: array '{key}' is complex ({array.dtype}); mpsim needs real numbers. Store the real "
-                        "and imaginary parts as separate state variables.")
+        raise DataError(
+            f"{path}: array '{key}' is complex ({array.dtype}); mpsim needs real numbers. Store the real "
+            "and imaginary parts as separate state variables."
+        )
     if not np.issubdtype(array.dtype, np.number) or array.dtype == np.bool_:
         raise DataError(f"{path}: array '{key}' must be numeric; got dtype {array.dtype}.")
 
@@ -380,8 +391,10 @@ def _integer_ids(array: np.ndarray, path: Path) -> torch.Tensor:
     bad = ~np.isfinite(array) | (array != np.round(array))
     if bad.any():
         pos = tuple(int(i) for i in np.argwhere(bad)[0])
-        raise DataError(f"{path}: array 'edge_index' holds node id {float(array[pos]):g} at {list(pos)}; node ids must be "
-                        "whole numbers. Save edge_index as an integer array (e.g. .astype(int)) with correct ids.")
+        raise DataError(
+            f"{path}: array 'edge_index' holds node id {float(array[pos]):g} at {list(pos)}; node ids must be "
+            "whole numbers. Save edge_index as an integer array (e.g. .astype(int)) with correct ids."
+        )
     return torch.from_numpy(array.astype(np.int64))
 
 
@@ -390,15 +403,20 @@ def check_representable(data: Trajectories, dtype_name: str, source: str) -> Non
 
     float32 holds magnitudes up to 3.4e38; normalisation squares values, so float64 data must stay below 1e150.
     """
-    limit, why = (float(np.finfo(np.float32).max), "overflow float32 (largest 3.4e38)") if dtype_name == "float32" \
+    limit, why = (
+        (float(np.finfo(np.float32).max), "overflow float32 (largest 3.4e38)")
+        if dtype_name == "float32"
         else (1e150, "overflow float64 when squared for the normalisation statistics")
+    )
     for name, tensor in (("x", data.x), ("u", data.u)):
         if tensor is None:
             continue
         peak = float(tensor.abs().max())
         if peak > limit:
             index = tuple(int(i) for i in torch.nonzero(tensor.abs() == peak)[0])
-            fix = "rescale the data (other units) or use dtype=float64" if dtype_name == "float32" else "rescale the data"
+            fix = (
+                "rescale the data (other units) or use dtype=float64" if dtype_name == "float32" else "rescale the data"
+            )
             raise DataError(f"{source}: {name}{list(index)} = {peak:.3g}: values this large {why}. Fix: {fix}.")
 
 

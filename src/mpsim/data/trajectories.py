@@ -156,8 +156,9 @@ class Trajectories:
 
     def time_slice(self, start: int, stop: int) -> Trajectories:
         """The time points start..stop−1 of every trajectory (a window of the records)."""
-        return replace(self, t=self.t[start:stop], x=self.x[:, start:stop],
-                       u=None if self.u is None else self.u[:, start:stop])
+        return replace(
+            self, t=self.t[start:stop], x=self.x[:, start:stop], u=None if self.u is None else self.u[:, start:stop]
+        )
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Trajectories:
         """Move tensors to `device`; cast floating tensors to `dtype` (time stays float64 on CPU)."""

@@ -47,9 +47,18 @@ EXIT_CODES = {EFFECTS_NAMED: 0, NOTHING_MISSING: 10, UNEXPLAINED: 11}
 SIMPLER_WITHIN = 1.25
 #: among candidates that predict held-out data equally well, the simplest kind is named (a delayed copy of a
 #: state imitates damping within a step; a drive needs three numbers)
-COMPLEXITY = {"Bias": 0, "LinearDamping": 0, "DryFriction": 1, "QuadraticDrag": 1, "CubicStiffness": 1,
-              "DiffusiveCoupling": 1, "SineCoupling": 1, "CosineCoupling": 1, "PeriodicForcing": 2,
-              "DelayedFeedback": 3}
+COMPLEXITY = {
+    "Bias": 0,
+    "LinearDamping": 0,
+    "DryFriction": 1,
+    "QuadraticDrag": 1,
+    "CubicStiffness": 1,
+    "DiffusiveCoupling": 1,
+    "SineCoupling": 1,
+    "CosineCoupling": 1,
+    "PeriodicForcing": 2,
+    "DelayedFeedback": 3,
+}
 
 
 def dynamic_rows(model: Model, data: Trajectories, targets: list[str] | None) -> list[int]:
@@ -60,8 +69,10 @@ def dynamic_rows(model: Model, data: Trajectories, targets: list[str] | None) ->
     if targets:
         for name in targets:
             if name not in names:
-                raise ConfigError(f"diagnose.targets names {name!r}, which is not a state.{did_you_mean(name, names)} "
-                                  f"States: {names}.")
+                raise ConfigError(
+                    f"diagnose.targets names {name!r}, which is not a state.{did_you_mean(name, names)} "
+                    f"States: {names}."
+                )
         return [names.index(n) for n in targets]
     kinematic = set(getattr(model, "kinematic_states", None) or []) | set(data.meta.get("kinematic") or [])
     rows = [d for d, n in enumerate(names) if n not in kinematic]
@@ -153,13 +164,24 @@ def judge(
     labels = {c.label(diag.state_names): c for c in library}
     floor = max(params.structured_factor * float(e_null.mean()), params.tolerance**2)
     if float(e_base.mean()) <= floor:  # at the null level: nothing to test
-        return Judgement(NOTHING_MISSING, horizon, given, float(e_base.mean()), float(e_null.mean()),
-                         float(e_base.mean()), 0.0, [], base, [])
+        return Judgement(
+            NOTHING_MISSING,
+            horizon,
+            given,
+            float(e_base.mean()),
+            float(e_null.mean()),
+            float(e_base.mean()),
+            0.0,
+            [],
+            base,
+            [],
+        )
     # the screen ranks (BIC-selected, screened ones first, then by share of their row); held-out data decide.
     # Each candidate is first tried alone on the refit model; the best passing one (the simplest kind among
     # those as good within their standard errors) is added, and the rest are tried again on top of it.
-    ranked = [f for f in sorted(diag.findings, key=lambda f: (not f.accepted, -f.gain))
-              if f.label.split(": ", 1)[1] in labels]
+    ranked = [
+        f for f in sorted(diag.findings, key=lambda f: (not f.accepted, -f.gain)) if f.label.split(": ", 1)[1] in labels
+    ]
     # a delayed copy of a state imitates many terms within a step and needs the slow delay integrator: delayed
     # candidates are tried only when none of the others passes
     plain = [f for f in ranked if f.kind != "DelayedFeedback"][: params.max_candidates]
@@ -170,8 +192,29 @@ def judge(
     if not pending:
         pending, later = later, []
     while pending:
-        tried = [(f, c, *_trial(current, e_current, base, e_base, e_null, c, f, train, test, null_train, null_test,
-                                horizon, params, diag.state_names)) for f, c in pending]
+        tried = [
+            (
+                f,
+                c,
+                *_trial(
+                    current,
+                    e_current,
+                    base,
+                    e_base,
+                    e_null,
+                    c,
+                    f,
+                    train,
+                    test,
+                    null_train,
+                    null_test,
+                    horizon,
+                    params,
+                    diag.state_names,
+                ),
+            )
+            for f, c in pending
+        ]
         passing = [t for t in tried if t[2].accepted]
         trials += [t[2] for t in tried if not t[2].accepted]
         if not passing and later and current is base:
@@ -206,12 +249,24 @@ def judge(
         for t in trials:
             if t.accepted:
                 t.accepted = False
-                t.reason = (f"helps on held-out data but leaves {1 - explained:.0%} of the error above the null level "
-                            f"unexplained (needs ≥ {params.min_explained:.0%}): a partial fit, not a finding")
+                t.reason = (
+                    f"helps on held-out data but leaves {1 - explained:.0%} of the error above the null level "
+                    f"unexplained (needs ≥ {params.min_explained:.0%}): a partial fit, not a finding"
+                )
         notes.append(_best_text(trials, refit, float(e_null.mean())))
         current = base
-    return Judgement(verdict, horizon, given, refit, float(e_null.mean()), float(e_current.mean()) if verdict ==
-                     EFFECTS_NAMED else refit, explained, trials, current, notes)
+    return Judgement(
+        verdict,
+        horizon,
+        given,
+        refit,
+        float(e_null.mean()),
+        float(e_current.mean()) if verdict == EFFECTS_NAMED else refit,
+        explained,
+        trials,
+        current,
+        notes,
+    )
 
 
 def reported(effect, values: list[float], stderr: list[float]) -> tuple[dict[str, float], dict[str, tuple]]:
@@ -241,8 +296,10 @@ def _best_text(trials: list[Trial], refit: float, null: float) -> str:
         return "no candidate was left to test"
     best = min(trials, key=lambda t: t.error_after)
     left = (best.error_after - null) / max(refit - null, 1e-300)
-    return (f"best candidate {best.label}: held-out MSE {refit:.3g} → {best.error_after:.3g} (null level {null:.3g}); "
-            f"it would leave {max(left, 0):.0%} of the excess")
+    return (
+        f"best candidate {best.label}: held-out MSE {refit:.3g} → {best.error_after:.3g} (null level {null:.3g}); "
+        f"it would leave {max(left, 0):.0%} of the excess"
+    )
 
 
 def _log_ratio(before: torch.Tensor, after: torch.Tensor, floor: float) -> tuple[float, float]:
@@ -282,8 +339,22 @@ def phased_heldout(current: Model, trial: Model, data: Trajectories, horizon: in
     return window_error(current, tail, horizon), window_error(model, tail, horizon), model
 
 
-def _trial(current, e_current, base, e_base, e_null, cand: Candidate, finding: Finding, train, test, null_train,
-           null_test, horizon, params: DiagnoseParams, names) -> tuple[Trial, Model, torch.Tensor]:
+def _trial(
+    current,
+    e_current,
+    base,
+    e_base,
+    e_null,
+    cand: Candidate,
+    finding: Finding,
+    train,
+    test,
+    null_train,
+    null_test,
+    horizon,
+    params: DiagnoseParams,
+    names,
+) -> tuple[Trial, Model, torch.Tensor]:
     # the error the given model (own parameters refit) had above the null level: what effects may explain
     excess = max(float(e_base.mean()) - float(e_null.mean()), 0.0)
     phased = bool(cand.params.get("phased"))
@@ -295,7 +366,7 @@ def _trial(current, e_current, base, e_base, e_null, cand: Candidate, finding: F
         e_current, e_after, _ = phased_heldout(current, trial, test, horizon, params.shooting_iters)
     else:
         e_after = window_error(trial, test, horizon)
-    diff = (e_current - e_after)
+    diff = e_current - e_after
     finite = torch.isfinite(diff)
     gain = float(diff[finite].mean()) if finite.any() else -math.inf
     se = float(diff[finite].std() / math.sqrt(max(int(finite.sum()), 1))) if int(finite.sum()) > 1 else math.inf
@@ -307,8 +378,9 @@ def _trial(current, e_current, base, e_base, e_null, cand: Candidate, finding: F
         noise = (null_train.x - null_train.x).new_zeros(null_train.state_dim)  # clean: the comparison is paired
         null_train, null_test = null_data(current, null_train, noise, 21), null_data(current, null_test, noise, 22)
         e_null = window_error(current, null_test, horizon)
-    null_trial, _ = _fit_with(current, cand.make_effect(coef, finding.target, names), null_train,
-                              fit_len, max(5, params.shooting_iters // 3))
+    null_trial, _ = _fit_with(
+        current, cand.make_effect(coef, finding.target, names), null_train, fit_len, max(5, params.shooting_iters // 3)
+    )
     if phased:
         before, after, _ = phased_heldout(current, null_trial, null_test, horizon, max(5, params.shooting_iters // 3))
         null_gain = float((before - after).mean())
@@ -322,18 +394,39 @@ def _trial(current, e_current, base, e_base, e_null, cand: Candidate, finding: F
     values, interval = reported(fitted, fit.values[:k], fit.stderr[:k])
     checks = [
         (fit.converged and math.isfinite(gain), "the multiple-shooting fit diverged"),
-        (log_gain > max(null_log, 0.0) + params.margin * log_se,
-         f"held-out error ratio e^{log_gain:.3g} (± {log_se:.2g} in log) is not above the null fit's "
-         f"e^{max(null_log, 0):.3g} + {params.margin:g} standard errors"),
-        (gain >= params.min_gain * excess,
-         f"removes {gain / max(excess, 1e-300):.1%} of the held-out error the model had above the null level, below "
-         f"{params.min_gain:.0%}: too small to be an effect (an integrator artefact or a detail of another term)"),
+        (
+            log_gain > max(null_log, 0.0) + params.margin * log_se,
+            f"held-out error ratio e^{log_gain:.3g} (± {log_se:.2g} in log) is not above the null fit's "
+            f"e^{max(null_log, 0):.3g} + {params.margin:g} standard errors",
+        ),
+        (
+            gain >= params.min_gain * excess,
+            f"removes {gain / max(excess, 1e-300):.1%} of the held-out error the model had above the null level, below "
+            f"{params.min_gain:.0%}: too small to be an effect (an integrator artefact or a detail of another term)",
+        ),
     ]
     failed = [why for ok, why in checks if not ok]
-    reason = "; ".join(failed) if failed else (f"lowers the held-out MSE {float(e_current.mean()):.3g} → "
-                                               f"{float(e_after.mean()):.3g}, above the null fit's gain")
-    out = Trial(label=finding.label, kind=finding.kind, screened=finding.accepted, effect=fitted.config(),
-                values=values, interval=interval, error_before=float(e_current.mean()),
-                error_after=float(e_after.mean()), gain=gain, gain_se=se, null_gain=null_gain,
-                accepted=not failed, reason=reason)
+    reason = (
+        "; ".join(failed)
+        if failed
+        else (
+            f"lowers the held-out MSE {float(e_current.mean()):.3g} → "
+            f"{float(e_after.mean()):.3g}, above the null fit's gain"
+        )
+    )
+    out = Trial(
+        label=finding.label,
+        kind=finding.kind,
+        screened=finding.accepted,
+        effect=fitted.config(),
+        values=values,
+        interval=interval,
+        error_before=float(e_current.mean()),
+        error_after=float(e_after.mean()),
+        gain=gain,
+        gain_se=se,
+        null_gain=null_gain,
+        accepted=not failed,
+        reason=reason,
+    )
     return out, trial, e_after

@@ -58,9 +58,13 @@ class Candidate:
         cfg: dict[str, Any] = {"_target_": f"mpsim.effects.{self.kind}", "target": state_names[target]}
         if self.params.get("phased"):  # one (a, b) pair per recording: a shared amplitude, a phase each
             pairs = torch.tensor(coef, dtype=torch.float64).reshape(-1, 2)
-            return {"_target_": "mpsim.diagnose.library.PhasedDrive", "target": state_names[target],
-                    "amplitude": float(pairs.norm(dim=1).mean()), "omega": self.params["omega"],
-                    "phases": torch.atan2(pairs[:, 1], pairs[:, 0]).tolist()}
+            return {
+                "_target_": "mpsim.diagnose.library.PhasedDrive",
+                "target": state_names[target],
+                "amplitude": float(pairs.norm(dim=1).mean()),
+                "omega": self.params["omega"],
+                "phases": torch.atan2(pairs[:, 1], pairs[:, 0]).tolist(),
+            }
         if self.kind == "PeriodicForcing":
             a, b = coef
             cfg.update(amplitude=math.hypot(a, b), phase=math.atan2(b, a), omega=self.params["omega"])
@@ -109,8 +113,9 @@ class PhasedDrive(fx.Effect):
     ) -> None:
         super().__init__(amplitude, target, source, learnable)
         self.log_omega = torch.nn.Parameter(torch.tensor(math.log(omega), dtype=torch.float64), requires_grad=learnable)
-        self.phases = torch.nn.Parameter(torch.tensor(list(phases or [0.0]), dtype=torch.float64),
-                                         requires_grad=learnable)
+        self.phases = torch.nn.Parameter(
+            torch.tensor(list(phases or [0.0]), dtype=torch.float64), requires_grad=learnable
+        )
 
     @property
     def omega(self) -> float:

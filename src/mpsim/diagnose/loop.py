@@ -192,8 +192,13 @@ def _fit_target(y: torch.Tensor, groups: list[torch.Tensor], base: torch.Tensor 
     # the bootstrap reruns the selection among the selected groups and the strongest others (a group that
     # explains little alone and was not selected is not selected in resamples either)
     keep = sorted(set(sel.groups) | set(sorted(range(len(groups)), key=lambda g: -alone[g])[:BOOT_GROUPS]))
-    sub_freq, sub_int = bootstrap(y.reshape(b, -1), [groups[g].reshape(b, -1, groups[g].shape[-1]) for g in keep],
-                                  [keep.index(g) for g in sel.groups], n_boot, seed)
+    sub_freq, sub_int = bootstrap(
+        y.reshape(b, -1),
+        [groups[g].reshape(b, -1, groups[g].shape[-1]) for g in keep],
+        [keep.index(g) for g in sel.groups],
+        n_boot,
+        seed,
+    )
     freq = {g: 0.0 for g in range(len(groups))} | {keep[i]: v for i, v in sub_freq.items()}
     intervals = {keep[i]: v for i, v in sub_int.items()}
     return sel, alone, freq, intervals
@@ -222,9 +227,7 @@ def model_sensitivities(model: Model, data: Trajectories) -> torch.Tensor | None
     return 0.5 * (sens[:, 1:] + sens[:, :-1])
 
 
-def nuisance_columns(
-    model: Model, data: Trajectories, represented: tuple[str, ...]
-) -> tuple[torch.Tensor | None, int]:
+def nuisance_columns(model: Model, data: Trajectories, represented: tuple[str, ...]) -> tuple[torch.Tensor | None, int]:
     """([B, T−1, N, D, P] columns refit but never named, how many of them are the model's own coefficients).
 
     First the model's own coefficients, one column each across all state variables: its sensitivities to its
@@ -343,21 +346,48 @@ def find_effects(
             part = residual_rms[d] * math.sqrt(sel.gains[g])
             checks = [
                 (sel.gains[g] >= min_gain, f"explains {sel.gains[g]:.1%} of the residual, below {min_gain:.0%}"),
-                (part >= threshold, f"accounts for an RMS of {part:.3g}, below {null_factor:g}× the null level "
-                                    f"({threshold:.3g}): indistinguishable from noise and discretisation error"),
+                (
+                    part >= threshold,
+                    f"accounts for an RMS of {part:.3g}, below {null_factor:g}× the null level "
+                    f"({threshold:.3g}): indistinguishable from noise and discretisation error",
+                ),
                 (freq[g] >= min_inclusion, f"selected in only {freq[g]:.0%} of bootstrap resamples"),
                 (excludes_zero, "its bootstrap interval includes zero"),
             ]
             failed = [why for ok, why in checks if not ok]
-            findings.append(Finding(
-                target=d, label=c.label(names, d), kind=c.kind, coef=sel.coef[g], interval=ci, gain=sel.gains[g],
-                explained_rms=part, alone=alone[g], inclusion=freq[g], threshold=threshold, accepted=not failed,
-                reason="; ".join(failed) if failed else "selected, above the null level, stable under bootstrap",
-                effect=c.effect_config(sel.coef[g], d, names),
-            ))
-    diag = Diagnosis(findings, list(names), residual_rms, null_rms, null_level, explained, omegas,
-                     [float(v) for v in noise], res, spectra, represented=list(represented),
-                     not_considered=list(undecidable), searched=[names[d] for d in searched], phased_omegas=phased)
+            findings.append(
+                Finding(
+                    target=d,
+                    label=c.label(names, d),
+                    kind=c.kind,
+                    coef=sel.coef[g],
+                    interval=ci,
+                    gain=sel.gains[g],
+                    explained_rms=part,
+                    alone=alone[g],
+                    inclusion=freq[g],
+                    threshold=threshold,
+                    accepted=not failed,
+                    reason="; ".join(failed) if failed else "selected, above the null level, stable under bootstrap",
+                    effect=c.effect_config(sel.coef[g], d, names),
+                )
+            )
+    diag = Diagnosis(
+        findings,
+        list(names),
+        residual_rms,
+        null_rms,
+        null_level,
+        explained,
+        omegas,
+        [float(v) for v in noise],
+        res,
+        spectra,
+        represented=list(represented),
+        not_considered=list(undecidable),
+        searched=[names[d] for d in searched],
+        phased_omegas=phased,
+    )
     while diag.accepted and not _joint_refit(diag, library, res, keep, base, n_shared, model):
         pass  # an effect whose coefficient was not stable was dropped: refit the others
     while diag.accepted and not _confirm_by_integration(diag, library, model, data, base, min_gain):
@@ -377,8 +407,15 @@ def _fit_one(cand: Candidate, res: Residual, target: int, keep: torch.Tensor, ba
     return sol, fitted / max(float(flat_y.pow(2).sum()), 1e-300), math.sqrt(fitted / max(flat_y.numel(), 1))
 
 
-def _confirm_by_integration(diag: Diagnosis, library: list[Candidate], model: Model, data: Trajectories,
-                            base: torch.Tensor | None, min_gain: float, iterations: int = 3) -> bool:
+def _confirm_by_integration(
+    diag: Diagnosis,
+    library: list[Candidate],
+    model: Model,
+    data: Trajectories,
+    base: torch.Tensor | None,
+    min_gain: float,
+    iterations: int = 3,
+) -> bool:
     """Add the named effects to the model one at a time, strongest first, refitting each through the model's
     integration of a step, and test the others against the residual that is left.
 
@@ -417,15 +454,24 @@ def _confirm_by_integration(diag: Diagnosis, library: list[Candidate], model: Mo
             before, after = math.hypot(*f.coef), float(sol.norm())
             if part < f.threshold or gain < min_gain or after < 0.5 * before:
                 f.accepted = False
-                f.reason = (f"an echo of {strong.label} through the integration of a step: with that effect in the "
-                            f"model its coefficient falls from {before:.3g} to {after:.3g} and it accounts for an RMS "
-                            f"of {part:.3g} ({gain:.1%} of the residual; threshold {f.threshold:.3g})")
+                f.reason = (
+                    f"an echo of {strong.label} through the integration of a step: with that effect in the "
+                    f"model its coefficient falls from {before:.3g} to {after:.3g} and it accounts for an RMS "
+                    f"of {part:.3g} ({gain:.1%} of the residual; threshold {f.threshold:.3g})"
+                )
                 return False
     return True
 
 
-def _joint_refit(diag: Diagnosis, library: list[Candidate], res: Residual, keep: torch.Tensor,
-                 base: torch.Tensor | None, n_shared: int, model: Model) -> bool:
+def _joint_refit(
+    diag: Diagnosis,
+    library: list[Candidate],
+    res: Residual,
+    keep: torch.Tensor,
+    base: torch.Tensor | None,
+    n_shared: int,
+    model: Model,
+) -> bool:
     """One least-squares fit over all state variables of the accepted effects together with the model's own
     parameter sensitivities (shared across state variables): consistent coefficients and parameter shifts
     to start the finetune from.
@@ -468,13 +514,18 @@ def _joint_refit(diag: Diagnosis, library: list[Candidate], res: Residual, keep:
         refits.append((f, [float(v) for v in sol[at : at + k]]))
         at += k
     for f, coef in refits:
-        unstable = [(a, lo, hi) for a, (lo, hi) in zip(coef, f.interval, strict=True)
-                    if abs(a - (lo + hi) / 2) > max(hi - lo, 0.25 * abs(lo + hi))]
+        unstable = [
+            (a, lo, hi)
+            for a, (lo, hi) in zip(coef, f.interval, strict=True)
+            if abs(a - (lo + hi) / 2) > max(hi - lo, 0.25 * abs(lo + hi))
+        ]
         if unstable:
             a, lo, hi = unstable[0]
             f.accepted = False
-            f.reason = (f"unstable: refit with the other named effects its coefficient moves to {a:.4g}, far from its "
-                        f"bootstrap interval [{lo:.4g}, {hi:.4g}] (it was explaining what other terms explain)")
+            f.reason = (
+                f"unstable: refit with the other named effects its coefficient moves to {a:.4g}, far from its "
+                f"bootstrap interval [{lo:.4g}, {hi:.4g}] (it was explaining what other terms explain)"
+            )
             return False
     for f, coef in refits:
         f.coef = coef
@@ -494,8 +545,14 @@ def _null_check(model, data, omegas, delays, kinds, represented, sigma, seed, ph
     pred, _ = predict(model, data)
     gen = torch.Generator().manual_seed(seed + 1)
     noise = torch.randn(pred.shape, generator=gen, dtype=torch.float64) * sigma
-    null = Trajectories(t=data.t, x=(pred.double() + noise).nan_to_num(), edge_index=data.edge_index, u=data.u,
-                        node_features=data.node_features, meta=data.meta)
+    null = Trajectories(
+        t=data.t,
+        x=(pred.double() + noise).nan_to_num(),
+        edge_index=data.edge_index,
+        u=data.u,
+        node_features=data.node_features,
+        meta=data.meta,
+    )
     res = one_step_residual(model, null)
     keep = torch.isfinite(res.r).flatten(1).all(dim=1)
     library = build_library(null, omegas, delays, kinds, phased)

@@ -5,8 +5,18 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 #: effect kinds of the default candidate library, by class name in `mpsim.effects`
-DEFAULT_KINDS = ["Bias", "LinearDamping", "QuadraticDrag", "CubicStiffness", "DryFriction", "DiffusiveCoupling",
-                 "SineCoupling", "CosineCoupling", "PeriodicForcing", "DelayedFeedback"]
+DEFAULT_KINDS = [
+    "Bias",
+    "LinearDamping",
+    "QuadraticDrag",
+    "CubicStiffness",
+    "DryFriction",
+    "DiffusiveCoupling",
+    "SineCoupling",
+    "CosineCoupling",
+    "PeriodicForcing",
+    "DelayedFeedback",
+]
 
 
 @dataclass

@@ -41,8 +41,10 @@ def one_step_residual(model: Model, data: Trajectories, batch_size: int = 1024) 
     (MP-NODE messages) is carried along the observed trajectory (see `Model.one_step`).
     """
     if model.context_steps != 1:
-        raise ConfigError(f"{type(model).__name__} reads a window of {model.context_steps} states; the one-step "
-                          "residual needs a model that steps from a single state.")
+        raise ConfigError(
+            f"{type(model).__name__} reads a window of {model.context_steps} states; the one-step "
+            "residual needs a model that steps from a single state."
+        )
     device, dtype = model.state_mean.device, model.state_mean.dtype
     x = data.x.to(device=device, dtype=dtype)
     t = data.t.to(device=device, dtype=dtype)

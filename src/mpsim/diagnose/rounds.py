@@ -57,12 +57,26 @@ def screen(model: Model, data: Trajectories, params: DiagnoseParams, seed: int) 
     """The one-step screen on held-in data, over the dynamic rows, and the candidate library it used."""
     rows = dynamic_rows(model, data, params.targets)
     delays = list(params.delays) if params.delays else None
-    diag = find_effects(model, data, tuple(params.kinds), delays, params.n_boot, params.min_gain, params.null_factor,
-                        params.min_inclusion, seed, rows)
+    diag = find_effects(
+        model,
+        data,
+        tuple(params.kinds),
+        delays,
+        params.n_boot,
+        params.min_gain,
+        params.null_factor,
+        params.min_inclusion,
+        seed,
+        rows,
+    )
     dt = float(data.t[1] - data.t[0])
-    library = build_library(data, diag.omegas, delays or [m * dt for m in (1, 2, 4, 8)],
-                            tuple(k for k in params.kinds if k not in diag.represented + diag.not_considered),
-                            diag.phased_omegas)
+    library = build_library(
+        data,
+        diag.omegas,
+        delays or [m * dt for m in (1, 2, 4, 8)],
+        tuple(k for k in params.kinds if k not in diag.represented + diag.not_considered),
+        diag.phased_omegas,
+    )
     return diag, library
 
 
@@ -112,9 +126,16 @@ def run_loop(
     if finetune is None or save is None or judgement.verdict != EFFECTS_NAMED:
         return result
     if any(t.effect["_target_"].endswith("PhasedDrive") for t in judgement.named):
-        result.rejected.append({"round": 1, "added": [t.label for t in judgement.named], "why": (
-            "a drive with its own phase in every recording is named but not added: a model cannot know the phase of "
-            "a new recording (the held-out test estimated it from a warm-up window)")})
+        result.rejected.append(
+            {
+                "round": 1,
+                "added": [t.label for t in judgement.named],
+                "why": (
+                    "a drive with its own phase in every recording is named but not added: a model cannot know the phase of "
+                    "a new recording (the held-out test estimated it from a warm-up window)"
+                ),
+            }
+        )
         return result
     current, current_err = model, float(window_error(model, test, judgement.horizon).mean())
     j = judgement
@@ -127,21 +148,35 @@ def run_loop(
             try:
                 tuned, tuned_path = finetune(copy.deepcopy(fitted), k)
             except DivergenceError as err:
-                raise DivergenceError(f"the fix of round {k} ({'; '.join(names)}) diverged while finetuning: "
-                                      f"{err}") from None
+                raise DivergenceError(
+                    f"the fix of round {k} ({'; '.join(names)}) diverged while finetuning: {err}"
+                ) from None
             options.insert(0, ("finetuned", tuned, tuned_path))
         scored = [(name, m, path, float(window_error(m, test, j.horizon).mean())) for name, m, path in options]
         finite = [s for s in scored if math.isfinite(s[3])]
         if not finite:
-            raise DivergenceError(f"the fix of round {k} ({'; '.join(names)}): every held-out rollout of the fixed "
-                                  "model diverged (NaN/inf).")
+            raise DivergenceError(
+                f"the fix of round {k} ({'; '.join(names)}): every held-out rollout of the fixed "
+                "model diverged (NaN/inf)."
+            )
         name, best, path, err = min(finite, key=lambda s: s[3])
-        entry = {"round": k, "added": names, "added_effects": [t.effect for t in j.named],
-                 "heldout_mse": {s[0]: s[3] for s in scored}, "heldout_mse_before": current_err, "kept": name}
+        entry = {
+            "round": k,
+            "added": names,
+            "added_effects": [t.effect for t in j.named],
+            "heldout_mse": {s[0]: s[3] for s in scored},
+            "heldout_mse_before": current_err,
+            "kept": name,
+        }
         if not err < current_err:
             entry["kept"] = "nothing (rejected)"
-            result.rejected.append({**entry, "why": f"held-out multi-step MSE {current_err:.4g} → {err:.4g}: the "
-                                                    "fix does not help, the model is returned unchanged"})
+            result.rejected.append(
+                {
+                    **entry,
+                    "why": f"held-out multi-step MSE {current_err:.4g} → {err:.4g}: the "
+                    "fix does not help, the model is returned unchanged",
+                }
+            )
             result.rounds.append(entry)
             break
         path = path or save(best, k)
@@ -159,6 +194,8 @@ def run_loop(
     if current is not model:
         result.after = holdout_metrics(current, test, horizons, params.vpt_threshold)
         if result.after["n_diverged"]:
-            raise DivergenceError(f"the fixed model's held-out rollouts diverged on {result.after['n_diverged']} "
-                                  "trajectories; it is not handed back.")
+            raise DivergenceError(
+                f"the fixed model's held-out rollouts diverged on {result.after['n_diverged']} "
+                "trajectories; it is not handed back."
+            )
     return result

@@ -83,7 +83,7 @@ def horizon_from_data(model: Model, data: Trajectories, threshold: float) -> int
     whole records otherwise."""
     with torch.no_grad():
         try:
-            (_, pred), = window_predictions(model, data, data.n_times - 1)
+            ((_, pred),) = window_predictions(model, data, data.n_times - 1)
         except DivergenceError:
             return 2
         std = model.state_std.detach()
@@ -225,14 +225,15 @@ def null_data(model: Model, data: Trajectories, noise: torch.Tensor, seed: int) 
     model = precise(model)
     with torch.no_grad():
         try:
-            (_, pred), = window_predictions(model, data, data.n_times - 1)
+            ((_, pred),) = window_predictions(model, data, data.n_times - 1)
         except DivergenceError:
             pred = data.x.clone().to(model.state_mean)
     gen = torch.Generator().manual_seed(int(seed))
     eps = torch.randn(pred.shape, generator=gen, dtype=torch.float64) * noise.double()
     x = (pred.double().cpu() + eps).nan_to_num()
-    return Trajectories(t=data.t, x=x, edge_index=data.edge_index, u=data.u, node_features=data.node_features,
-                        meta=data.meta)
+    return Trajectories(
+        t=data.t, x=x, edge_index=data.edge_index, u=data.u, node_features=data.node_features, meta=data.meta
+    )
 
 
 def with_effect(model: Model, effect: nn.Module) -> Model:

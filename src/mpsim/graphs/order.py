@@ -18,10 +18,20 @@ import torch
 from mpsim.graphs.knn import wrap_positions
 
 # (shift, mask) steps that spread the low 32 bits of an int64 onto its even bits, and that pack them back.
-_SPREAD = ((16, 0x0000FFFF0000FFFF), (8, 0x00FF00FF00FF00FF), (4, 0x0F0F0F0F0F0F0F0F), (2, 0x3333333333333333),
-           (1, 0x5555555555555555))
-_PACK = ((1, 0x3333333333333333), (2, 0x0F0F0F0F0F0F0F0F), (4, 0x00FF00FF00FF00FF), (8, 0x0000FFFF0000FFFF),
-         (16, 0x00000000FFFFFFFF))
+_SPREAD = (
+    (16, 0x0000FFFF0000FFFF),
+    (8, 0x00FF00FF00FF00FF),
+    (4, 0x0F0F0F0F0F0F0F0F),
+    (2, 0x3333333333333333),
+    (1, 0x5555555555555555),
+)
+_PACK = (
+    (1, 0x3333333333333333),
+    (2, 0x0F0F0F0F0F0F0F0F),
+    (4, 0x00FF00FF00FF00FF),
+    (8, 0x0000FFFF0000FFFF),
+    (16, 0x00000000FFFFFFFF),
+)
 
 
 def _spread(v: torch.Tensor) -> torch.Tensor:  # v: [...] int64 in [0, 2^31)

@@ -58,8 +58,9 @@ class DeltaGN(ParticleModel):
         energy_flag: float = 0.1,
         solver: Any = None,
     ) -> None:
-        super().__init__(state_dim, control_dim, graph, k, depth, charge, pairs_per_trajectory, energy_horizons,
-                         energy_flag, solver)
+        super().__init__(
+            state_dim, control_dim, graph, k, depth, charge, pairs_per_trajectory, energy_horizons, energy_flag, solver
+        )
         self.block = InteractionBlock(self.n_feat, activation, dt_feature, hierarchical=graph == "hierarchical")
         self.decode = nn.Linear(self.block.node.width, 4)  # φdecode: node embedding -> Δ(x, y, vx, vy)
         # until fitted: the reference scale (|Δq| ~ 0.011, |Δq̇| ~ 0.05 at dt = 0.01, spec §1)
@@ -81,8 +82,11 @@ class DeltaGN(ParticleModel):
         cell_feats, cell_pos = [], []
         if graph.hierarchy is not None:
             for c in graph.hierarchy.cells:
-                cell_feats.append(self._features(torch.stack([c.mass, c.charge if c.charge is not None
-                                                              else torch.zeros_like(c.mass)], -1), c.vel))
+                cell_feats.append(
+                    self._features(
+                        torch.stack([c.mass, c.charge if c.charge is not None else torch.zeros_like(c.mass)], -1), c.vel
+                    )
+                )
                 cell_pos.append(c.pos)
         dt_t = x.new_full((1, 1), dt)
         nodes, _ = self.block(graph, feats, pos, box, cell_feats, cell_pos, dt_t)

@@ -30,16 +30,20 @@ ENTRY = re.compile(r"^(?P<name>\w+)\[(?P<i>\d+)\]$")
 def merge_spec(spec: Mapping[str, Any] | None, inline: Mapping[str, Any], where: str) -> dict[str, Any]:
     """The spec from `spec` with the keys given inline on top (inline keys win)."""
     if isinstance(spec, str):
-        raise ConfigError(f"{where}.spec={spec!r} is a file name, but specs are read by the command layer "
-                          "(`mpsim ... model.spec=<file>`); in Python pass the loaded mapping "
-                          "(mpsim.equations.load_spec_file).")
+        raise ConfigError(
+            f"{where}.spec={spec!r} is a file name, but specs are read by the command layer "
+            "(`mpsim ... model.spec=<file>`); in Python pass the loaded mapping "
+            "(mpsim.equations.load_spec_file)."
+        )
     if spec is not None and not isinstance(spec, Mapping):
         raise ConfigError(f"{where}.spec must be a mapping or a YAML file name; got {type(spec).__name__}.")
     merged = dict(spec or {})
     merged.update({k: v for k, v in inline.items() if v is not None})
     if not merged:
-        raise ConfigError(f"{where}: no equations. Pass {where}.spec=<file.yaml> or {where}.states / "
-                          f"{where}.equations / {where}.params inline (see README, 'Your own equations').")
+        raise ConfigError(
+            f"{where}: no equations. Pass {where}.spec=<file.yaml> or {where}.states / "
+            f"{where}.equations / {where}.params inline (see README, 'Your own equations')."
+        )
     return merged
 
 
@@ -91,12 +95,20 @@ class EquationsModel(Model):
         solver: ODESolver | None = None,
     ) -> None:
         super().__init__(state_dim, control_dim, effects)
-        inline = {"states": states, "equations": equations, "params": params, "learnable": learnable,
-                  "kinematic": kinematic, "nodes": nodes}
+        inline = {
+            "states": states,
+            "equations": equations,
+            "params": params,
+            "learnable": learnable,
+            "kinematic": kinematic,
+            "nodes": nodes,
+        }
         self.spec: Spec = parse_spec(merge_spec(spec, inline, "model"), "model.spec", extra_keys=SYSTEM_KEYS)
         if self.spec.state_dim != state_dim:
-            raise ConfigError(f"model.spec has {self.spec.state_dim} states {list(self.spec.states)} but the data "
-                              f"has {state_dim} per node.")
+            raise ConfigError(
+                f"model.spec has {self.spec.state_dim} states {list(self.spec.states)} but the data "
+                f"has {state_dim} per node."
+            )
         if control_dim:
             raise ConfigError("model=equations has no control inputs yet; the data has controls. Use model=mpnode.")
         self.field = EquationField(self.spec)
@@ -104,11 +116,14 @@ class EquationsModel(Model):
         values = dict(self.spec.params)
         for name, value in (init or {}).items():
             if name not in self.spec.learnable:
-                raise ConfigError(f"model.init.{name}: not a learnable parameter; learnable: {list(self.spec.learnable)}.")
+                raise ConfigError(
+                    f"model.init.{name}: not a learnable parameter; learnable: {list(self.spec.learnable)}."
+                )
             start = torch.as_tensor(value, dtype=torch.float64)
             if start.shape != values[name].shape:
-                raise ConfigError(f"model.init.{name} has shape {list(start.shape)}; the spec's value has "
-                                  f"{list(values[name].shape)}.")
+                raise ConfigError(
+                    f"model.init.{name} has shape {list(start.shape)}; the spec's value has {list(values[name].shape)}."
+                )
             values[name] = start
         # positive constants are trained in log space so they stay positive (as model=physics)
         self.positive = [n for n in self.spec.learnable if bool((values[n] > 0).all())]
@@ -245,8 +260,12 @@ class EquationsModel(Model):
 
     def report(self) -> dict[str, Any]:
         values = {n: _plain(v) for n, v in self.parameters_now().items() if n in self.raw}
-        return {"physical_parameters": values, "equations": self.spec.equation_text(),
-                "kinematic": self.kinematic_states, "effects": [e.describe() for e in self.effects]}
+        return {
+            "physical_parameters": values,
+            "equations": self.spec.equation_text(),
+            "kinematic": self.kinematic_states,
+            "effects": [e.describe() for e in self.effects],
+        }
 
     def report_lines(self) -> list[tuple[str, str]]:
         values = ", ".join(f"{n}={_short(v)}" for n, v in self.parameters_now().items() if n in self.raw)
@@ -266,4 +285,3 @@ def _short(v: torch.Tensor) -> str:
     flat = v.detach().flatten().tolist()
     body = ", ".join(f"{x:.4g}" for x in flat[:8]) + (", ..." if len(flat) > 8 else "")
     return f"[{body}]"
-

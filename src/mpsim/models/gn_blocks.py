@@ -276,8 +276,9 @@ class HierarchyPass(nn.Module):
         pc = hierarchy.particle_cell  # [P]
         n_p = particle_feats.shape[0]
         vec = minimum_image(particle_pos - cell_pos[0][pc], box)  # [P, 2] x_p - X_c
-        up = self.up_particle.segment_sum_parts([(particle_feats, None), (cell_feats[0], pc), (vec, None), *extra],
-                                                pc, levels[0].n_cells)
+        up = self.up_particle.segment_sum_parts(
+            [(particle_feats, None), (cell_feats[0], pc), (vec, None), *extra], pc, levels[0].n_cells
+        )
         embed = [torch.cat([cell_feats[0], up], dim=-1)]  # [C_0, d+100]
         for lv in range(n_levels - 1):
             parent = levels[lv].parent  # [C_lv] parent id of each cell
@@ -350,8 +351,9 @@ class InteractionBlock(nn.Module):
         if self.hierarchy is not None:
             if graph.hierarchy is None:
                 raise ValueError("a hierarchical block needs a graph built with graph=hierarchical.")
-            incoming = incoming + self.hierarchy(graph.hierarchy, feats, pos, cell_feats, cell_pos,
-                                                 dt if self.dt_feature else None)
+            incoming = incoming + self.hierarchy(
+                graph.hierarchy, feats, pos, cell_feats, cell_pos, dt if self.dt_feature else None
+            )
         nodes = self.node.forward_parts([(feats, None), (incoming, None), *extra], graph.n_nodes)
         return nodes, incoming
 

@@ -55,8 +55,9 @@ class HOGN(ParticleModel):
         energy_flag: float = 0.1,
         solver: Any = None,
     ) -> None:
-        super().__init__(state_dim, control_dim, graph, k, depth, charge, pairs_per_trajectory, energy_horizons,
-                         energy_flag, solver)
+        super().__init__(
+            state_dim, control_dim, graph, k, depth, charge, pairs_per_trajectory, energy_horizons, energy_flag, solver
+        )
         self.block = InteractionBlock(self.n_feat, activation, dt_feature=False, hierarchical=graph == "hierarchical")
         width_e, width_v = self.block.edge.width, self.block.node.width
         self.glob = MLP(width_v + width_e, GLOBAL[0], GLOBAL[1], activation)  # φu over per-sample sums
@@ -81,8 +82,11 @@ class HOGN(ParticleModel):
             # cell features of this stage's state with the fixed assignment: Σm, [Σq,] centre of mass, Σp
             h = graph.hierarchy.with_features(mc[:, 0], q, p / mc[:, :1], mc[:, 1] if self.charge else None)
             for c in h.cells:
-                cell_feats.append(self._features(c.mass[:, None], None if c.charge is None else c.charge[:, None],
-                                                 c.mass[:, None] * c.vel))
+                cell_feats.append(
+                    self._features(
+                        c.mass[:, None], None if c.charge is None else c.charge[:, None], c.mass[:, None] * c.vel
+                    )
+                )
                 cell_pos.append(c.pos)
         nodes, edges = self.block(graph, feats, q, box, cell_feats, cell_pos)
         b = graph.n_graphs

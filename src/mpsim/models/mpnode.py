@@ -164,8 +164,9 @@ class MPNODE(ControlledModel):
         graph = batch_graph(edge_index.to(x0.device), b, n, self_loops=self.self_loops, dtype=x0.dtype)
         y0 = torch.cat([self.normalise(x0), x0.new_zeros(b, n, self.message_size)], dim=-1)
         effect_graph = batch_graph(edge_index.to(x0.device), b, n, dtype=x0.dtype) if len(self.effects) else None
-        field = _MessagePassingField(self.net, graph, d, self.zero_messages, t.to(x0), self.controls(u), self,
-                                     effect_graph, self.aggregation)
+        field = _MessagePassingField(
+            self.net, graph, d, self.zero_messages, t.to(x0), self.controls(u), self, effect_graph, self.aggregation
+        )
         # with controls, one solve per sample interval with the input held (see mpsim.models.controls)
         ys = integrate_held(lambda f, y, tt: self.integrate(f, y, tt, self.solver), field, y0, t)  # [B, T, N, D+M]
         return self.denormalise(ys[..., :d]), {"messages": ys[..., d:]}
@@ -177,8 +178,9 @@ class MPNODE(ControlledModel):
         b, n_t, n, d = x.shape
         graph = batch_graph(edge_index.to(x.device), b, n, self_loops=self.self_loops, dtype=x.dtype)
         effect_graph = batch_graph(edge_index.to(x.device), b, n, dtype=x.dtype) if len(self.effects) else None
-        field = _MessagePassingField(self.net, graph, d, self.zero_messages, t.to(x), self.controls(u), self,
-                                     effect_graph, self.aggregation)
+        field = _MessagePassingField(
+            self.net, graph, d, self.zero_messages, t.to(x), self.controls(u), self, effect_graph, self.aggregation
+        )
         messages = x.new_zeros(b, n, self.message_size)
         preds = []
         for k in range(n_t - 1):  # sequential in time: the messages carry over

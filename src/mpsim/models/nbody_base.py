@@ -51,7 +51,7 @@ def box_size_of(meta: dict[str, Any] | None) -> float:
     if box is None:
         raise IncompatibleError(
             "N-body models need the periodic box size of the data: meta['box_size'] is missing. Use "
-            "system=nbody* data, or add \"box_size\": L to the meta JSON of your .npz file."
+            'system=nbody* data, or add "box_size": L to the meta JSON of your .npz file.'
         )
     return float(box)
 
@@ -313,8 +313,13 @@ class ParticleModel(Model):
     def report_lines(self) -> list[tuple[str, str]]:
         rows = self.energy.lines()
         if self._edge_counts:
-            rows.append(("graph", f"{self.graph}, {sum(self._edge_counts) / len(self._edge_counts):.1f} "
-                                  "incoming particle edges per particle (mean over the last rollout)"))
+            rows.append(
+                (
+                    "graph",
+                    f"{self.graph}, {sum(self._edge_counts) / len(self._edge_counts):.1f} "
+                    "incoming particle edges per particle (mean over the last rollout)",
+                )
+            )
         return rows
 
 
@@ -385,8 +390,13 @@ class EnergyLog:
             return {}
         entry = self._passes[self._last]
         drift = (entry["meta"] or {}).get("energy_drift_mean")
-        out: dict[str, Any] = {"energy_trajectories": len(entry["h0"]), "energy_error": {}, "data_energy_drift": {},
-                               "n_ill_conditioned": int(sum(entry["ill"])), "energy_error_well_conditioned": {}}
+        out: dict[str, Any] = {
+            "energy_trajectories": len(entry["h0"]),
+            "energy_error": {},
+            "data_energy_drift": {},
+            "n_ill_conditioned": int(sum(entry["ill"])),
+            "energy_error_well_conditioned": {},
+        }
         for k, values in entry["rel"].items():
             finite = [v for v in values if math.isfinite(v)]
             good = [v for v, bad in zip(values, entry["ill"], strict=True) if not bad and math.isfinite(v)]
@@ -400,14 +410,20 @@ class EnergyLog:
         s = self.summary()
         if not s:
             return []
-        cells = ", ".join(f"{k} steps {v:.3g} (data {s['data_energy_drift'][k]:.2g})"
-                          for k, v in s["energy_error"].items())
+        cells = ", ".join(
+            f"{k} steps {v:.3g} (data {s['data_energy_drift'][k]:.2g})" for k, v in s["energy_error"].items()
+        )
         rows = [("energy error |ΔH/H0|", cells)]
         if s["n_ill_conditioned"]:
             good = ", ".join(f"{k}: {v:.3g}" for k, v in s["energy_error_well_conditioned"].items())
-            rows.append(("  ill-conditioned H0", f"{s['n_ill_conditioned']} of {s['energy_trajectories']} "
-                                                  f"trajectories have |H0| < {self.flag:g}·(KE+|PE|) (min |H0| "
-                                                  f"{s['min_abs_h0']:.3g}); without them {good}"))
+            rows.append(
+                (
+                    "  ill-conditioned H0",
+                    f"{s['n_ill_conditioned']} of {s['energy_trajectories']} "
+                    f"trajectories have |H0| < {self.flag:g}·(KE+|PE|) (min |H0| "
+                    f"{s['min_abs_h0']:.3g}); without them {good}",
+                )
+            )
         return rows
 
 
@@ -418,8 +434,13 @@ def _system_from_meta(meta: dict[str, Any] | None, n: int) -> Any:
     params = (meta or {}).get("params") or {}
     if "force" not in params:
         return None
-    return NBody(n_particles=n, force=params["force"], box_size=box_size_of(meta),
-                 softening=float(params.get("softening", 0.2)), G=float(params.get("G", 2.0)))
+    return NBody(
+        n_particles=n,
+        force=params["force"],
+        box_size=box_size_of(meta),
+        softening=float(params.get("softening", 0.2)),
+        G=float(params.get("G", 2.0)),
+    )
 
 
 def wrap_state(x: torch.Tensor, box: float) -> torch.Tensor:  # x: [..., 4] states

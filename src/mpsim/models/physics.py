@@ -91,13 +91,17 @@ class PhysicsModel(Model):
         states: they carry no physics, and the residual loop does not search them by default."""
         if not hasattr(self, "_kinematic"):
             names = list(self.system.state_names)
-            x = torch.randn(4, self.system.n_nodes, len(names), dtype=torch.float64,
-                            generator=torch.Generator().manual_seed(0))
+            x = torch.randn(
+                4, self.system.n_nodes, len(names), dtype=torch.float64, generator=torch.Generator().manual_seed(0)
+            )
             try:
                 with torch.no_grad():
                     f = self.system.dynamics(torch.tensor(0.0, dtype=torch.float64), x)
-                self._kinematic = [names[d] for d in range(len(names))
-                                   if any(j != d and torch.equal(f[..., d], x[..., j]) for j in range(len(names)))]
+                self._kinematic = [
+                    names[d]
+                    for d in range(len(names))
+                    if any(j != d and torch.equal(f[..., d], x[..., j]) for j in range(len(names)))
+                ]
             except Exception:  # noqa: BLE001 - equations that need controls or more context: declare none
                 self._kinematic = []
         return self._kinematic
@@ -170,4 +174,3 @@ class PhysicsModel(Model):
         rows = [("fitted parameters", values)]
         rows += [("effect", e.describe()) for e in self.effects]
         return rows
-

@@ -62,7 +62,7 @@ def monomials(n_vars: int, degree: int) -> list[tuple[int, ...]]:
 
 
 def monomial_name(term: tuple[int, ...], names: Sequence[str]) -> str:
-    """"1", "x", "x^2", "x z" for the index tuple of a monomial."""
+    """ "1", "x", "x^2", "x z" for the index tuple of a monomial."""
     if not term:
         return "1"
     return " ".join(names[v] + (f"^{p}" if p > 1 else "") for v, p in sorted({v: term.count(v) for v in term}.items()))
@@ -75,11 +75,10 @@ def parse_monomial(text: str) -> list[tuple[str, int]]:
     for token in text.replace("**", "^").replace("*", " ").split():
         name, _, power = token.partition("^")
         if not name or (power and not power.isdigit()) or (power and int(power) < 1):
-            raise ConfigError(f"model.extra_terms: cannot read {text!r}; write monomials like \"x^3\", \"x y^2\" "
-                              "or \"x*z\".")
+            raise ConfigError(f'model.extra_terms: cannot read {text!r}; write monomials like "x^3", "x y^2" or "x*z".')
         factors.append((name, int(power) if power else 1))
     if not factors:
-        raise ConfigError(f"model.extra_terms: {text!r} is empty; write monomials like \"x^3\".")
+        raise ConfigError(f'model.extra_terms: {text!r} is empty; write monomials like "x^3".')
     return factors
 
 
@@ -191,14 +190,18 @@ class SMNNDiscovery(Model):
     ) -> None:
         super().__init__(state_dim, control_dim, effects)
         if control_dim:
-            raise IncompatibleError(f"SMNNDiscovery's library has no control terms, but the data has {control_dim} "
-                                    "controls per node. Use a system without controls.")
+            raise IncompatibleError(
+                f"SMNNDiscovery's library has no control terms, but the data has {control_dim} "
+                "controls per node. Use a system without controls."
+            )
         if solver_method not in LAYER_METHODS:
             raise ConfigError(f"model.solver_method={solver_method!r}; choose one of {LAYER_METHODS}.")
         if degree < 1 or window < 3 or window_batch < 1 or n_orders < 2 or threshold < 0:
-            raise ConfigError(f"need model.degree >= 1, model.window >= 3, model.window_batch >= 1, model.n_orders "
-                              f">= 2, model.threshold >= 0; got {degree}, {window}, {window_batch}, {n_orders}, "
-                              f"{threshold}.")
+            raise ConfigError(
+                f"need model.degree >= 1, model.window >= 3, model.window_batch >= 1, model.n_orders "
+                f">= 2, model.threshold >= 0; got {degree}, {window}, {window_batch}, {n_orders}, "
+                f"{threshold}."
+            )
         self.degree, self.window, self.window_batch, self.n_orders = degree, window, window_batch, n_orders
         self.solver_method, self.threshold, self.seed = solver_method, float(threshold), int(seed)
         self.threshold_every, self.threshold_rounds = int(threshold_every), int(threshold_rounds)
@@ -247,14 +250,16 @@ class SMNNDiscovery(Model):
             unknown = [name for name, _ in factors if name not in names]
             if unknown:
                 if strict:
-                    raise ConfigError(f"model.extra_terms: {text!r} names {unknown}, not state variables; choose from "
-                                      f"{names}.")
+                    raise ConfigError(
+                        f"model.extra_terms: {text!r} names {unknown}, not state variables; choose from {names}."
+                    )
                 self.terms = None
                 return
             term = tuple(sorted(i for name, p in factors for i in [names.index(name)] * p))
             if term in terms:
-                raise ConfigError(f"model.extra_terms: {text!r} is already in the library (degree {self.degree}) "
-                                  "or listed twice.")
+                raise ConfigError(
+                    f"model.extra_terms: {text!r} is already in the library (degree {self.degree}) or listed twice."
+                )
             terms.append(term)
         self.terms = terms
         # library as a gather from [x, 1]: the constant slot pads lower-degree terms (gradient-safe, no pow)
@@ -340,8 +345,9 @@ class SMNNDiscovery(Model):
         coef[..., 1] = 1.0
         if isinstance(steps, torch.Tensor):  # a non-uniform grid: one left-hand side per window
             steps = steps.reshape(m, 1, 1, w - 1)
-        u = solve_linear_ode(coef, rhs.permute(0, 2, 3, 1).unsqueeze(-1), var[:, 0].reshape(m, n, d, 1, 1, 1),
-                             steps, self.solver_method)  # [M, N, D, W, 1, O]
+        u = solve_linear_ode(
+            coef, rhs.permute(0, 2, 3, 1).unsqueeze(-1), var[:, 0].reshape(m, n, d, 1, 1, 1), steps, self.solver_method
+        )  # [M, N, D, W, 1, O]
         return u[..., 0, 0].permute(0, 3, 1, 2), var
 
     def training_loss(
@@ -500,8 +506,10 @@ class SMNNDiscovery(Model):
 
     def sensitivity_names(self) -> list[str]:
         term, eq = self._active()
-        return [f"d{self.state_names[i]}/dt: {self.monomial(self.terms[j])}" for j, i in zip(term.tolist(), eq.tolist(),
-                                                                                        strict=True)]
+        return [
+            f"d{self.state_names[i]}/dt: {self.monomial(self.terms[j])}"
+            for j, i in zip(term.tolist(), eq.tolist(), strict=True)
+        ]
 
     @torch.no_grad()
     def shift_parameters(self, shifts: dict[str, float]) -> None:
@@ -533,8 +541,11 @@ class SMNNDiscovery(Model):
         xi, names = self.coefficients().detach().double().cpu(), self.state_names
         out = {}
         for i, name in enumerate(names):
-            parts = [(float(xi[j, i]), monomial_name(term, names)) for j, term in enumerate(self.terms)
-                     if self.mask[j, i] > 0 and round(float(xi[j, i]), digits) != 0]
+            parts = [
+                (float(xi[j, i]), monomial_name(term, names))
+                for j, term in enumerate(self.terms)
+                if self.mask[j, i] > 0 and round(float(xi[j, i]), digits) != 0
+            ]
             text = ""
             for k, (c, term) in enumerate(parts):
                 sign = ("-" if c < 0 else "") if k == 0 else (" - " if c < 0 else " + ")
@@ -545,14 +556,24 @@ class SMNNDiscovery(Model):
     def report(self) -> dict[str, Any]:
         """Discovered equations and coefficients (active terms, raw units) for summary.json."""
         xi, names = self.coefficients().detach().double().cpu(), self.state_names
-        coefs = {name: {monomial_name(term, names): float(xi[j, i]) for j, term in enumerate(self.terms)
-                        if self.mask[j, i] > 0} for i, name in enumerate(names)}
-        return {"equations": self.equations(), "coefficients": coefs,
-                "library": [monomial_name(term, names) for term in self.terms], "extra_terms": self.extra_terms,
-                "effects": [e.describe() for e in self.effects],
-                "n_active_terms": int(self.mask.sum()), "threshold_rounds_done": int(self.rounds_done),
-                "optimiser_steps": int(self.n_updates), "solver_method": self.solver_method,
-                "n_orders": self.n_orders}
+        coefs = {
+            name: {
+                monomial_name(term, names): float(xi[j, i]) for j, term in enumerate(self.terms) if self.mask[j, i] > 0
+            }
+            for i, name in enumerate(names)
+        }
+        return {
+            "equations": self.equations(),
+            "coefficients": coefs,
+            "library": [monomial_name(term, names) for term in self.terms],
+            "extra_terms": self.extra_terms,
+            "effects": [e.describe() for e in self.effects],
+            "n_active_terms": int(self.mask.sum()),
+            "threshold_rounds_done": int(self.rounds_done),
+            "optimiser_steps": int(self.n_updates),
+            "solver_method": self.solver_method,
+            "n_orders": self.n_orders,
+        }
 
     def report_lines(self) -> list[tuple[str, str]]:
         rows = [("discovered", eq) for eq in self.equations(4).values()]

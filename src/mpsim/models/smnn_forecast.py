@@ -77,14 +77,18 @@ class SMNNForecaster(Model):
     ) -> None:
         super().__init__(state_dim, control_dim)
         if whole_state and (n_nodes is None or n_nodes < 1):
-            raise ConfigError("model.whole_state=true needs model.n_nodes=<nodes of the system> (the encoder reads "
-                              "all nodes' states at once).")
+            raise ConfigError(
+                "model.whole_state=true needs model.n_nodes=<nodes of the system> (the encoder reads "
+                "all nodes' states at once)."
+            )
         if solver_method not in LAYER_METHODS:
             raise ConfigError(f"model.solver_method={solver_method!r}; choose one of {LAYER_METHODS}.")
         if context_steps < 1 or chunk < 1 or n_orders < 2 or (train_steps is not None and train_steps < 1):
-            raise ConfigError(f"need model.context_steps >= 1, model.chunk >= 1, model.n_orders >= 2 and "
-                              f"model.train_steps >= 1 or null; got {context_steps}, {chunk}, {n_orders}, "
-                              f"{train_steps}.")
+            raise ConfigError(
+                f"need model.context_steps >= 1, model.chunk >= 1, model.n_orders >= 2 and "
+                f"model.train_steps >= 1 or null; got {context_steps}, {chunk}, {n_orders}, "
+                f"{train_steps}."
+            )
         self.context_steps, self.chunk, self.n_orders = int(context_steps), int(chunk), int(n_orders)
         self.neighbours, self.solver_method, self.train_steps = bool(neighbours), solver_method, train_steps
         self.seed = int(seed)
@@ -159,8 +163,10 @@ class SMNNForecaster(Model):
             return context[:, : t.shape[0]]
         if self.whole_state:  # one node whose state is every node's state
             if n != self.n_nodes:
-                raise ConfigError(f"SMNNForecaster(whole_state=true) was built for {self.n_nodes} nodes; the data has "
-                                  f"{n}. Use whole_state=false (per node) to run on other graphs.")
+                raise ConfigError(
+                    f"SMNNForecaster(whole_state=true) was built for {self.n_nodes} nodes; the data has "
+                    f"{n}. Use whole_state=false (per node) to run on other graphs."
+                )
             flat_u = None if u is None else u.flatten(2)[:, :, None]  # [B, T, 1, N·C]
             no_edges = torch.zeros(2, 0, dtype=torch.long, device=context.device)
             pred = self._rollout_flat(self.normalise(context).reshape(b, k, 1, n * d), t, no_edges, flat_u)
@@ -228,5 +234,10 @@ class SMNNForecaster(Model):
         self.n_updates += 1
 
     def report(self) -> dict[str, Any]:
-        return {"context_steps": self.context_steps, "chunk": self.chunk, "solver_method": self.solver_method,
-                "n_orders": self.n_orders, "whole_state": self.whole_state}
+        return {
+            "context_steps": self.context_steps,
+            "chunk": self.chunk,
+            "solver_method": self.solver_method,
+            "n_orders": self.n_orders,
+            "whole_state": self.whole_state,
+        }

@@ -51,8 +51,16 @@ def _memory_budget(device: torch.device) -> int:
         return 8 * 2**30
 
 
-def _guard_size(n_mats: int, rows: int, n: int, cols: int, dtype: torch.dtype, max_bytes: int | None,
-                device: torch.device, what: str) -> None:
+def _guard_size(
+    n_mats: int,
+    rows: int,
+    n: int,
+    cols: int,
+    dtype: torch.dtype,
+    max_bytes: int | None,
+    device: torch.device,
+    what: str,
+) -> None:
     """Refuse before allocating. Counts the dense n×n matrix, the block scatter, the factor, the refinement
     product and autograd's saved copies (8 n² per system: measured 7.1 n² at peak for 1536 per-sample
     150×150 systems with a backward pass), plus the constraint matrix of the MNN (2 m·n)."""
@@ -63,7 +71,10 @@ def _guard_size(n_mats: int, rows: int, n: int, cols: int, dtype: torch.dtype, m
         raise DenseSizeError(
             f"{what} needs about {need / 2**30:.2f} GiB ({n_mats} dense {n}x{n} systems, memory O(T²)) but "
             f"max_bytes is {limit / 2**30:.2f} GiB. Use smnn_solve(method='banded' or 'cyclic'), which is "
-            "linear in T, or shorten the sequence / batch.", need, limit)
+            "linear in T, or shorten the sequence / batch.",
+            need,
+            limit,
+        )
 
 
 def _dense_cholesky_solve(mat: torch.Tensor, rhs: torch.Tensor, what: str) -> torch.Tensor:
@@ -71,9 +82,11 @@ def _dense_cholesky_solve(mat: torch.Tensor, rhs: torch.Tensor, what: str) -> to
     chol, info = torch.linalg.cholesky_ex(mat)
     if bool((info > 0).any()):
         bad = int(torch.nonzero(info > 0)[0])
-        raise SolverError(f"{what}: the normal matrix is not positive definite (system {bad}, pivot "
-                          f"{int(info.flatten()[bad])}). Check that the equation and initial-value rows "
-                          "determine the solution and that no input is NaN/inf.")
+        raise SolverError(
+            f"{what}: the normal matrix is not positive definite (system {bad}, pivot "
+            f"{int(info.flatten()[bad])}). Check that the equation and initial-value rows "
+            "determine the solution and that no input is NaN/inf."
+        )
     x = torch.cholesky_solve(rhs, chol)
     # cond ~ 1/h^{2K}: one step of iterative refinement recovers the banded solver's accuracy
     return x + torch.cholesky_solve(rhs - mat @ x, chol)
@@ -111,9 +124,18 @@ def dense_solve(
         SolverError: invalid inputs, a singular or non-positive-definite system.
     """
     out_dtype = torch.promote_types(coefficients.dtype, rhs_equation.dtype)
-    prob = prepare_problem(coefficients, rhs_equation, init_vars, steps, n_steps=n_steps,
-                           n_init_var_steps=n_init_var_steps, central=central, step_dim_first=step_dim_first,
-                           weights=(weight_equation, weight_init_var, weight_smooth), dtype=dtype)
+    prob = prepare_problem(
+        coefficients,
+        rhs_equation,
+        init_vars,
+        steps,
+        n_steps=n_steps,
+        n_init_var_steps=n_init_var_steps,
+        central=central,
+        step_dim_first=step_dim_first,
+        weights=(weight_equation, weight_init_var, weight_smooth),
+        dtype=dtype,
+    )
     T, (_, D, O) = prob.n_steps, prob.dims
     B, L, R = D * O, math.prod(prob.batch_lhs), math.prod(prob.batch) // math.prod(prob.batch_lhs)
     _guard_size(L, 0, T * B, R, dtype, max_bytes, prob.coefficients.device, "dense S-MNN solve")
@@ -161,8 +183,8 @@ def _mnn_matrix(prob: SMNNProblem) -> torch.Tensor:
     bwd = torch.stack([-(hn ** orders[:K, None]) * unit, hn**orders * F], -2)
     H = (h[..., :-1] + h[..., 1:])[..., None]  # [*bl, T-2, 1]
     top = torch.zeros(*H.shape[:-1], 3, O, dtype=dt, device=dev)  # slots u_t, u_{t+1}, u_{t+2}
-    top[..., 0, K - 1] = -H[..., 0] ** (K - 2)
-    top[..., 1, K] = -H[..., 0] ** (K - 1)
+    top[..., 0, K - 1] = -(H[..., 0] ** (K - 2))
+    top[..., 1, K] = -(H[..., 0] ** (K - 1))
     top[..., 2, K - 1] = H[..., 0] ** (K - 2)
     rows = []
     for local, n_slots, n_rows in ((fwd, 2, K), (top[..., None, :, :], 3, 1), (bwd, 2, K)):
@@ -174,8 +196,9 @@ def _mnn_matrix(prob: SMNNProblem) -> torch.Tensor:
         rows.append(dense.reshape(*bl, n_t * D * n_rows, T * B))
     smooth = torch.cat(rows, -2)
     u_part = torch.cat([eq, iv, smooth], -2)
-    slack = torch.cat([u_part.new_zeros(*bl, eq.shape[-2] + iv.shape[-2], 1),
-                       u_part.new_ones(*bl, smooth.shape[-2], 1)], -2)
+    slack = torch.cat(
+        [u_part.new_zeros(*bl, eq.shape[-2] + iv.shape[-2], 1), u_part.new_ones(*bl, smooth.shape[-2], 1)], -2
+    )
     return torch.cat([slack, u_part], -1)
 
 
@@ -217,9 +240,18 @@ def mnn_dense_solve(
     if coefficients.shape[-1] < 2:
         raise SolverError(f"the MNN's central rows need n_orders ≥ 2; got {coefficients.shape[-1]}.")
     out_dtype = torch.promote_types(coefficients.dtype, rhs_equation.dtype)
-    prob = prepare_problem(coefficients, rhs_equation, init_vars, steps, n_steps=n_steps,
-                           n_init_var_steps=n_init_var_steps, central=True, step_dim_first=step_dim_first,
-                           weights=(1.0, 1.0, 1.0), dtype=dtype)
+    prob = prepare_problem(
+        coefficients,
+        rhs_equation,
+        init_vars,
+        steps,
+        n_steps=n_steps,
+        n_init_var_steps=n_init_var_steps,
+        central=True,
+        step_dim_first=step_dim_first,
+        weights=(1.0, 1.0, 1.0),
+        dtype=dtype,
+    )
     T, S = prob.n_steps, prob.n_init_steps
     E, D, O = prob.dims
     B, n = D * O, 1 + T * D * O
@@ -231,8 +263,14 @@ def mnn_dense_solve(
     rhs = batch_to_columns(prob.rhs.expand(T, *prob.rhs.shape[1:]), prob.batch_lhs, prob.batch)
     init = prob.init[..., :n_iv].expand(S, *prob.init.shape[1:-1], n_iv).flatten(-2)
     init = batch_to_columns(init, prob.batch_lhs, prob.batch)
-    b = torch.cat([rhs.transpose(0, 1).reshape(L, T * E, R), init.transpose(0, 1).reshape(L, -1, R),
-                   rhs.new_zeros(L, m - T * E - init.shape[0] * init.shape[2], R)], 1)
+    b = torch.cat(
+        [
+            rhs.transpose(0, 1).reshape(L, T * E, R),
+            init.transpose(0, 1).reshape(L, -1, R),
+            rhs.new_zeros(L, m - T * E - init.shape[0] * init.shape[2], R),
+        ],
+        1,
+    )
     mtb = mat.mT @ b
     mtb = torch.cat([mtb[:, :1] + gamma * alpha, mtb[:, 1:]], 1)
     y = _dense_cholesky_solve(mat.mT @ mat, mtb, "dense MNN solve")  # [L, n, R]

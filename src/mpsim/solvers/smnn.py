@@ -74,45 +74,61 @@ def prepare_problem(
     """Check shapes, move the step dim first, infer T and S, and pad batch dims (see `smnn_solve`)."""
     if not isinstance(steps, torch.Tensor):
         steps = torch.tensor([float(steps)], dtype=dtype, device=coefficients.device)  # not float32
-    specs = (("coefficients", coefficients, 4, "[*batch, T, E, D, O]"), ("rhs_equation", rhs_equation, 2,
-             "[*batch, T, E]"), ("init_vars", init_vars, 3, "[*batch, S, D, I]"), ("steps", steps, 1,
-             "[*batch, T-1]"))
+    specs = (
+        ("coefficients", coefficients, 4, "[*batch, T, E, D, O]"),
+        ("rhs_equation", rhs_equation, 2, "[*batch, T, E]"),
+        ("init_vars", init_vars, 3, "[*batch, S, D, I]"),
+        ("steps", steps, 1, "[*batch, T-1]"),
+    )
     moved = []
     for name, x, core, shape in specs:
         if x.dim() < core:
-            raise SolverError(f"{name} must have shape {shape} (step dim first when step_dim_first=True); "
-                              f"got {tuple(x.shape)}.")
+            raise SolverError(
+                f"{name} must have shape {shape} (step dim first when step_dim_first=True); got {tuple(x.shape)}."
+            )
         moved.append((x if step_dim_first else x.movedim(-core, 0)).to(dtype))
     coef, rhs, init, h = moved
     n_batch = max(x.dim() - c for x, (_, _, c, _) in zip(moved, specs, strict=True))
-    coef, rhs, init, h = (x.reshape(x.shape[0], *[1] * (n_batch - x.dim() + c), *x.shape[1:])
-                          for x, (_, _, c, _) in zip(moved, specs, strict=True))
+    coef, rhs, init, h = (
+        x.reshape(x.shape[0], *[1] * (n_batch - x.dim() + c), *x.shape[1:])
+        for x, (_, _, c, _) in zip(moved, specs, strict=True)
+    )
     E, D, O = coef.shape[-3:]
     if rhs.shape[-1] != E or init.shape[-2] != D or init.shape[-1] > O:
-        raise SolverError(f"inconsistent sizes: coefficients give E={E}, D={D}, O={O}; rhs_equation has "
-                          f"E={rhs.shape[-1]}, init_vars has D={init.shape[-2]}, I={init.shape[-1]} "
-                          "(need I ≤ O).")
+        raise SolverError(
+            f"inconsistent sizes: coefficients give E={E}, D={D}, O={O}; rhs_equation has "
+            f"E={rhs.shape[-1]}, init_vars has D={init.shape[-2]}, I={init.shape[-1]} "
+            "(need I ≤ O)."
+        )
     lengths = [n for n in (coef.shape[0], rhs.shape[0], h.shape[0] + 1 if h.shape[0] > 1 else 1) if n > 1]
     T = n_steps if n_steps is not None else (max(lengths) if lengths else 0)
     if T < 2:
-        raise SolverError(f"S-MNN needs at least 2 time steps; got T={T}. Pass n_steps= when every input has "
-                          "a size-1 step dimension.")
-    for name, n, want in (("coefficients", coef.shape[0], T), ("rhs_equation", rhs.shape[0], T),
-                          ("steps", h.shape[0], T - 1)):
+        raise SolverError(
+            f"S-MNN needs at least 2 time steps; got T={T}. Pass n_steps= when every input has a size-1 step dimension."
+        )
+    for name, n, want in (
+        ("coefficients", coef.shape[0], T),
+        ("rhs_equation", rhs.shape[0], T),
+        ("steps", h.shape[0], T - 1),
+    ):
         if n not in (1, want):
             raise SolverError(f"{name} has {n} entries along the step dim; expected 1 or {want} (T={T}).")
     S = n_init_var_steps if n_init_var_steps is not None else init.shape[0]
     if S > T or (S > 0 and init.shape[0] not in (1, S)):
-        raise SolverError(f"init_vars has {init.shape[0]} steps; cannot use it for S={S} initial steps of "
-                          f"T={T} (need 1 or S steps, S ≤ T).")
+        raise SolverError(
+            f"init_vars has {init.shape[0]} steps; cannot use it for S={S} initial steps of "
+            f"T={T} (need 1 or S steps, S ≤ T)."
+        )
     if central and O < 2:
         raise SolverError("central=True needs n_orders ≥ 2 (the central rows use orders K-1 and K).")
     if any(w < 0 for w in weights):
         raise SolverError(f"weights must be ≥ 0; got {weights}.")
     if not bool((torch.isfinite(h) & (h > 0)).all()):
-        raise SolverError(f"steps must be finite and > 0; got min {h.min().item():.3g}. Parametrise learned "
-                          "steps through a sigmoid/softplus with a floor.")
-    batch_shapes = [x.shape[1:1 + n_batch] for x in (coef, rhs, init, h)]
+        raise SolverError(
+            f"steps must be finite and > 0; got min {h.min().item():.3g}. Parametrise learned "
+            "steps through a sigmoid/softplus with a floor."
+        )
+    batch_shapes = [x.shape[1 : 1 + n_batch] for x in (coef, rhs, init, h)]
     try:
         batch = torch.broadcast_shapes(*batch_shapes)
     except RuntimeError as err:
@@ -176,8 +192,11 @@ def assemble_blocks(prob: SMNNProblem) -> Blocks:
         S2 = -a[..., None, None] * e_mm
     # equation rows: C_t is coefficients[t] flattened d-major, matching the unknown index d·O + k
     C = prob.coefficients.reshape(*prob.coefficients.shape[:-2], B)  # [T or 1, *bc, E, B]
-    iv_mask = ((torch.arange(T, device=dev) < S)[:, None, None]
-               & (orders < prob.init.shape[-1])[None, None, :]).expand(T, D, O).reshape(T, B)
+    iv_mask = (
+        ((torch.arange(T, device=dev) < S)[:, None, None] & (orders < prob.init.shape[-1])[None, None, :])
+        .expand(T, D, O)
+        .reshape(T, B)
+    )
     iv_diag = torch.diag_embed(w_i**2 * iv_mask.to(dt)).reshape(T, *[1] * len(prob.batch), B, B)
     bl, L = prob.batch_lhs, math.prod(prob.batch_lhs)
     a0 = (w_e**2 * (C.mT @ C) + iv_diag + _kron_dims(S0, D)).expand(T, *bl, B, B).reshape(T, L, B, B)
@@ -256,20 +275,29 @@ def check_determined(prob: SMNNProblem, tol: float = 1e-11) -> None:
     at_start = _kron_dims(basis[0].expand(*prob.batch_lhs, O, O)[idx], D) @ null
     weight = at_start.norm(dim=-1).reshape(D, O)
     order_name = {0: "value", 1: "first derivative", 2: "second derivative"}
-    terms = [f"dimension {d}: " + ", ".join(order_name.get(k, f"derivative of order {k}") for k in range(O)
-                                            if weight[d, k] > 1e-6 * weight.max())
-             for d in range(D) if weight[d].max() > 1e-6 * weight.max()]
+    terms = [
+        f"dimension {d}: "
+        + ", ".join(
+            order_name.get(k, f"derivative of order {k}") for k in range(O) if weight[d, k] > 1e-6 * weight.max()
+        )
+        for d in range(D)
+        if weight[d].max() > 1e-6 * weight.max()
+    ]
     has_iv = S > 0 and n_iv > 0 and w_i > 0
     has_eq = E > 0 and w_e > 0 and bool(prob.coefficients.ne(0).any())
     missing = [m for m, ok in (("initial-value rows", has_iv), ("governing-equation rows", has_eq)) if not ok]
-    why = (f"there are no {' and no '.join(missing)}" if missing else
-           f"the equation rows (E={E}) and initial values (S={S} steps x I={n_iv} orders) do not fix them")
+    why = (
+        f"there are no {' and no '.join(missing)}"
+        if missing
+        else f"the equation rows (E={E}) and initial values (S={S} steps x I={n_iv} orders) do not fix them"
+    )
     raise SolverError(
         f"S-MNN system is singular (left-hand side batch index {idx}): {null.shape[1]} solution "
         f"direction(s) are free, undetermined at the first step: {'; '.join(terms)}. The smoothness rows "
         f"are satisfied exactly by any polynomial of degree ≤ {O - 1}, so equation and initial-value rows "
         f"must pin these down, but {why}. Fix: pass init_vars with these orders (I) or on more initial "
-        "steps (S), or equation rows involving them.")
+        "steps (S), or equation rows involving them."
+    )
 
 
 # ---- layout: independent left-hand sides L, right-hand-side columns R --------------------------------------
@@ -412,9 +440,14 @@ def banded_factor(
     ldl2 = None
     if a2 is not None:
         ldl2 = tri(chol_t[:-2], torch.stack(low2), upper=False, left=False) if T > 2 else a2.clone()
-    split = (lambda m: None if m is None else list(m.unbind(0)))  # noqa: E731
-    fac = BandedFactors(split(torch.cholesky_inverse(chol_t)), split(ldl1), split(ldl1.mT),
-                        split(ldl2), split(None if ldl2 is None else ldl2.mT))
+    split = lambda m: None if m is None else list(m.unbind(0))  # noqa: E731
+    fac = BandedFactors(
+        split(torch.cholesky_inverse(chol_t)),
+        split(ldl1),
+        split(ldl1.mT),
+        split(ldl2),
+        split(None if ldl2 is None else ldl2.mT),
+    )
     return fac, (torch.stack(infos) > 0).any(0)
 
 
@@ -480,7 +513,8 @@ class BlockSPDSolve(torch.autograd.Function):
                 f"S-MNN normal matrix is not positive definite for {int(bad.sum())} of {bad.numel()} "
                 f"left-hand sides (first: flat index {int(torch.nonzero(bad)[0])}): a Cholesky pivot block "
                 "failed. Check for NaN/inf coefficients or steps, and that the equation and initial-value "
-                "rows determine the solution (call with check=True for a diagnosis).")
+                "rows determine the solution (call with check=True for a diagnosis)."
+            )
         with _single_threaded(a0.device.type == "cpu"):
             x = solve(fac, beta)
         ctx.fac, ctx.method = fac, method
@@ -582,9 +616,18 @@ def smnn_solve(
     if method not in METHODS:
         raise SolverError(f'Invalid method "{method}". Must be one of {METHODS}.')
     out_dtype = torch.promote_types(coefficients.dtype, rhs_equation.dtype)
-    prob = prepare_problem(coefficients, rhs_equation, init_vars, steps, n_steps=n_steps,
-                           n_init_var_steps=n_init_var_steps, central=central, step_dim_first=step_dim_first,
-                           weights=(weight_equation, weight_init_var, weight_smooth), dtype=dtype)
+    prob = prepare_problem(
+        coefficients,
+        rhs_equation,
+        init_vars,
+        steps,
+        n_steps=n_steps,
+        n_init_var_steps=n_init_var_steps,
+        central=central,
+        step_dim_first=step_dim_first,
+        weights=(weight_equation, weight_init_var, weight_smooth),
+        dtype=dtype,
+    )
     if check:
         check_determined(prob)
     a0, a1, a2, beta = assemble_blocks(prob)
@@ -592,7 +635,8 @@ def smnn_solve(
         method = choose_method(a0.shape[1], a0.shape[-1], beta.shape[-1], a0.device, a0.shape[0])
     x = BlockSPDSolve.apply(a0, a1, a2, beta, method)
     if not bool(torch.isfinite(x.sum())):  # one reduction instead of an elementwise pass
-        raise SolverError("S-MNN solution is not finite: check coefficients, rhs_equation, init_vars and "
-                          "steps for NaN/inf.")
+        raise SolverError(
+            "S-MNN solution is not finite: check coefficients, rhs_equation, init_vars and steps for NaN/inf."
+        )
     u = columns_to_output(x, prob.batch_lhs, prob.batch)  # [*batch, T, B], a view of the solution
     return u.unflatten(-1, prob.dims[1:]).to(out_dtype)

@@ -229,9 +229,18 @@ def _chunk_set(
     h = [ej.mT @ dj for ej, dj in zip(e, inner.dinv, strict=True)]
     q_left = sum(hj @ ej for hj, ej in zip(h, e, strict=True))
     if right is None:
-        return ChunkSet(inner, h, [dj @ ej for dj, ej in zip(inner.dinv, e, strict=True)], None), bad, q_left, None, None
+        return (
+            ChunkSet(inner, h, [dj @ ej for dj, ej in zip(inner.dinv, e, strict=True)], None),
+            bad,
+            q_left,
+            None,
+            None,
+        )
     zero = torch.zeros_like(right)
-    g = [dj @ torch.cat([ej, right.mT if j == m - 1 else zero], -1) for j, (dj, ej) in enumerate(zip(inner.dinv, e, strict=True))]
+    g = [
+        dj @ torch.cat([ej, right.mT if j == m - 1 else zero], -1)
+        for j, (dj, ej) in enumerate(zip(inner.dinv, e, strict=True))
+    ]
     k = right @ inner.dinv[-1]
     return ChunkSet(inner, h, g, k), bad, q_left, k @ right.mT, k @ e[-1]
 
@@ -250,8 +259,11 @@ def _chunked_factor(
     to_sep, from_sep = l5[:, m - 1], l5[:, m]  # blocks (sep p, last of chunk p), (first after sep p, sep p)
     left = torch.cat([_zero_block(from_sep), from_sep[:-1]])  # chunk 0 has no separator on its left
     main, bad_main, q_left, s_right, s_cross = _chunk_set(
-        d5[:, :m].transpose(0, 1).reshape(m, P * L, b, b), l5[:, : m - 1].transpose(0, 1).reshape(m - 1, P * L, b, b),
-        left.reshape(P * L, b, b), to_sep.reshape(P * L, b, b))
+        d5[:, :m].transpose(0, 1).reshape(m, P * L, b, b),
+        l5[:, : m - 1].transpose(0, 1).reshape(m - 1, P * L, b, b),
+        left.reshape(P * L, b, b),
+        to_sep.reshape(P * L, b, b),
+    )
     q_left = q_left.view(P, L, b, b)
     # Schur complement on the separators: S_pp = D_p − E_rᵀM⁻¹E_r (chunk p) − E_lᵀM⁻¹E_l (chunk p+1 or tail)
     from_next = torch.cat([q_left[1:], _zero_block(q_left)])

@@ -158,8 +158,10 @@ class System:
         dt = self.dt if dt is None else dt
         horizon = self.horizon if horizon is None else horizon
         if dt <= 0 or horizon < 1 or n < 1 or burn_in < 0:
-            raise ConfigError(f"need dt > 0, horizon >= 1, n >= 1 and burn_in >= 0; got dt={dt}, horizon={horizon}, "
-                              f"n={n}, burn_in={burn_in}.")
+            raise ConfigError(
+                f"need dt > 0, horizon >= 1, n >= 1 and burn_in >= 0; got dt={dt}, horizon={horizon}, "
+                f"n={n}, burn_in={burn_in}."
+            )
         generator = torch.Generator().manual_seed(int(seed))
         x0 = self.sample_initial_states(n, generator)
         t = torch.arange(burn_in + horizon + 1, dtype=torch.float64) * dt

@@ -79,9 +79,19 @@ class EquationsSystem(System):
         integrator: str | None = None,
         substep: float | None = None,
     ) -> None:
-        over = {"name": name, "nodes": n_nodes, "graph": graph, "graph_params": graph_params, "edges": edges,
-                "directed": directed, "init": init, "dt": dt, "horizon": horizon, "integrator": integrator,
-                "substep": substep}
+        over = {
+            "name": name,
+            "nodes": n_nodes,
+            "graph": graph,
+            "graph_params": graph_params,
+            "edges": edges,
+            "directed": directed,
+            "init": init,
+            "dt": dt,
+            "horizon": horizon,
+            "integrator": integrator,
+            "substep": substep,
+        }
         raw = merge_spec(spec, over, "system")
         self.spec = parse_spec(raw, "system.spec", extra_keys=SYSTEM_KEYS)
         self.state_names = self.spec.states  # per instance: the spec names them
@@ -106,8 +116,10 @@ class EquationsSystem(System):
             if raw.get("dt") is not None:
                 self._steps_per_interval(torch.tensor([0.0, self.dt], dtype=torch.float64), "system.dt")
             if min_delay(self.effects) > 0:
-                raise ConfigError("system.integrator=semi_implicit_euler cannot integrate a DelayedFeedback effect "
-                                  "(it needs the state history); use system.integrator=dopri5.")
+                raise ConfigError(
+                    "system.integrator=semi_implicit_euler cannot integrate a DelayedFeedback effect "
+                    "(it needs the state history); use system.integrator=dopri5."
+                )
         self.values = dict(self.spec.params)
         self.raw = self.spec.raw
         self._graphs: dict[tuple, BatchedGraph] = {}
@@ -116,16 +128,22 @@ class EquationsSystem(System):
     def _integrator(name: Any, substep: Any) -> tuple[str, float | None]:
         name = "dopri5" if name is None else name
         if name not in INTEGRATORS:
-            raise ConfigError(f"system.integrator={name!r} is not an integrator.{did_you_mean(str(name), INTEGRATORS)}"
-                              f" Choose one of {', '.join(INTEGRATORS)}.")
+            raise ConfigError(
+                f"system.integrator={name!r} is not an integrator.{did_you_mean(str(name), INTEGRATORS)}"
+                f" Choose one of {', '.join(INTEGRATORS)}."
+            )
         if name == "dopri5":
             if substep is not None:
-                raise ConfigError(f"system.substep={substep!r} is the step of integrator=semi_implicit_euler; dopri5 "
-                                  "chooses its own steps. Remove substep, or set integrator: semi_implicit_euler.")
+                raise ConfigError(
+                    f"system.substep={substep!r} is the step of integrator=semi_implicit_euler; dopri5 "
+                    "chooses its own steps. Remove substep, or set integrator: semi_implicit_euler."
+                )
             return name, None
         if substep is None:
-            raise ConfigError("system.integrator=semi_implicit_euler needs its step: set substep: <h> (e.g. 0.005; "
-                              "the sampling step dt must be a whole number of steps h).")
+            raise ConfigError(
+                "system.integrator=semi_implicit_euler needs its step: set substep: <h> (e.g. 0.005; "
+                "the sampling step dt must be a whole number of steps h)."
+            )
         ok = isinstance(substep, int | float) and not isinstance(substep, bool) and math.isfinite(substep)
         if not ok or substep <= 0:
             raise ConfigError(f"system.substep must be a positive number (the Euler step h); got {substep!r}.")
@@ -142,9 +160,11 @@ class EquationsSystem(System):
         bad = (steps < 1) | ((intervals - steps * self.substep).abs() > 1e-9 * torch.clamp(intervals.abs(), min=1.0))
         if bool(bad.any()):
             step = float(intervals[bad][0])
-            raise ConfigError(f"{where} = {step:g} is not a whole multiple of system.substep = {self.substep:g} "
-                              "(integrator=semi_implicit_euler logs the state every k Euler steps). Set dt to k·substep, "
-                              f"e.g. dt={max(1, round(step / self.substep)) * self.substep:g}, or change substep.")
+            raise ConfigError(
+                f"{where} = {step:g} is not a whole multiple of system.substep = {self.substep:g} "
+                "(integrator=semi_implicit_euler logs the state every k Euler steps). Set dt to k·substep, "
+                f"e.g. dt={max(1, round(step / self.substep)) * self.substep:g}, or change substep."
+            )
         return [int(k) for k in steps.tolist()]
 
     def _graph(self, raw: Mapping[str, Any]) -> tuple[torch.Tensor, int]:
@@ -154,11 +174,15 @@ class EquationsSystem(System):
             raise ConfigError("system: give either graph=<topology> or edges=[[src, dst], ...], not both.")
         if edges is not None:
             ok = isinstance(edges, Sequence) and all(
-                isinstance(e, Sequence) and len(e) == 2 and all(isinstance(v, int) and not isinstance(v, bool)
-                                                               and v >= 0 for v in e) for e in edges)
+                isinstance(e, Sequence)
+                and len(e) == 2
+                and all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in e)
+                for e in edges
+            )
             if not ok:
-                raise ConfigError(f"system.edges must be a list of [sender, receiver] pairs of node ids >= 0; got "
-                                  f"{str(edges)[:80]}.")
+                raise ConfigError(
+                    f"system.edges must be a list of [sender, receiver] pairs of node ids >= 0; got {str(edges)[:80]}."
+                )
             ei = torch.tensor(list(edges), dtype=torch.long).reshape(-1, 2).T
             largest = int(ei.max()) + 1 if ei.numel() else 1
             n = largest if n is None else n
@@ -168,15 +192,19 @@ class EquationsSystem(System):
                 ei = torch.unique(torch.cat([ei, ei.flip(0)], dim=1), dim=1)
             return ei, int(n)
         if n is None:
-            raise ConfigError("system: the number of nodes is unknown; set nodes: N in the spec (or system.n_nodes), "
-                              "or give per-node parameters or an edge list.")
+            raise ConfigError(
+                "system: the number of nodes is unknown; set nodes: N in the spec (or system.n_nodes), "
+                "or give per-node parameters or an edge list."
+            )
         if not isinstance(n, int) or n < 1:
             raise ConfigError(f"system.nodes must be a positive integer; got {n!r}.")
         if n == 1 or (kind is None and not self.field.uses_graph):
             return torch.zeros(2, 0, dtype=torch.long), n
         if kind is None:
-            raise ConfigError("system: the equations have neighbour terms but no graph; set graph: <topology> "
-                              "(complete, chain, ring, ...) or edges: [[src, dst], ...].")
+            raise ConfigError(
+                "system: the equations have neighbour terms but no graph; set graph: <topology> "
+                "(complete, chain, ring, ...) or edges: [[src, dst], ...]."
+            )
         params = raw.get("graph_params") or {}
         if not isinstance(params, Mapping):
             raise ConfigError(f"system.graph_params must be a mapping; got {params!r}.")
@@ -192,8 +220,11 @@ class EquationsSystem(System):
         for state, bounds in init.items():
             if state not in self.spec.states:
                 raise ConfigError(f"system.init.{state}: not a state; states: {list(self.spec.states)}.")
-            ok = (isinstance(bounds, Sequence) and len(bounds) == 2
-                  and all(isinstance(v, int | float) and not isinstance(v, bool) for v in bounds))
+            ok = (
+                isinstance(bounds, Sequence)
+                and len(bounds) == 2
+                and all(isinstance(v, int | float) and not isinstance(v, bool) for v in bounds)
+            )
             if not ok or bounds[0] > bounds[1]:
                 raise ConfigError(f"system.init.{state} must be [low, high] with low <= high; got {bounds!r}.")
             ranges[self.spec.states.index(state)] = torch.tensor([float(v) for v in bounds], dtype=torch.float64)

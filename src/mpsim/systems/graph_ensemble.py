@@ -122,8 +122,11 @@ class GraphEnsembleSystem:
         """Effects couple each trajectory on its own graph."""
         key = (x.shape[0], x.device, x.dtype)
         if key not in self._contexts:
-            ei = self.graph_edges[0][:, self.graph_edges[0][0] >= 0] if self.n_graphs == 1 else (
-                self.batch_edge_index(x.shape[0]))
+            ei = (
+                self.graph_edges[0][:, self.graph_edges[0][0] >= 0]
+                if self.n_graphs == 1
+                else (self.batch_edge_index(x.shape[0]))
+            )
             self._contexts[key] = EffectContext.for_batch(ei, x)
         return EffectContext(self._contexts[key].graph, history)
 

@@ -73,7 +73,6 @@ class CoupledLorenz(System):
         """[3N, 3N] the coupling matrix, Frobenius norm `coupling`."""
         return self.coupling * self.H_unit
 
-
     def params(self) -> dict[str, Any]:
         return {
             "n_nodes": self.n_nodes,

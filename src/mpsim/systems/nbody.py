@@ -128,7 +128,6 @@ class NBody(System):
         self.velocity_range = tuple(float(v) for v in velocity_range)
         self.charge_range = tuple(float(v) for v in charge_range)
 
-
     def params(self) -> dict[str, Any]:
         return {
             "n_particles": self.n_nodes,

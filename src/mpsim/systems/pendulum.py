@@ -72,7 +72,6 @@ class CoupledPendulums(System):
         self.theta_range = tuple(float(v) for v in theta_range)
         self.omega_range = tuple(float(v) for v in omega_range)
 
-
     def params(self) -> dict[str, Any]:
         return {
             "n_nodes": self.n_nodes,

@@ -133,10 +133,14 @@ def check_structure(payload: dict[str, Any], path: str | Path, need_config: bool
         if key not in model:
             raise CheckpointError(f"{path} lacks 'model.{key}'. {fix}")
         if not isinstance(model[key], kind) or isinstance(model[key], bool):
-            raise CheckpointError(f"{path}: 'model.{key}' must be {kind.__name__}; got {type(model[key]).__name__}. {fix}")
+            raise CheckpointError(
+                f"{path}: 'model.{key}' must be {kind.__name__}; got {type(model[key]).__name__}. {fix}"
+            )
     if model["state_dim"] < 1 or not isinstance(model.get("control_dim", 0), int) or model.get("control_dim", 0) < 0:
-        raise CheckpointError(f"{path}: model.state_dim={model['state_dim']!r}, model.control_dim="
-                              f"{model.get('control_dim', 0)!r} are not sizes (>= 1, >= 0). {fix}")
+        raise CheckpointError(
+            f"{path}: model.state_dim={model['state_dim']!r}, model.control_dim="
+            f"{model.get('control_dim', 0)!r} are not sizes (>= 1, >= 0). {fix}"
+        )
     if "config" in model and not isinstance(model["config"].get("_target_"), str):
         raise CheckpointError(f"{path}: 'model.config' has no '_target_' naming the model class. {fix}")
     bad = [k for k, v in model["state_dict"].items() if not isinstance(k, str) or not isinstance(v, torch.Tensor)]
@@ -153,8 +157,10 @@ def _verify_checksum(payload: dict[str, Any], path: str | Path) -> None:
     stored = payload.get("checksum")
     if stored is None:
         if payload.get("version", 0) >= 2:
-            raise CheckpointError(f"{path} has no content checksum although its format requires one; it was "
-                                  "altered after it was written. Use another copy or retrain.")
+            raise CheckpointError(
+                f"{path} has no content checksum although its format requires one; it was "
+                "altered after it was written. Use another copy or retrain."
+            )
         log.warning(f"{path}: an older checkpoint without a content checksum; its integrity cannot be verified")
         return
     if stored != content_checksum(payload):
@@ -165,8 +171,11 @@ def _verify_checksum(payload: dict[str, Any], path: str | Path) -> None:
 
 
 def _check_finite(payload: dict[str, Any], path: str | Path) -> None:
-    tensors = {**{f"model.state_dict[{k!r}]": v for k, v in payload["model"]["state_dict"].items()},
-               "normalisation.mean": payload["normalisation"]["mean"], "normalisation.std": payload["normalisation"]["std"]}
+    tensors = {
+        **{f"model.state_dict[{k!r}]": v for k, v in payload["model"]["state_dict"].items()},
+        "normalisation.mean": payload["normalisation"]["mean"],
+        "normalisation.std": payload["normalisation"]["std"],
+    }
     for name, t in tensors.items():
         if (t.is_floating_point() or t.is_complex()) and not bool(torch.isfinite(t).all()):
             n_bad = int((~torch.isfinite(t)).sum())
@@ -232,8 +241,10 @@ def check_config_targets(node: Any, where: str, allowed: Iterable[str] = ()) -> 
             for i, value in enumerate(obj):
                 walk(value, f"{at}[{i}]")
         elif isinstance(obj, str) and "${" in obj:
-            raise CheckpointError(f"{where}: {at}={obj!r} holds an interpolation; a stored config must be plain values. "
-                                  "Refusing to use it.")
+            raise CheckpointError(
+                f"{where}: {at}={obj!r} holds an interpolation; a stored config must be plain values. "
+                "Refusing to use it."
+            )
 
     walk(node, "model")
 
@@ -245,5 +256,3 @@ def rng_state() -> dict[str, Any]:
 
 def set_rng_state(state: dict[str, Any]) -> None:
     torch.set_rng_state(state["torch"])
-
-

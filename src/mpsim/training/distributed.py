@@ -28,8 +28,11 @@ from mpsim.errors import ConfigError
 
 def env_world() -> tuple[int, int, int]:
     """(rank, world size, local rank) from the environment `torchrun` sets; (0, 1, 0) without it."""
-    return (int(os.environ.get("RANK", "0")), int(os.environ.get("WORLD_SIZE", "1")),
-            int(os.environ.get("LOCAL_RANK", "0")))
+    return (
+        int(os.environ.get("RANK", "0")),
+        int(os.environ.get("WORLD_SIZE", "1")),
+        int(os.environ.get("LOCAL_RANK", "0")),
+    )
 
 
 @dataclass(frozen=True)
@@ -124,9 +127,7 @@ class DistContext:
         """
         if not self.enabled:
             return model.training_loss
-        return torch.nn.parallel.DistributedDataParallel(
-            _TrainingLoss(model), device_ids=None, static_graph=True
-        )
+        return torch.nn.parallel.DistributedDataParallel(_TrainingLoss(model), device_ids=None, static_graph=True)
 
 
 class _TrainingLoss(torch.nn.Module):

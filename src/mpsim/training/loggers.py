@@ -36,8 +36,11 @@ def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 
 def scalars(tree: Mapping[str, Any]) -> dict[str, float]:
     """The finite numbers (not booleans) of a nested summary, with dotted keys."""
-    return {k: float(v) for k, v in flatten(tree).items()
-            if isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)}
+    return {
+        k: float(v)
+        for k, v in flatten(tree).items()
+        if isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+    }
 
 
 def _param_value(value: Any) -> int | float | str | bool:
@@ -169,13 +172,16 @@ class MLflowLogger(Logger):
         found = self.client.get_experiment_by_name(self.experiment)
         exp_id = found.experiment_id if found is not None else self.client.create_experiment(self.experiment)
         run_dir = str(Path(run_dir).resolve())
-        earlier = self.client.search_runs([exp_id], filter_string=f"tags.`mpsim.run_dir` = '{run_dir}'") if history else []
+        earlier = (
+            self.client.search_runs([exp_id], filter_string=f"tags.`mpsim.run_dir` = '{run_dir}'") if history else []
+        )
         if earlier:
             self.run_id = earlier[0].info.run_id
             self.client.update_run(self.run_id, status="RUNNING")
             return
-        run = self.client.create_run(exp_id, run_name=self.run_name or Path(run_dir).name,
-                                     tags={"mpsim.run_dir": run_dir})
+        run = self.client.create_run(
+            exp_id, run_name=self.run_name or Path(run_dir).name, tags={"mpsim.run_dir": run_dir}
+        )
         self.run_id = run.info.run_id
         params = [entities.Param(k[:250], str(_param_value(v))[:500]) for k, v in (hparams or {}).items()]
         for chunk in _chunks(params, 100):
@@ -185,8 +191,11 @@ class MLflowLogger(Logger):
         from mlflow.entities import Metric
 
         step, stamp = int(row["epoch"]), _now_ms()
-        metrics = [Metric(k, float(v), stamp, step) for k, v in row.items()
-                   if k != "epoch" and isinstance(v, int | float) and math.isfinite(v)]
+        metrics = [
+            Metric(k, float(v), stamp, step)
+            for k, v in row.items()
+            if k != "epoch" and isinstance(v, int | float) and math.isfinite(v)
+        ]
         self.client.log_batch(self.run_id, metrics=metrics)
 
     def finish(self, summary) -> None:

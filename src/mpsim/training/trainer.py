@@ -55,7 +55,14 @@ def predict(
         for start in range(0, len(data), batch_size):
             part = data.subset(slice(start, start + batch_size)).to(device, model.state_mean.dtype)
             try:
-                args = (model.initial(part.x), t.to(part.x.dtype), part.edge_index, part.u, part.node_features, part.meta)
+                args = (
+                    model.initial(part.x),
+                    t.to(part.x.dtype),
+                    part.edge_index,
+                    part.u,
+                    part.node_features,
+                    part.meta,
+                )
                 p, a = model.rollout_aux(*args) if aux else (model.rollout(*args), {})
             except DivergenceError:
                 p, a = torch.full_like(part.x, math.nan), {}
@@ -191,8 +198,9 @@ class Trainer:
         train_d = train.to(device, dtype)
         loss_fn = LOSSES[self.loss]
         if self.optimizer == "lbfgs":  # a few smooth parameters (white-box models): quasi-Newton with line search
-            opt = torch.optim.LBFGS(model.parameters(), lr=self.lr, max_iter=10, history_size=20,
-                                    line_search_fn="strong_wolfe")
+            opt = torch.optim.LBFGS(
+                model.parameters(), lr=self.lr, max_iter=10, history_size=20, line_search_fn="strong_wolfe"
+            )
         else:
             opt = torch.optim.Adam(model.parameters(), lr=self.lr, weight_decay=self.weight_decay)
         sched = torch.optim.lr_scheduler.ReduceLROnPlateau(
@@ -368,10 +376,16 @@ class Trainer:
         """A complete checkpoint: the static base plus the model's current weights and normalisation."""
         return {
             **self._base,
-            "model": {"state_dim": model.state_dim, "control_dim": model.control_dim, **self._base.get("model", {}),
-                      "state_dict": model.state_dict()},
-            "normalisation": {"mean": model.state_mean.detach().cpu().clone(),
-                              "std": model.state_std.detach().cpu().clone()},
+            "model": {
+                "state_dim": model.state_dim,
+                "control_dim": model.control_dim,
+                **self._base.get("model", {}),
+                "state_dict": model.state_dict(),
+            },
+            "normalisation": {
+                "mean": model.state_mean.detach().cpu().clone(),
+                "std": model.state_std.detach().cpu().clone(),
+            },
             "system": self._base.get("system", {}),
             **extra,
         }
