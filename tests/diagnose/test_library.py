@@ -66,3 +66,32 @@ def test_a_drive_with_a_phase_per_recording_is_found_by_the_incoherent_periodogr
     drive = PhasedDrive(1.5, 3.1, phases[:3].tolist(), target=0).bind(["v"])
     out = drive.features(torch.tensor(1.0, dtype=torch.float64), torch.zeros(3, 2, 1, dtype=torch.float64), None)
     assert torch.allclose(out[:, 0, 0], torch.sin(3.1 + phases[:3]))
+
+
+def test_phase_lag_alpha_and_k_from_cos_coefficient_and_the_models_sin_coupling():
+    """K·Σ sin(θj − θi − α): the model's sin coupling holds K cos α, the named cos coefficient −K sin α."""
+    from mpsim.diagnose.heldout import phase_lag
+    from mpsim.models.equations import EquationsModel
+    from mpsim.systems.equations import EquationsSystem
+
+    alpha, k = 0.25, 0.4
+    spec = {
+        "name": "ring4",
+        "states": ["theta"],
+        "equations": {"theta": "w + K*sum_nbr(sin(theta_j - theta))"},
+        "params": {"w": [0.9, 1.1, 1.3, 0.7], "K": k * math.cos(alpha)},
+        "learnable": ["w", "K"],
+        "graph": "ring",
+        "init": {"theta": [-3.14159, 3.14159]},
+        "dt": 0.1,
+        "horizon": 20,
+    }
+    data = EquationsSystem(spec).generate(4, seed=0)
+    model = EquationsModel(1, spec=spec).double()
+    vals, interval, note = phase_lag(model, data, 0, -k * math.sin(alpha), 0.001)
+    assert abs(vals["alpha"] - alpha) < 1e-6 and abs(vals["K"] - k) < 1e-6
+    assert interval["alpha"][0] < alpha < interval["alpha"][1]
+    assert "`K`" in note
+    # a coupling the model does not hold as one parameter: no α claimed
+    spec_w = {**spec, "equations": {"theta": "w"}, "params": {"w": [0.9, 1.1, 1.3, 0.7]}, "learnable": ["w"]}
+    assert phase_lag(EquationsModel(1, spec=spec_w).double(), data, 0, -0.1, 0.001) is None

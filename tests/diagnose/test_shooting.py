@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -52,3 +54,32 @@ def test_window_error_horizon_and_null_data():
     noisy = null_data(model, data, torch.tensor([0.01, 0.02]), seed=0)
     diff = (noisy.x - data.x).reshape(-1, 2)
     assert diff.std(0).tolist() == pytest.approx([0.01, 0.02], rel=0.15)
+
+
+def test_segmented_null_data_restart_every_window_from_an_observed_state():
+    """Chaotic records are judged over short windows: their null data are windows simulated from observed
+    states (one null record each), not a whole-record simulation that leaves the data's attractor."""
+    lorenz = {
+        "states": ["x", "y", "z"],
+        "equations": {"x": "s*(y - x)", "y": "x*(r - z) - y", "z": "x*y - b*z"},
+        "params": {"s": 10.0, "r": 28.0, "b": 2.6667},
+        "nodes": 1,
+        "init": {"x": [-10, 10], "y": [-10, 10], "z": [10, 30]},
+    }
+    data = EquationsSystem(lorenz).generate(3, seed=0, dt=0.02, horizon=60)
+    model = EquationsModel(3, spec=lorenz, solver=ODESolver("dopri5", rtol=1e-8, atol=1e-9)).double()
+    model.set_normalisation(torch.zeros(3, dtype=torch.float64), torch.full((3,), 8.0, dtype=torch.float64))
+    null = null_data(model, data, torch.zeros(3), seed=0, segment=10)
+    assert null.x.shape == (6 * 3, 11, 1, 3)  # 6 windows of 10 steps × 3 records
+    assert torch.allclose(null.t, data.t[:11].to(null.t))
+    assert torch.allclose(null.x[3:6, 0], data.x[:, 10].double())  # window 2 starts at the observed step 10
+    assert float(window_error(model, null, 10).max()) < 1e-8  # the model predicts its own null data
+    # a model a little off (r 28.05 for 28) over 5 s of chaos: its whole-record simulation leaves the data,
+    # its windows stay near them
+    data = EquationsSystem(lorenz).generate(3, seed=0, dt=0.02, horizon=250)
+    model.raw["r"].data.fill_(math.log(28.05))  # positive constants live in log space
+    whole = null_data(model, data, torch.zeros(3), seed=0)
+    windows = null_data(model, data, torch.zeros(3), seed=0, segment=10)
+    far = float((whole.x[:, -1] - data.x[:, -1].double()).abs().max())
+    near = float((windows.x[-3:, -1] - data.x[:, 250].double()).abs().max())
+    assert far > 10.0 * near, (far, near)

@@ -240,6 +240,7 @@ def _markdown(s: dict[str, Any]) -> str:
         )
     if not j["trials"]:
         lines.append("| (none tested) | | | | | | |")
+    lines += [f"- {t['label']}: {t['derived']}" for t in j["trials"] if t.get("derived")]
     lines += [
         "",
         "## One-step screen",
@@ -309,6 +310,8 @@ def _print(s: dict[str, Any], out: Path) -> None:
     for t in s["effects_named"]:
         truth = f"  ({_truth_text(t['vs_truth'])})" if t.get("vs_truth") else ""
         rows.append(("effect", f"{t['label']}: {_values_text(t['values'], t['interval'])}{truth}"))
+        if t.get("derived"):
+            rows.append(("", t["derived"]))
     rows.append(
         (
             "held-out MSE",

@@ -25,9 +25,10 @@ from typing import Any
 
 import torch
 
+from mpsim import effects as fx
 from mpsim.data.trajectories import Trajectories
-from mpsim.diagnose.library import Candidate
-from mpsim.diagnose.loop import Diagnosis, Finding
+from mpsim.diagnose.library import Candidate, evaluate_effect, step_average
+from mpsim.diagnose.loop import Diagnosis, Finding, model_sensitivities
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.diagnose.shooting import (
     horizon_from_data,
@@ -96,6 +97,7 @@ class Trial:
     null_gain: float  # the same fit's gain on null data
     accepted: bool
     reason: str
+    derived: str = ""  # how derived values (a coupling's phase lag α and strength K) were obtained
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -158,8 +160,8 @@ def judge(
     e_base = window_error(base, test, horizon)
     if not float(e_base.mean()) <= given:  # the refit never makes the starting point worse
         base, e_base = copy.deepcopy(model), window_error(model, test, horizon)
-    null_train = null_data(base, train, noise, seed + 11)
-    null_test = null_data(base, test, noise, seed + 12)
+    null_train = null_data(base, train, noise, seed + 11, segment=horizon)
+    null_test = null_data(base, test, noise, seed + 12, segment=horizon)
     e_null = window_error(base, null_test, horizon)
     labels = {c.label(diag.state_names): c for c in library}
     floor = max(params.structured_factor * float(e_null.mean()), params.tolerance**2)
@@ -291,6 +293,51 @@ def reported(effect, values: list[float], stderr: list[float]) -> tuple[dict[str
     return vals, {k: (v - 1.96 * ses[k], v + 1.96 * ses[k]) for k, v in vals.items()}
 
 
+def phase_lag(
+    model: Model, data: Trajectories, row: int, c: float, c_se: float
+) -> tuple[dict[str, float], dict[str, tuple], str] | None:
+    """α and K of K·Σ_j sin(θ_j − θ_i − α) = K cos α·Σ sin(θ_j − θ_i) − K sin α·Σ cos(θ_j − θ_i), from a named
+    cos-coupling coefficient c (= −K sin α) and the model's own sin coupling (= K cos α, refit beside c).
+
+    The model's sin coupling is found among its own parameters as the one whose sensitivity on `row` is
+    proportional to Σ_j sin(θ_j − θ_i) (cosine similarity ≥ 0.999); None when no parameter is (a black-box
+    model, or a coupling written another way): the report then gives c alone. The intervals carry c's
+    uncertainty only (the sin coupling held at its fitted value), which the returned note says.
+    """
+    values_now = getattr(model, "parameters_now", None)
+    sens = model_sensitivities(model, data)  # [B, T-1, N, D, P] or None
+    if sens is None or values_now is None:
+        return None
+    sine = fx.SineCoupling(1.0, target=row, source=row).bind(data.state_names)
+    feat = step_average(evaluate_effect(sine, data))[..., 0].flatten()  # [B·(T−1)·N]
+    current = values_now()
+    for j, label in enumerate(model.sensitivity_names()):
+        col = sens[..., row, j].flatten()
+        ok = torch.isfinite(col) & torch.isfinite(feat)
+        f, g = feat[ok], col[ok]
+        norm = float(f.norm() * g.norm())
+        if label not in current or current[label].numel() != 1 or norm == 0.0:
+            continue  # per-node entries cannot be one coupling constant
+        if float(f @ g) / norm < 0.999:
+            continue
+        k_cos = float(current[label].detach()) * float(f @ g) / float(f @ f)  # K cos α, in the library's Σ sin units
+        k = math.hypot(k_cos, c)
+        alpha = math.atan2(-c, k_cos)
+        se_alpha = abs(k_cos) * c_se / max(k * k, 1e-300)
+        se_k = abs(c) * c_se / max(k, 1e-300)
+        vals = {"alpha": alpha, "K": k}
+        interval = {
+            "alpha": (alpha - 1.96 * se_alpha, alpha + 1.96 * se_alpha),
+            "K": (k - 1.96 * se_k, k + 1.96 * se_k),
+        }
+        note = (
+            f"phase lag from the cos coefficient c = {c:.4g} and the model's own sin coupling `{label}` refit to "
+            f"K cos α = {k_cos:.4g}: α = atan2(−c, K cos α), K = hypot; intervals from c's uncertainty only"
+        )
+        return vals, interval, note
+    return None
+
+
 def _best_text(trials: list[Trial], refit: float, null: float) -> str:
     if not trials:
         return "no candidate was left to test"
@@ -392,6 +439,13 @@ def _trial(
     fitted = trial.effects[-1]
     k = len(fit.values) - sum(p.numel() for p in own_parameters(trial))
     values, interval = reported(fitted, fit.values[:k], fit.stderr[:k])
+    derived = ""
+    if cand.kind == "CosineCoupling" and math.isfinite(values.get("coef", math.nan)):
+        lag = phase_lag(trial, train, finding.target, values["coef"], (interval["coef"][1] - values["coef"]) / 1.96)
+        if lag is not None:
+            values, interval, derived = {**values, **lag[0]}, {**interval, **lag[1]}, lag[2]
+        else:
+            derived = "phase lag not separated: the model has no single sin-coupling parameter to pair with c"
     checks = [
         (fit.converged and math.isfinite(gain), "the multiple-shooting fit diverged"),
         (
@@ -428,5 +482,6 @@ def _trial(
         null_gain=null_gain,
         accepted=not failed,
         reason=reason,
+        derived=derived,
     )
     return out, trial, e_after

@@ -28,6 +28,7 @@ from mpsim.diagnose.library import (
     incoherent_frequency,
     refine_frequency,
 )
+from mpsim.diagnose.noise import noise_level
 from mpsim.diagnose.residual import Residual, one_step_residual
 from mpsim.diagnose.select import _lstsq, bootstrap, explained_alone, project_out, stepwise_bic
 from mpsim.models.base import Model
@@ -96,40 +97,6 @@ class Diagnosis:
             "not_considered": self.not_considered,
             "searched_rows": self.searched,
         }
-
-
-def noise_level(x: torch.Tensor, residual_steps: torch.Tensor | None = None) -> torch.Tensor:
-    """[D] measurement-noise standard deviation, the smallest of several upper bounds.
-
-    Args:
-        x: [B, T, N, D] observed states. For white noise of std σ the k-th difference along time has variance
-            C(2k, k)·σ²; the smooth signal adds O((ωΔ)^k), so each even order k ≤ 6 bounds σ from above.
-        residual_steps: [B, T−1, N, D] one-step residuals times the step, x_{k+1} − Φ(x_k). Noise enters them as
-            ε_{k+1} − Φ'ε_k ≈ ε_{k+1} − ε_k, so their k-th differences have variance C(2k+2, k+1)·σ², while the
-            model's error is smooth in time and far smaller than the signal: a much tighter bound.
-
-    On clean data the result is a small upper bound, which only makes the null check more conservative.
-    """
-    bounds = [_difference_bound(x.double(), shift=0)]
-    if residual_steps is not None:
-        bounds.append(_difference_bound(residual_steps.double(), shift=1))
-    best = torch.stack(bounds).min(dim=0).values
-    return torch.where(torch.isfinite(best), best, torch.zeros_like(best))
-
-
-def _difference_bound(x: torch.Tensor, shift: int) -> torch.Tensor:  # x: [B, T, N, D]
-    finite = torch.isfinite(x).flatten(1).all(dim=1)
-    x = x[finite]
-    best = torch.full((x.shape[-1],), math.inf, dtype=torch.float64)
-    diff = x
-    for k in range(1, 7):
-        diff = diff[:, 1:] - diff[:, :-1]
-        if diff.shape[1] < 2 or diff.shape[0] == 0:
-            break
-        if k % 2 == 0:
-            est = diff.reshape(-1, x.shape[-1]).std(0) / math.sqrt(math.comb(2 * (k + shift), k + shift))
-            best = torch.minimum(best, est)
-    return best
 
 
 def _forcing_omegas(res: Residual, data: Trajectories) -> tuple[dict[int, float], dict[int, tuple]]:

@@ -217,12 +217,22 @@ def precise(model: Model) -> Model:
     return ref
 
 
-def null_data(model: Model, data: Trajectories, noise: torch.Tensor, seed: int) -> Trajectories:
-    """Data the model's equations would produce — the exact solution of its vector field (`precise`) from the
-    observed first states, on the observed times — plus Gaussian measurement noise of the given level per
-    state variable ([D]). The model's own integration error is then part of the null level, as it is part of
-    its error on real data."""
+def null_data(
+    model: Model, data: Trajectories, noise: torch.Tensor, seed: int, segment: int | None = None
+) -> Trajectories:
+    """Data the model's equations would produce — the exact solution of its vector field (`precise`) from
+    observed states, on the observed times — plus Gaussian measurement noise of the given level per state
+    variable ([D]). The model's own integration error is then part of the null level, as it is part of its
+    error on real data.
+
+    With `segment` shorter than the records (a chaotic system, whose errors are judged over short windows),
+    every window of `segment` steps is simulated from its own observed first state and becomes one null
+    record (B·K records of `segment` + 1 samples, on the times of the first window): a whole-record simulation
+    would leave the data's attractor, and a model with a latent state (MP-NODE messages) restarts it at every
+    window, as its windowed predictions do."""
     model = precise(model)
+    if segment is not None and segment < data.n_times - 1:
+        return _segment_null(model, data, noise, seed, segment)
     with torch.no_grad():
         try:
             ((_, pred),) = window_predictions(model, data, data.n_times - 1)
@@ -234,6 +244,25 @@ def null_data(model: Model, data: Trajectories, noise: torch.Tensor, seed: int) 
     return Trajectories(
         t=data.t, x=x, edge_index=data.edge_index, u=data.u, node_features=data.node_features, meta=data.meta
     )
+
+
+def _segment_null(model: Model, data: Trajectories, noise: torch.Tensor, seed: int, segment: int) -> Trajectories:
+    with torch.no_grad():
+        try:
+            windows = [(s, p) for s, p in window_predictions(model, data, segment) if p.shape[1] == segment + 1]
+        except DivergenceError:
+            windows = [(s, data.x[:, s : s + segment + 1].to(model.state_mean)) for s in _starts(data.n_times, segment)]
+            windows = [(s, p) for s, p in windows if p.shape[1] == segment + 1]
+    k = len(windows)
+    pred = torch.cat([p.double().cpu() for _, p in windows], dim=0)  # [K·B, L+1, N, D], window-major
+    gen = torch.Generator().manual_seed(int(seed))
+    x = (pred + torch.randn(pred.shape, generator=gen, dtype=torch.float64) * noise.double()).nan_to_num()
+    u = None if data.u is None else torch.cat([data.u[:, s : s + segment + 1] for s, _ in windows], dim=0)
+    feats = data.node_features
+    if feats is not None and feats.dim() == 3:
+        feats = feats.repeat(k, 1, 1)
+    edges = data.edge_index if data.shared_graph else data.edge_index.repeat(k, 1, 1)
+    return Trajectories(t=data.t[: segment + 1], x=x, edge_index=edges, u=u, node_features=feats, meta=data.meta)
 
 
 def with_effect(model: Model, effect: nn.Module) -> Model:
