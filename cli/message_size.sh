@@ -5,7 +5,10 @@
 # Q_EPOCHS=40 quadrotor epochs on 100 trajectories of QH=60 steps (one RK4 step per sample: QSOLVER=rk4), 2 seeds
 # (paper: 4000 epochs).
 # Paper-sized: PAPER=1 cli/message_size.sh. Figures and tables: $OUT/message_size.md.
+# Resumable: run it again with the same settings and finished runs are kept, interrupted ones resumed
+# (cli/lib.sh); FRESH=1 starts over.
 set -euo pipefail
+source "$(dirname "$0")/lib.sh"
 OUT=${OUT:-outputs/message_size}
 PAPER=${PAPER:-0}
 if [ "$PAPER" = 1 ]; then
@@ -21,14 +24,23 @@ K_MSG=${K_MSG:-1,3,7,13}
 Q_MSG=${Q_MSG:-7,13,20}
 JOBS=${JOBS:-2}
 common=(paths.output_root=$OUT trainer=$TRAINER trainer.progress=false trainer.early_stop_patience=0 eval.plots=false
-        export=false data.n_train=$N_TRAIN hydra/launcher=joblib hydra.launcher.n_jobs=$JOBS seed=$SEEDS)
+        export=false data.n_train=$N_TRAIN)
 quad=(data.horizon=$QH data.n_val=30 data.n_test=30 trainer.max_epochs=$Q_EPOCHS solver=$QSOLVER)
 
-rm -rf "$OUT"
-mpsim train -m hydra.sweep.dir=$OUT/kuramoto system=kuramoto10_ba model.message_size=$K_MSG \
-  trainer.max_epochs=$K_EPOCHS "${common[@]}"
-mpsim train -m hydra.sweep.dir=$OUT/quad system=quad3,quad6 model.message_size=$Q_MSG "${quad[@]}" "${common[@]}"
-mpsim train -m hydra.sweep.dir=$OUT/quad_l2s system=quad3,quad6 model=l2s "${quad[@]}" "${common[@]}"
+[ "${FRESH:-0}" = 1 ] && rm -rf "$OUT"
+rm -rf "$OUT/report"
+for seed in ${SEEDS//,/ }; do
+  for m in ${K_MSG//,/ }; do
+    echo "train_once $OUT/kuramoto/m${m}_s$seed system=kuramoto10_ba model.message_size=$m seed=$seed \
+      trainer.max_epochs=$K_EPOCHS ${common[*]}"
+  done
+  for system in quad3 quad6; do
+    for m in ${Q_MSG//,/ }; do
+      echo "train_once $OUT/quad/${system}_m${m}_s$seed system=$system model.message_size=$m seed=$seed ${quad[*]} ${common[*]}"
+    done
+    echo "train_once $OUT/quad_l2s/${system}_s$seed system=$system model=l2s seed=$seed ${quad[*]} ${common[*]}"
+  done
+done | parallel "$JOBS"
 
 mpsim report layout=message_size "title='Figures 7 and 8: message size ($SIZE)'" \
   "runs=[$OUT/kuramoto,$OUT/quad,$OUT/quad_l2s]" hydra.run.dir=$OUT/report paths.output_root=$OUT

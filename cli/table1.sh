@@ -6,7 +6,10 @@
 # CPU-sized by default (about 15 minutes on 2 free cores): EPOCHS=150 epochs on N_TRAIN=200 trajectories, 3 seeds
 # (paper: 4000 epochs, 700 trajectories). Paper-sized: PAPER=1 cli/table1.sh.
 # Table: $OUT/table1.md (with table1.png).
+# Resumable: run it again with the same settings and finished runs are kept, interrupted ones resumed
+# (cli/lib.sh); FRESH=1 starts over.
 set -euo pipefail
+source "$(dirname "$0")/lib.sh"
 OUT=${OUT:-outputs/table1}
 PAPER=${PAPER:-0}
 if [ "$PAPER" = 1 ]; then
@@ -21,14 +24,15 @@ MODELS=${MODELS:-"mpnode l2s"}   # add node for the monolithic baseline (same 16
 JOBS=${JOBS:-2}
 common=(paths.output_root=$OUT trainer=$TRAINER trainer.progress=false trainer.early_stop_patience=0 eval.plots=false)
 
-rm -rf "$OUT"
+[ "${FRESH:-0}" = 1 ] && rm -rf "$OUT"
+rm -rf "$OUT/zeroshot" "$OUT/report"  # zero-shot evaluations are cheap: always redone from the checkpoints
 for seed in $SEEDS; do  # one checkpoint directory per seed: every run exports <system>.ckpt
   for model in $MODELS; do
     epochs=$EPOCHS; [ $model = l2s ] && epochs=$L2S_EPOCHS
-    echo "mpsim train system=gene_ba_small model=$model seed=$seed data.n_train=$N_TRAIN trainer.max_epochs=$epochs \
-      paths.ckpt_dir=$OUT/checkpoints/$model/s$seed hydra.run.dir=$OUT/train/$model/s$seed ${common[*]}"
+    echo "train_once $OUT/train/$model/s$seed system=gene_ba_small model=$model seed=$seed data.n_train=$N_TRAIN \
+      trainer.max_epochs=$epochs paths.ckpt_dir=$OUT/checkpoints/$model/s$seed ${common[*]}"
   done
-done | xargs -P "$JOBS" -I{} bash -c {}
+done | parallel "$JOBS"
 for seed in $SEEDS; do
   for model in $MODELS; do
     mpsim train -m mode=zeroshot init=$OUT/checkpoints/$model/s$seed/gene_ba_small.ckpt \

@@ -16,7 +16,10 @@
 # REUSE=1 keeps a pre-trained checkpoint already in $OUT/checkpoints (e.g. cli/table1.sh's MP-NODE seed 0,
 # which is the same run as the gene pre-training here) instead of training it again.
 # Tables: $OUT/table2.md (Table 2) and $OUT/figure5.md (learning curves), with PNGs beside them.
+# Resumable: run it again with the same settings and finished runs are kept, interrupted ones resumed
+# (cli/lib.sh); FRESH=1 starts over.
 set -euo pipefail
+source "$(dirname "$0")/lib.sh"
 OUT=${OUT:-outputs/table2}
 PAPER=${PAPER:-0}
 if [ "$PAPER" = 1 ]; then
@@ -38,46 +41,52 @@ COLS=${COLS:-"lorenz kuramoto gene quad"}  # not COLUMNS: shells set that to the
 CKPT=$OUT/checkpoints
 common=(paths.output_root=$OUT paths.ckpt_dir=$CKPT trainer=$TRAINER trainer.progress=false
         trainer.early_stop_patience=0 eval.plots=false)
-sweep=(-m hydra/launcher=joblib hydra.launcher.n_jobs=$JOBS)
 quad=(data.horizon=$QH data.n_val=30 data.n_test=30 solver=$QSOLVER)
 REUSE=${REUSE:-0}
+[ "${FRESH:-0}" = 1 ] && rm -rf "$OUT"
+rm -rf "$OUT/report"
 
 pretrain() {  # name system [overrides...]: one scratch run that exports <system>.ckpt
   local name=$1 system=$2; shift 2
   if [ "$REUSE" = 1 ] && [ -f "$CKPT/$system.ckpt" ]; then echo "reusing $CKPT/$system.ckpt"; return; fi
-  rm -rf "$OUT/$name"
-  mpsim train system=$system data.n_train=$PRE_N trainer.max_epochs=$PRE_EPOCHS hydra.run.dir=$OUT/$name \
-    "${common[@]}" "$@"
+  train_once "$OUT/$name" system=$system data.n_train=$PRE_N trainer.max_epochs=$PRE_EPOCHS "${common[@]}" "$@"
 }
-target() {  # name system init [overrides...]: finetune (init) and scratch sweeps over seeds
-  local name=$1 system=$2 init=$3; shift 3
-  rm -rf "$OUT/$name"
-  mpsim train "${sweep[@]}" hydra.sweep.dir=$OUT/$name system=$system init=$init,null seed=$SEEDS \
-    mode.refit_normalisation=$REFIT trainer.max_epochs=$EPOCHS export=false "${common[@]}" "$@"
+target() {  # name system init sizes [overrides...]: finetune (init) and scratch runs over seeds and dataset sizes
+  local name=$1 system=$2 init=$3 sizes=$4; shift 4
+  for ds in ${sizes//,/ }; do
+    for start in $init null; do
+      tag=finetune; [ "$start" = null ] && tag=scratch
+      for seed in ${SEEDS//,/ }; do
+        echo "train_once $OUT/$name/${tag}_ds${ds}_s$seed system=$system init=$start seed=$seed data.n_train=$ds \
+          mode.refit_normalisation=$REFIT trainer.max_epochs=$EPOCHS export=false ${common[*]} $*"
+      done
+    done
+  done | parallel "$JOBS"
 }
-l2s() {  # name system [overrides...]: L2S from scratch over seeds
-  local name=$1 system=$2; shift 2
-  rm -rf "$OUT/$name"
-  mpsim train "${sweep[@]}" hydra.sweep.dir=$OUT/$name system=$system model=l2s seed=$SEEDS \
-    trainer.max_epochs=$L2S_EPOCHS export=false "${common[@]}" "$@"
+l2s() {  # name system size [overrides...]: L2S from scratch over seeds
+  local name=$1 system=$2 ds=$3; shift 3
+  for seed in ${SEEDS//,/ }; do
+    echo "train_once $OUT/$name/s$seed system=$system model=l2s seed=$seed data.n_train=$ds \
+      trainer.max_epochs=$L2S_EPOCHS export=false ${common[*]} $*"
+  done | parallel "$JOBS"
 }
 
 for column in $COLS; do
   case $column in
     lorenz)
       pretrain lorenz3_pre lorenz3
-      target lorenz10 lorenz10 lorenz3.ckpt data.n_train=$DS ;;
+      target lorenz10 lorenz10 lorenz3.ckpt "$DS" ;;
     kuramoto)
       pretrain kuramoto_pre kuramoto10_ba
-      target kuramoto kuramoto10_er kuramoto10_ba.ckpt data.n_train=$DS ;;
+      target kuramoto kuramoto10_er kuramoto10_ba.ckpt "$DS" ;;
     gene)
       pretrain gene_pre gene_ba_small
-      target gene gene_ba_large gene_ba_small.ckpt data.n_train=$G_DS
-      l2s gene_l2s gene_ba_large data.n_train=$G_DS ;;
+      target gene gene_ba_large gene_ba_small.ckpt "$G_DS"
+      l2s gene_l2s gene_ba_large "$G_DS" ;;
     quad)
       pretrain quad_pre quad3 model.message_size=$MSG "${quad[@]}"
-      target quad quad6 quad3.ckpt model.message_size=$MSG data.n_train=$Q_DS "${quad[@]}"
-      l2s quad_l2s quad6 data.n_train=$Q_DS "${quad[@]}" ;;
+      target quad quad6 quad3.ckpt "$Q_DS" model.message_size=$MSG "${quad[@]}"
+      l2s quad_l2s quad6 "$Q_DS" "${quad[@]}" ;;
     *) echo "unknown column $column (lorenz, kuramoto, gene, quad)" >&2; exit 2 ;;
   esac
 done

@@ -1,0 +1,25 @@
+# Shared by the paper recipes (cli/table1.sh, cli/table2.sh, cli/message_size.sh): resumable runs.
+#
+#   train_once DIR [mpsim train arguments...]
+#     DIR/summary.json exists          → the run finished: kept, not rerun
+#     DIR/checkpoints/last.ckpt exists → the run was interrupted: resumed with resume=DIR (same arguments)
+#     otherwise                        → a fresh run in DIR
+#   parallel JOBS < lines              → runs each line (a train_once call) with up to JOBS at once
+#
+# So an interrupted recipe is continued by running it again with the same settings; FRESH=1 starts over.
+train_once() {
+  local dir=$1; shift
+  if [ -f "$dir/summary.json" ]; then
+    echo "kept (finished): $dir"
+  elif [ -f "$dir/checkpoints/last.ckpt" ]; then
+    echo "resuming: $dir"
+    mpsim train "$@" resume="$dir"
+  else
+    mpsim train "$@" hydra.run.dir="$dir"
+  fi
+}
+
+parallel() {
+  local here; here=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
+  xargs -P "$1" -I{} bash -c "set -euo pipefail; source '$here/lib.sh'; {}"
+}
