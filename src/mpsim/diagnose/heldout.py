@@ -425,8 +425,15 @@ def _trial(
         noise = (null_train.x - null_train.x).new_zeros(null_train.state_dim)  # clean: the comparison is paired
         null_train, null_test = null_data(current, null_train, noise, 21), null_data(current, null_test, noise, 22)
         e_null = window_error(current, null_test, horizon)
+    # a phased drive carries one phase per fitted recording: the null records (window by window for short
+    # horizons) get theirs from the same starting pairs, repeated
+    null_coef = (coef * math.ceil(2 * len(null_train) / len(coef)))[: 2 * len(null_train)] if phased else coef
     null_trial, _ = _fit_with(
-        current, cand.make_effect(coef, finding.target, names), null_train, fit_len, max(5, params.shooting_iters // 3)
+        current,
+        cand.make_effect(null_coef, finding.target, names),
+        null_train,
+        fit_len,
+        max(5, params.shooting_iters // 3),
     )
     if phased:
         before, after, _ = phased_heldout(current, null_trial, null_test, horizon, max(5, params.shooting_iters // 3))
