@@ -1,6 +1,6 @@
 """Parallel-in-time solves of the S-MNN normal equations: chunked block cyclic reduction.
 
-The banded LDLᵀ of `mpsim.solvers.smnn` walks the T time blocks one after another, so its cost is T times the
+The banded LDLᵀ of `mpsim.solvers.banded` walks the T time blocks one after another, so its cost is T times the
 launch overhead of a few tiny kernels. Block cyclic reduction removes the odd-numbered time blocks by a Schur
 complement, which leaves a block-tridiagonal SPD system on the even blocks of half the length; repeating this
 ⌈log₂ T⌉ times leaves one block. Every level is a handful of batched operations over all its blocks, so the
@@ -11,7 +11,7 @@ Pure cyclic reduction moves the right-hand sides through memory at every level (
 solve, plus a refinement solve for accuracy), and with many right-hand sides (Lorenz: 1536 columns) the solve is
 bound by that traffic. So long sequences are first cut into chunks of `chunk` interior blocks separated by
 single separator blocks. The chunk interiors are independent once the separators are known: they are factorised
-and swept by the sequential LDLᵀ of `smnn.py`, vectorised over all chunks at once (depth `chunk`), their
+and swept by the sequential LDLᵀ of `banded.py`, vectorised over all chunks at once (depth `chunk`), their
 couplings to the two neighbouring separators ("spikes") are solved once per left-hand side, and the Schur
 complement on the separators — block-tridiagonal, 1/(chunk+1) of the size — is solved by cyclic reduction.
 A solve then reads the right-hand sides about five times, and the sequential depth is O(chunk + log T).
@@ -26,12 +26,11 @@ the block (t+1, t) and `A2[t]` the block (t+2, t); only lower blocks are passed,
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import torch
 
-if TYPE_CHECKING:
-    from mpsim.solvers.smnn import BandedFactors
+from mpsim.solvers.banded import BandedFactors, banded_factor
 
 #: interior blocks per chunk: long enough that a solve reads the right-hand sides ~5 times (pure cyclic
 #: reduction: ~13), short enough that the sequential part (2·CHUNK small steps) stays a few hundred kernels
@@ -219,8 +218,6 @@ def _chunk_set(
         The set; [Q·L] not-positive-definite flags; its Schur terms E_lᵀM⁻¹E_l (on the left separator),
         E_rᵀM⁻¹E_r (on the right one) and E_rᵀM⁻¹E_l (between them), the last two None without a right one.
     """
-    from mpsim.solvers.smnn import banded_factor  # smnn imports this module
-
     m = diag.shape[0]
     inner, bad = banded_factor(diag, lower)
     e = [left]
