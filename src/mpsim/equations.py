@@ -184,6 +184,26 @@ def _param_value(name: str, value: Any, where: str) -> torch.Tensor:
     return out
 
 
+def merge_spec(spec: Mapping[str, Any] | None, inline: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """The spec from `spec` with the keys given inline on top (inline keys win)."""
+    if isinstance(spec, str):
+        raise ConfigError(
+            f"{where}.spec={spec!r} is a file name, but specs are read by the command layer "
+            "(`mpsim ... model.spec=<file>`); in Python pass the loaded mapping "
+            "(mpsim.equations.load_spec_file)."
+        )
+    if spec is not None and not isinstance(spec, Mapping):
+        raise ConfigError(f"{where}.spec must be a mapping or a YAML file name; got {type(spec).__name__}.")
+    merged = dict(spec or {})
+    merged.update({k: v for k, v in inline.items() if v is not None})
+    if not merged:
+        raise ConfigError(
+            f"{where}: no equations. Pass {where}.spec=<file.yaml> or {where}.states / "
+            f"{where}.equations / {where}.params inline (see README, 'Your own equations')."
+        )
+    return merged
+
+
 def parse_spec(spec: Mapping[str, Any], where: str = "model.spec", extra_keys: Sequence[str] = ()) -> Spec:
     """Check a spec and parse its equations.
 

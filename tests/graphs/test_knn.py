@@ -8,7 +8,8 @@ import torch
 
 import mpsim.graphs.knn as knn_module
 from mpsim.graphs.batch import sum_aggregate
-from mpsim.graphs.knn import full_graph, knn_graph, minimum_image, wrap_positions
+from mpsim.graphs.knn import full_graph, knn_graph
+from mpsim.periodic import minimum_image, wrap_positions
 
 BOX = 10.0
 

@@ -4,9 +4,9 @@ import torch
 
 from mpsim.data.trajectories import Trajectories
 from mpsim.graphs.topology import complete
+from mpsim.metrics import huber_loss
 from mpsim.models import MPNODE
 from mpsim.models.controls import ControlNormalisation, zero_order_hold
-from mpsim.training.metrics import huber_loss
 
 
 def test_zero_order_hold_takes_the_sample_at_or_before_t():

@@ -8,9 +8,9 @@ import torch
 from mpsim.data.dataset import fit_normalisation
 from mpsim.errors import ConfigError
 from mpsim.graphs.topology import chain, complete
+from mpsim.metrics import huber_loss
 from mpsim.models.smnn_forecast import SMNNForecaster
 from mpsim.systems.pendulum import CoupledPendulums
-from mpsim.training.metrics import huber_loss
 
 F64 = torch.float64
 

@@ -5,8 +5,8 @@ import math
 import pytest
 import torch
 
+from mpsim.metrics import rollout_metrics
 from mpsim.systems.kuramoto import Kuramoto
-from mpsim.training.metrics import rollout_metrics
 
 
 def test_without_coupling_every_phase_rotates_at_omega():

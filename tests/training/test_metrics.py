@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from mpsim.training.metrics import epochs_x_min_error, first_epoch_below, huber_loss, rollout_metrics
+from mpsim.metrics import epochs_x_min_error, first_epoch_below, huber_loss, rollout_metrics
 
 
 def test_huber_is_summed_over_time_and_features_and_averaged_over_node_trajectories():

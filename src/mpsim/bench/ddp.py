@@ -163,7 +163,7 @@ def _build(spec: dict[str, Any], device: torch.device) -> tuple[torch.nn.Module,
     """(model, global batch as Trajectories, its times, loss function) of a case, identical on every rank."""
     from mpsim.data.dataset import fit_normalisation
     from mpsim.data.trajectories import Trajectories
-    from mpsim.training.metrics import LOSSES
+    from mpsim.metrics import LOSSES
 
     torch.manual_seed(0)
     if spec["case"] == "nbody":

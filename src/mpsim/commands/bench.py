@@ -14,7 +14,7 @@ from omegaconf import DictConfig
 
 from mpsim.bench.common import Suite
 from mpsim.commands.common import build, locate
-from mpsim.commands.report import markdown
+from mpsim.commands.console import markdown
 from mpsim.config import check_targets
 from mpsim.errors import ConfigError
 from mpsim.files import atomic_write, write_json

@@ -1,10 +1,13 @@
-"""The one-screen summary a command prints when it ends."""
+"""The one-screen summary a command prints when it ends, and the Markdown tables that `report` and `bench` write."""
 
 from __future__ import annotations
 
 import math
 import shutil
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 
 def fmt(v: Any, digits: int = 4) -> str:
@@ -32,3 +35,18 @@ def print_summary(title: str, rows: list[tuple[str, str]]) -> None:
     for label, value in rows:
         print(f" {label:<{label_w}}{value}")
     print("─" * width)
+
+
+def markdown(frame: pd.DataFrame) -> str:
+    """A GitHub-flavoured Markdown table (no extra dependency)."""
+    cols = list(frame.columns)
+    lines = ["| " + " | ".join(map(str, cols)) + " |", "|" + "|".join("---" for _ in cols) + "|"]
+    for _, r in frame.iterrows():
+        lines.append("| " + " | ".join(_cell(r[c]) for c in cols) + " |")
+    return "\n".join(lines)
+
+
+def _cell(v: Any) -> str:
+    if isinstance(v, float):
+        return "" if math.isnan(v) else f"{v:.4g}"
+    return "" if v is None else str(v)

@@ -2,75 +2,13 @@
 
 from __future__ import annotations
 
-import logging
-import time
 from pathlib import Path
-from typing import Any
 
 from omegaconf import DictConfig
 
-from mpsim import plotting
-from mpsim.commands.common import Runtime, build_system, load_init, model_and_data, setup_runtime
-from mpsim.commands.console import fmt, print_summary
-from mpsim.data.trajectories import Trajectories
+from mpsim.commands.common import setup_runtime
+from mpsim.commands.evaluation import evaluate_checkpoint
 from mpsim.errors import ConfigError
-from mpsim.files import write_json
-from mpsim.models.base import Model
-from mpsim.systems.base import System
-from mpsim.training.metrics import relative_energy_error, rollout_metrics
-from mpsim.training.trainer import predict
-
-log = logging.getLogger(__name__)
-
-
-def evaluate_model(
-    model: Model,
-    test: Trajectories,
-    output_dir: Path,
-    horizons: list[int],
-    system: System | None = None,
-    n_plot: int = 2,
-    plots: bool = True,
-    title: str = "",
-) -> dict[str, Any]:
-    """Roll `model` out on `test`, compute the common metrics and draw the trajectory/error plots.
-
-    Args:
-        system: the generating system, for the energy error (None for file data or energy-free systems).
-    """
-    pred, aux = predict(model, test, aux=True)
-    true = test.x.to(pred.dtype)
-    std = model.state_std.detach().cpu().to(pred.dtype)
-    metrics = rollout_metrics(
-        pred, true, std, test.t, horizons, periods=test.meta.get("periods"), first=model.context_steps
-    )
-    features = test.node_features  # [N, F] or [B, N, F]
-    probe = None if features is None else (features[:1] if features.dim() == 3 else features)
-    if system is not None and system.energy(test.x[:1, :1], probe) is not None:
-        metrics.update(relative_energy_error(lambda x: system.energy(x, features), pred, true))
-    if plots:
-        plot_dir = output_dir / "plots"
-        plotting.trajectories(
-            test.t,
-            true,
-            pred,
-            plot_dir / "trajectories.png",
-            test.state_names,
-            messages=aux.get("messages"),
-            n_traj=n_plot,
-            title=title,
-        )
-        plotting.error_growth(test.t, metrics["per_step_rmse"], plot_dir / "error_growth.png", title=title)
-    return metrics
-
-
-def horizon_rows(metrics: dict[str, Any]) -> list[tuple[str, str]]:
-    hz = metrics.get("horizons", {})
-    if not hz:
-        return []
-    cells = ", ".join(f"{k} steps (t={fmt(v['t'], 3)}): {fmt(v['rmse'])}" for k, v in hz.items())
-    raw = ", ".join(f"{k} steps: {fmt(v['rmse_raw'])}" for k, v in hz.items())
-    return [("test RMSE at", f"{cells} (normalised)"), ("", f"{raw} (raw units)")]
 
 
 def run_eval(cfg: DictConfig, output_dir: str | Path | None = None, overrides: list[str] | None = None) -> dict:
@@ -79,66 +17,3 @@ def run_eval(cfg: DictConfig, output_dir: str | Path | None = None, overrides: l
     if not cfg.init:
         raise ConfigError("mpsim eval needs init=<checkpoint> (a path, or a name in paths.ckpt_dir).")
     return evaluate_checkpoint(cfg, rt, task="eval")
-
-
-def evaluate_checkpoint(cfg: DictConfig, rt: Runtime, task: str) -> dict:
-    """Shared by `mpsim eval` and `mpsim train mode=zeroshot`."""
-    t0 = time.perf_counter()
-    ckpt = load_init(cfg, rt)
-    system = None if cfg.data.path and cfg.data.graph != "system" else build_system(cfg)
-    model, model_cfg, splits = model_and_data(cfg, rt, system, ckpt, refit=False)
-    test = splits.test
-    title = f"{test.system_name}: {ckpt['system'].get('system')} checkpoint, no training"
-    metrics = evaluate_model(
-        model,
-        test,
-        rt.output_dir,
-        list(cfg.eval.horizons),
-        None if cfg.data.path else system,
-        cfg.eval.n_plot,
-        cfg.eval.plots,
-        title,
-    )
-    summary = {
-        "task": task,
-        "mode": "zeroshot",
-        "status": "complete",
-        "init": ckpt["path"],
-        "trained_on": ckpt["system"].get("system"),
-        "system": {"name": test.system_name, "n_nodes": test.n_nodes, "state_names": test.state_names},
-        "model": {**model.describe(), "config": model_cfg, **model.report()},
-        "data": {
-            "n_test": len(test),
-            "n_times": test.n_times,
-            "dt": test.meta.get("dt"),
-            "source": cfg.data.path or "simulated",
-        },
-        "test": metrics,
-        "test_error": metrics["rmse"],
-        "wall_time": time.perf_counter() - t0,
-        "run_dir": str(rt.output_dir),
-    }
-    write_json(rt.output_dir / "summary.json", summary)
-    rows = [
-        ("checkpoint", f"{ckpt['path']} (trained on {summary['trained_on']})"),
-        (
-            "evaluated on",
-            f"{test.system_name}: {len(test)} test trajectories, N={test.n_nodes}, {test.n_times - 1} steps",
-        ),
-        ("model", f"{summary['model']['model']} ({summary['model']['n_params']:,} params)"),
-        ("test RMSE", f"{fmt(metrics['rmse'])} normalised, {fmt(metrics['rmse_raw'])} raw units"),
-        *horizon_rows(metrics),
-        *model.report_lines(),
-    ]
-    if "energy_error" in metrics:
-        rows.append(
-            (
-                "energy error",
-                f"{fmt(metrics['energy_error'])} (data's own drift {fmt(metrics['data_energy_drift'], 2)})",
-            )
-        )
-    if metrics.get("n_diverged"):
-        rows.append(("diverged", f"{metrics['n_diverged']} of {len(test)} test trajectories"))
-    rows.append(("run dir", str(rt.output_dir)))
-    print_summary(f"mpsim {task}: {test.system_name} (zero-shot)", rows)
-    return summary

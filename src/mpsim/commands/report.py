@@ -23,11 +23,11 @@ import yaml
 from omegaconf import DictConfig
 
 from mpsim.commands.common import locate, resolve_path
-from mpsim.commands.console import print_summary
+from mpsim.commands.console import markdown, print_summary
 from mpsim.commands.report_layouts import DEFAULT_TITLES, LAYOUT_FUNCS, run_facts, settings_caption
 from mpsim.errors import ConfigError, DataError
 from mpsim.files import atomic_write
-from mpsim.training.metrics import first_epoch_below
+from mpsim.metrics import first_epoch_below
 
 log = logging.getLogger(__name__)
 
@@ -152,21 +152,6 @@ def aggregate(frame: pd.DataFrame, group_by: list[str]) -> pd.DataFrame:
     )
     out["runs"] = grouped.size()
     return out.reset_index()
-
-
-def markdown(frame: pd.DataFrame) -> str:
-    """A GitHub-flavoured Markdown table (no extra dependency)."""
-    cols = list(frame.columns)
-    lines = ["| " + " | ".join(map(str, cols)) + " |", "|" + "|".join("---" for _ in cols) + "|"]
-    for _, r in frame.iterrows():
-        lines.append("| " + " | ".join(_cell(r[c]) for c in cols) + " |")
-    return "\n".join(lines)
-
-
-def _cell(v: Any) -> str:
-    if isinstance(v, float):
-        return "" if math.isnan(v) else f"{v:.4g}"
-    return "" if v is None else str(v)
 
 
 def _pm(m: float, s: float) -> str:

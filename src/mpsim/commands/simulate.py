@@ -22,7 +22,7 @@ from mpsim.data.io import save_csv, save_npz
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError
 from mpsim.files import write_json
-from mpsim.training.metrics import rollout_metrics
+from mpsim.metrics import rollout_metrics
 from mpsim.training.trainer import predict
 
 log = logging.getLogger(__name__)

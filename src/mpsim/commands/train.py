@@ -14,7 +14,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from mpsim import __version__, plotting
+from mpsim import plotting
 from mpsim.commands.common import (
     Runtime,
     build,
@@ -29,15 +29,16 @@ from mpsim.commands.common import (
     setup_runtime,
 )
 from mpsim.commands.console import duration, fmt, print_summary
-from mpsim.commands.eval import evaluate_checkpoint, evaluate_model, horizon_rows
+from mpsim.commands.evaluation import evaluate_checkpoint, evaluate_model, horizon_rows
 from mpsim.config import check_target_node
 from mpsim.errors import CheckpointError, ConfigError, OutputError
 from mpsim.files import atomic_write, child_path, keep_previous, safe_name, write_json
+from mpsim.metrics import epochs_x_min_error
 from mpsim.training import distributed
 from mpsim.training.checkpoint import load_checkpoint
 from mpsim.training.distributed import DistContext
 from mpsim.training.loggers import Logger, LoggerGroup, flatten
-from mpsim.training.metrics import epochs_x_min_error
+from mpsim.version import __version__
 
 log = logging.getLogger(__name__)
 

@@ -10,16 +10,34 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import torch
 
 from mpsim.data.cache import cached
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError, DataError
-from mpsim.systems.base import System
 
 SPLITS = ("train", "val", "test")
+
+
+class Simulator(Protocol):
+    """What `simulate_splits` needs of a ground-truth system (`mpsim.systems.base.System` is one): its default
+    sampling step and horizon, and `generate`. Declared here so that data never imports the systems above it."""
+
+    dt: float
+    horizon: int
+
+    def generate(
+        self,
+        n: int,
+        seed: int,
+        dt: float | None = ...,
+        horizon: int | None = ...,
+        rtol: float = ...,
+        atol: float = ...,
+        burn_in: int = ...,  # asked for only when nonzero: some systems do not take it
+    ) -> Trajectories: ...
 
 
 @dataclass
@@ -35,7 +53,7 @@ class Splits:
 
 
 def simulate_splits(
-    system: System,
+    system: Simulator,
     system_spec: dict[str, Any],
     n_train: int,
     n_val: int,

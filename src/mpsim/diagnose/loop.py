@@ -30,7 +30,7 @@ from mpsim.diagnose.library import (
 )
 from mpsim.diagnose.noise import noise_level
 from mpsim.diagnose.residual import Residual, one_step_residual
-from mpsim.diagnose.select import _lstsq, bootstrap, explained_alone, project_out, stepwise_bic
+from mpsim.diagnose.select import bootstrap, explained_alone, lstsq, project_out, stepwise_bic
 from mpsim.models.base import Model
 from mpsim.training.trainer import predict
 
@@ -369,7 +369,7 @@ def _fit_one(cand: Candidate, res: Residual, target: int, keep: torch.Tensor, ba
     y, groups, base_d = _rows([cand], res, target, keep, base)
     y, (g,) = _project(y, groups, base_d)
     flat_y, flat_g = y.reshape(-1), g.reshape(y.numel(), -1)
-    sol, _ = _lstsq(flat_g, flat_y)
+    sol, _ = lstsq(flat_g, flat_y)
     fitted = float((flat_g @ sol).pow(2).sum())
     return sol, fitted / max(float(flat_y.pow(2).sum()), 1e-300), math.sqrt(fitted / max(flat_y.numel(), 1))
 
@@ -474,7 +474,7 @@ def _joint_refit(
                 per = (flat - sens @ coef).reshape(per.shape)
             blocks.append(per)
     x = torch.cat(blocks, dim=-1).reshape(n * d_total, -1)
-    sol, _ = _lstsq(x, y.reshape(-1))
+    sol, _ = lstsq(x, y.reshape(-1))
     at, refits = 0, []
     for f in diag.accepted:
         k = len(f.coef)

@@ -25,8 +25,8 @@ from mpsim.diagnose.params import DiagnoseParams
 from mpsim.diagnose.residual import one_step_residual
 from mpsim.diagnose.shooting import own_parameters, window_error
 from mpsim.errors import DivergenceError
+from mpsim.metrics import rollout_metrics
 from mpsim.models.base import Model
-from mpsim.training.metrics import rollout_metrics
 from mpsim.training.trainer import predict
 
 #: finetune(model with the named effects, round number) -> (finetuned model, its checkpoint path)

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch
 
 
-def _lstsq(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, float]:  # x: [n, p], y: [n]
+def lstsq(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, float]:  # x: [n, p], y: [n]
     """(coefficients [p], residual sum of squares) of y on the columns of x plus an intercept-free fit."""
     if x.shape[1] == 0:
         return x.new_zeros(0), float(y.pow(2).sum())
@@ -153,8 +153,8 @@ def stepwise_bic(
 def explained_alone(y: torch.Tensor, groups: list[torch.Tensor], base: torch.Tensor | None = None) -> list[float]:
     """Share of the residual sum of squares (after the base fit) each group explains on its own."""
     base = _base_cols(base, y)
-    _, total = _lstsq(base, y)
-    return [1 - _lstsq(torch.cat([base, x], dim=1), y)[1] / total if total > 0 else 0.0 for x in groups]
+    _, total = lstsq(base, y)
+    return [1 - lstsq(torch.cat([base, x], dim=1), y)[1] / total if total > 0 else 0.0 for x in groups]
 
 
 def bootstrap(

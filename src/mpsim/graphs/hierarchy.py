@@ -35,8 +35,9 @@ from itertools import product
 import torch
 
 from mpsim.errors import ConfigError
-from mpsim.graphs.knn import minimum_image, wrap_positions
+from mpsim.graphs.batch import segment_sum
 from mpsim.graphs.order import grid_cells, morton_decode, morton_encode
+from mpsim.periodic import minimum_image, wrap_positions
 
 
 def hierarchy_depth(n_particles: int) -> int:
@@ -216,14 +217,14 @@ def cell_features(
     index, m, q, x, v = particle_cell, mass, charge, pos, vel
     for level, centre in enumerate(centres):
         n = centre.shape[0]
-        m_sum = m.new_zeros(n).index_add(0, index, m)
+        m_sum = segment_sum(m, index, n)
         # offsets from the cell centre by minimum image: robust to unwrapped or stage-perturbed positions
         dx = minimum_image(x - centre[index], box_size)
-        mx = dx.new_zeros(n, 2).index_add(0, index, m[:, None] * dx)
-        mv = v.new_zeros(n, 2).index_add(0, index, m[:, None] * v)
+        mx = segment_sum(m[:, None] * dx, index, n)
+        mv = segment_sum(m[:, None] * v, index, n)
         denom = torch.where(m_sum != 0, m_sum, torch.ones_like(m_sum))[:, None]
         com = wrap_positions(centre + mx / denom, box_size)
-        q_sum = None if q is None else q.new_zeros(n).index_add(0, index, q)
+        q_sum = None if q is None else segment_sum(q, index, n)
         out.append((m_sum, q_sum, com, mv / denom))
         if level < len(parents):
             index, m, q, x, v = parents[level], m_sum, q_sum, com, mv / denom

@@ -19,31 +19,12 @@ from scipy.spatial import cKDTree
 
 from mpsim.errors import ConfigError
 from mpsim.graphs.batch import BatchedGraph
+from mpsim.periodic import minimum_image
 
 # Pairwise work is tiled so that one tile holds at most this many pairs: 512 kB float64 temporaries stay in
 # a CPU cache (measured 3x faster than 32 MB tiles at N = 1000); a GPU wants large tiles.
 _PAIR_BUDGET = 1 << 16
 _PAIR_BUDGET_CUDA = 1 << 26
-
-
-def minimum_image(
-    d: torch.Tensor,  # [..., D] separation vectors
-    box_size: float,
-) -> torch.Tensor:
-    """[..., D] `d` with each component wrapped into [-L/2, L/2] (the nearest periodic copy).
-
-    Uses round-half-to-even, which is odd-symmetric (mi(-d) = -mi(d)), so the vector of an edge is exactly
-    minus that of the reversed edge, even at the measure-zero tie |d| = L/2.
-    """
-    return d - box_size * torch.round(d / box_size)
-
-
-def wrap_positions(
-    pos: torch.Tensor,  # [..., D] positions
-    box_size: float,
-) -> torch.Tensor:
-    """[..., D] positions mapped into the half-open box [-L/2, L/2)."""
-    return pos - box_size * torch.floor(pos / box_size + 0.5)
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import torch
 
-from mpsim.graphs.knn import wrap_positions
+from mpsim.periodic import wrap_positions
 
 # (shift, mask) steps that spread the low 32 bits of an int64 onto its even bits, and that pack them back.
 _SPREAD = (

@@ -17,9 +17,9 @@ import torch
 from torch import nn
 
 from mpsim.errors import ConfigError
-from mpsim.graphs.knn import wrap_positions
 from mpsim.models.base import Model
 from mpsim.models.nbody_base import EnergyLog, check_particle_data, particle_features
+from mpsim.periodic import wrap_positions
 
 if TYPE_CHECKING:
     from collections.abc import Callable

@@ -25,7 +25,7 @@ from torch import nn
 
 from mpsim.models.gn_blocks import InteractionBlock, ParticleEdges
 from mpsim.models.nbody_base import ParticleModel, wrap_state
-from mpsim.training.metrics import state_difference
+from mpsim.periodic import state_difference
 
 
 class DeltaGN(ParticleModel):
@@ -37,7 +37,7 @@ class DeltaGN(ParticleModel):
         k: kNN neighbours (paper baseline: 15).
         depth: quadtree depth (None: round(log4 N) at run time).
         charge: particle charge as an input feature (Coulomb).
-        activation: ``relu`` (paper) or another `gn_blocks.ACTIVATIONS` name.
+        activation: ``relu`` (paper) or another `layers.ACTIVATIONS` name.
         dt_feature: feed the time step to every MLP (the reference's constant input; keeps its parameter
             count: 60,254 for the full/kNN model on gravity, 285,604 hierarchical).
         pairs_per_trajectory, energy_horizons, energy_flag, solver: see `ParticleModel`.

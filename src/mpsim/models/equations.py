@@ -11,40 +11,20 @@ as for any model, and `mpsim diagnose` reads the parameters' sensitivities and t
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import torch
 from torch import nn
 
 from mpsim.effects import Effect, EffectContext, min_delay, total
-from mpsim.equations import SYSTEM_KEYS, EquationField, Spec, check_nodes, check_states, parse_spec
+from mpsim.equations import SYSTEM_KEYS, EquationField, Spec, check_nodes, check_states, merge_spec, parse_spec
 from mpsim.errors import ConfigError, IncompatibleError
 from mpsim.graphs.batch import BatchedGraph, batch_graph
 from mpsim.models.base import Model
 from mpsim.solvers.odeint import ODESolver
 
 ENTRY = re.compile(r"^(?P<name>\w+)\[(?P<i>\d+)\]$")
-
-
-def merge_spec(spec: Mapping[str, Any] | None, inline: Mapping[str, Any], where: str) -> dict[str, Any]:
-    """The spec from `spec` with the keys given inline on top (inline keys win)."""
-    if isinstance(spec, str):
-        raise ConfigError(
-            f"{where}.spec={spec!r} is a file name, but specs are read by the command layer "
-            "(`mpsim ... model.spec=<file>`); in Python pass the loaded mapping "
-            "(mpsim.equations.load_spec_file)."
-        )
-    if spec is not None and not isinstance(spec, Mapping):
-        raise ConfigError(f"{where}.spec must be a mapping or a YAML file name; got {type(spec).__name__}.")
-    merged = dict(spec or {})
-    merged.update({k: v for k, v in inline.items() if v is not None})
-    if not merged:
-        raise ConfigError(
-            f"{where}: no equations. Pass {where}.spec=<file.yaml> or {where}.states / "
-            f"{where}.equations / {where}.params inline (see README, 'Your own equations')."
-        )
-    return merged
 
 
 class _Field(nn.Module):

@@ -29,11 +29,11 @@ import torch
 
 from mpsim.errors import ConfigError, IncompatibleError
 from mpsim.graphs.hierarchy import build_hierarchy, hierarchy_depth
-from mpsim.graphs.knn import full_graph, knn_graph, wrap_positions
+from mpsim.graphs.knn import full_graph, knn_graph
 from mpsim.graphs.order import spatial_order
 from mpsim.models.base import Model
 from mpsim.models.gn_blocks import ParticleEdges, take_rows
-from mpsim.training.metrics import state_difference
+from mpsim.periodic import state_difference, wrap_positions
 
 if TYPE_CHECKING:
     from collections.abc import Callable

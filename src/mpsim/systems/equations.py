@@ -39,11 +39,10 @@ import torch
 
 from mpsim.data.trajectories import Trajectories, grid_step
 from mpsim.effects import min_delay
-from mpsim.equations import SYSTEM_KEYS, EquationField, check_nodes, did_you_mean, parse_spec
+from mpsim.equations import SYSTEM_KEYS, EquationField, check_nodes, did_you_mean, merge_spec, parse_spec
 from mpsim.errors import ConfigError
 from mpsim.graphs.batch import BatchedGraph, batch_graph
 from mpsim.graphs.topology import make_topology
-from mpsim.models.equations import merge_spec
 from mpsim.systems.base import System
 
 SAFE_NAME = re.compile(r"^[A-Za-z0-9_.-]+$")

@@ -42,7 +42,7 @@ import torch
 
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError
-from mpsim.graphs.knn import wrap_positions
+from mpsim.periodic import minimum_image, wrap_positions
 from mpsim.systems.base import System
 
 # Pairwise work is tiled so that one tile holds at most this many pairs. On a CPU a tile's temporaries
@@ -366,10 +366,7 @@ def _separations(
     px, py = pos[s0:s1, :, 0], pos[s0:s1, :, 1]
     dx = px[:, None, :] - px[:, r0:r1, None]
     dy = py[:, None, :] - py[:, r0:r1, None]
-    # round() is odd-symmetric, so pair forces stay exactly antisymmetric (momentum is conserved to round-off)
-    dx -= box * torch.round(dx / box)
-    dy -= box * torch.round(dy / box)
-    return dx, dy
+    return minimum_image(dx, box), minimum_image(dy, box)  # odd-symmetric: pair forces stay antisymmetric
 
 
 def _pair_accelerations(

@@ -21,11 +21,11 @@ from tqdm.auto import tqdm
 
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError, DivergenceError
+from mpsim.metrics import LOSSES, rollout_metrics
 from mpsim.models.base import Model
 from mpsim.training.checkpoint import save_checkpoint
 from mpsim.training.distributed import SINGLE, DistContext
 from mpsim.training.loggers import CSVLogger
-from mpsim.training.metrics import LOSSES, rollout_metrics
 
 OPTIMIZERS = ("adam", "lbfgs")
 

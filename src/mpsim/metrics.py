@@ -11,6 +11,8 @@ from collections.abc import Callable, Sequence
 
 import torch
 
+from mpsim.periodic import state_difference
+
 
 def huber_loss(
     pred: torch.Tensor,  # [B, T, N, D] predicted states, normalised units
@@ -35,21 +37,6 @@ def mse_loss(
 
 
 LOSSES: dict[str, Callable[..., torch.Tensor]] = {"huber": huber_loss, "mse": mse_loss}
-
-
-def state_difference(
-    pred: torch.Tensor,  # [..., D] predicted states
-    target: torch.Tensor,  # [..., D] true states
-    periods: Sequence[float | None] | None = None,  # per feature: period of a periodic coordinate, or None
-) -> torch.Tensor:
-    """[..., D] pred − target, wrapped into [−p/2, p/2) for periodic features (phases on the circle,
-    positions in a periodic box), so that wrapping never counts as an error."""
-    diff = pred - target
-    if not periods or all(p is None for p in periods):
-        return diff
-    period = torch.tensor([p if p else math.inf for p in periods], dtype=diff.dtype, device=diff.device)
-    wrapped = torch.remainder(diff + period / 2, period) - period / 2
-    return torch.where(torch.isfinite(period), wrapped, diff)
 
 
 def squared_errors(
