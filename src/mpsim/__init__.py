@@ -1,45 +1,17 @@
-"""mpsim: learning modular simulators of coupled dynamical systems."""
+"""mpsim: learning modular simulators of coupled dynamical systems.
 
-import ctypes
-import os
-import sys
+Importing mpsim changes nothing outside it (no environment variable, no allocator setting, no matplotlib
+backend): process-wide settings are made by the command-line entry point (`mpsim.process`)."""
 
-# Back large CPU tensors (≥ 2 MB) by transparent huge pages. Read by torch's allocator once, so it must be set
-# before torch is first imported: a fresh 184 MB tensor then costs ~45 instead of ~90 ms of page faults, which
-# makes a long S-MNN solve (T = 5000, 1536 columns: a dozen such tensors per step) ~25 % faster. No effect on
-# GPU memory or where the kernel does not offer THP; a value set by the user wins.
-os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
-
-
-def _keep_freed_cpu_memory() -> bool:
-    """Let glibc keep freed CPU memory for reuse instead of returning it to the kernel (Linux/glibc only).
-
-    PyTorch's CPU allocator is plain malloc: every tensor over 32 MB is a fresh mmap, so each large intermediate
-    is paid for again in page faults (and, with huge pages, in the kernel's compaction, which on a busy machine
-    took 0.3-3 s of system time per S-MNN step at T = 5000). Serving large blocks from the heap and never
-    trimming it makes a steady-state step fault-free, the CPU counterpart of the CUDA caching allocator
-    (S-MNN fwd+bwd at T = 5000, batch 512: 0.86-3.0 s -> 0.66-0.71 s). The cost: memory freed by a run is
-    kept by the process until it exits. `MPSIM_KEEP_HEAP=0` turns this off.
-    """
-    if os.environ.get("MPSIM_KEEP_HEAP", "1") == "0" or not sys.platform.startswith("linux"):
-        return False
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):  # not glibc (e.g. musl): leave the allocator alone
-        return False
-    m_trim_threshold, m_mmap_max = -1, -4
-    return bool(mallopt(m_mmap_max, 0)) and bool(mallopt(m_trim_threshold, 2**31 - 1))
-
-
-KEEPS_HEAP = _keep_freed_cpu_memory()
+from mpsim.version import __version__
 
 __all__ = ["System", "Trajectories", "__version__"]
 
 
 def __getattr__(name: str):
     """`mpsim.Trajectories` and `mpsim.System`, imported on first use: `mpsim --help` and config errors answer
-    without importing torch (and torch is still imported after the allocator settings above)."""
+    without importing torch, and the entry points set the allocator up before torch is imported
+    (`mpsim.process`)."""
     if name == "Trajectories":
         from mpsim.data.trajectories import Trajectories
 
@@ -49,6 +21,3 @@ def __getattr__(name: str):
 
         return System
     raise AttributeError(f"module 'mpsim' has no attribute {name!r}")
-
-
-__version__ = "0.1.0"

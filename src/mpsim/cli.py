@@ -21,6 +21,7 @@ from typing import Any
 import yaml
 
 from mpsim.errors import MpsimError, OutputError, ResourceError
+from mpsim.process import configure_process
 
 CONF_DIR = str(Path(__file__).parent / "conf")
 log = logging.getLogger("mpsim")
@@ -147,6 +148,7 @@ def _hydra_command(command: str) -> Callable[[], None]:
     def task(cfg: Any) -> Any:
         import importlib
 
+        configure_process()  # again in the worker processes of a launcher (joblib, submitit); idempotent
         # imported here, so that `mpsim <command> --help` and `--cfg job` answer without importing torch
         func = getattr(importlib.import_module(f"mpsim.commands.{command}"), f"run_{command}")
         return _guard(command, func, cfg)
@@ -283,13 +285,18 @@ def _check_writable(cfg: Any, command: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Console entry point."""
+    """Console entry point (`mpsim`, `python -m mpsim`, `torchrun -m mpsim`).
+
+    Sets the process up first (`mpsim.process.configure_process`: transparent huge pages for large CPU tensors,
+    freed CPU memory kept for reuse), before torch is imported; importing mpsim itself changes nothing.
+    """
+    configure_process()
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(USAGE)
         return
     if argv[0] in ("-V", "--version"):
-        from mpsim import __version__
+        from mpsim.version import __version__
 
         print(f"mpsim {__version__}")
         return

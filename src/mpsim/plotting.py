@@ -7,25 +7,34 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import matplotlib
+import torch
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import torch  # noqa: E402
-
-from mpsim.files import atomic_write  # noqa: E402
+from mpsim.files import atomic_write
 
 
-def _save(fig: plt.Figure, path: Path) -> Path:
+def subplots(
+    nrows: int = 1, ncols: int = 1, *, figsize: tuple[float, float], layout: str | None = None, **kwargs: Any
+) -> tuple[Figure, Any]:
+    """`(fig, axes)` as `pyplot.subplots` gives them, on a figure of its own with an Agg canvas: no pyplot, no
+    GUI backend and no global figure registry, so plotting never switches the caller's matplotlib backend and
+    a figure is freed when it is dropped. `kwargs` go to `Figure.subplots` (`squeeze`, `sharex`, ...)."""
+    fig = Figure(figsize=figsize, layout=layout)
+    FigureCanvasAgg(fig)
+    return fig, fig.subplots(nrows, ncols, **kwargs)
+
+
+def save_figure(fig: Figure, path: Path) -> Path:
+    """Write `fig` as a PNG at `path`, atomically (temp file + rename)."""
     atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=110, bbox_inches="tight"))
-    plt.close(fig)
     return path
 
 
 def learning_curves(history: Sequence[dict[str, Any]], path: str | Path, title: str = "") -> Path:
     """Train loss and validation/test rollout error per epoch (log scale)."""
     epochs = [r["epoch"] for r in history]
-    fig, (ax_loss, ax_err) = plt.subplots(1, 2, figsize=(10, 3.6))
+    fig, (ax_loss, ax_err) = subplots(1, 2, figsize=(10, 3.6))
     train = [(e, r["train_loss"]) for e, r in zip(epochs, history, strict=True) if _finite(r["train_loss"])]
     if train:
         ax_loss.plot(*zip(*train, strict=True), color="tab:gray")
@@ -38,7 +47,7 @@ def learning_curves(history: Sequence[dict[str, Any]], path: str | Path, title: 
     ax_err.legend()
     if title:
         fig.suptitle(title)
-    return _save(fig, Path(path))
+    return save_figure(fig, Path(path))
 
 
 def trajectories(
@@ -57,7 +66,7 @@ def trajectories(
     b, _, n, d = true.shape
     n_traj, nodes = min(n_traj, b), min(n, max_nodes)
     rows_per = d + (1 if messages is not None and messages.shape[-1] > 0 else 0)
-    fig, axes = plt.subplots(
+    fig, axes = subplots(
         n_traj * rows_per, nodes, figsize=(2.6 * nodes + 1, 1.7 * n_traj * rows_per), squeeze=False, sharex=True
     )
     tt = t.cpu().numpy()
@@ -81,17 +90,17 @@ def trajectories(
     axes[0, 0].legend(fontsize=7, loc="best")
     if title:
         fig.suptitle(title)
-    return _save(fig, Path(path))
+    return save_figure(fig, Path(path))
 
 
 def error_growth(t: torch.Tensor, per_step: Sequence[float], path: str | Path, title: str = "") -> Path:
     """Rollout RMSE (normalised) against time: how fast predictions drift."""
-    fig, ax = plt.subplots(figsize=(5, 3.4))
+    fig, ax = subplots(figsize=(5, 3.4))
     if per_step:
         ax.plot(t[: len(per_step)].cpu().numpy(), per_step, color="tab:red")
     ax.set(xlabel="t", ylabel="RMSE (normalised)", title=title or "error growth over the rollout")
     ax.set_yscale("symlog", linthresh=1e-3)
-    return _save(fig, Path(path))
+    return save_figure(fig, Path(path))
 
 
 def _finite(v: Any) -> bool:
@@ -107,7 +116,7 @@ def residuals(
 ) -> Path:
     """Residual against time per state variable: a few trajectories (node 0) and the RMS over all."""
     d = r.shape[-1]
-    fig, axes = plt.subplots(1, d, figsize=(3.6 * d, 3.2), squeeze=False)
+    fig, axes = subplots(1, d, figsize=(3.6 * d, 3.2), squeeze=False)
     tt = t_mid.cpu().numpy()
     for k in range(d):
         ax = axes[0, k]
@@ -117,7 +126,7 @@ def residuals(
         ax.plot(tt, rms.cpu().numpy(), color="black", lw=1.6, label="RMS")
         ax.set(title=f"d{state_names[k]}/dt residual", xlabel="t")
     axes[0, 0].legend(fontsize=7)
-    return _save(fig, Path(path))
+    return save_figure(fig, Path(path))
 
 
 def periodograms(
@@ -126,12 +135,12 @@ def periodograms(
     path: str | Path,
 ) -> Path:
     """Power of the trajectory-averaged residual against angular frequency, per state variable."""
-    fig, ax = plt.subplots(figsize=(5.5, 3.4))
+    fig, ax = subplots(figsize=(5.5, 3.4))
     for k, (freqs, power) in spectra.items():
         ax.semilogy(freqs.cpu().numpy(), power.clamp(min=1e-30).cpu().numpy(), label=state_names[k], lw=1)
     ax.set(xlabel="ω (rad per unit time)", ylabel="power", title="residual periodogram")
     ax.legend()
-    return _save(fig, Path(path))
+    return save_figure(fig, Path(path))
 
 
 def explained_variance(
@@ -142,23 +151,23 @@ def explained_variance(
 ) -> Path:
     """Share of the residual each candidate explains on its own (the top few per state variable)."""
     d = len(state_names)
-    fig, axes = plt.subplots(1, d, figsize=(4.2 * d, 3.4), squeeze=False)
+    fig, axes = subplots(1, d, figsize=(4.2 * d, 3.4), squeeze=False)
     for k in range(d):
         items = sorted(((v[k], name) for name, v in explained.items()), reverse=True)[:top]
         ax = axes[0, k]
         ax.barh([n for _, n in items][::-1], [v for v, _ in items][::-1], color="tab:purple")
         ax.set(xlim=(0, 1), title=f"d{state_names[k]}/dt", xlabel="residual explained alone")
         ax.tick_params(axis="y", labelsize=7)
-    return _save(fig, Path(path))
+    return save_figure(fig, Path(path))
 
 
 def error_curves(t: torch.Tensor, curves: dict[str, Sequence[float]], path: str | Path) -> Path:
     """Held-out rollout RMSE against time for several models (e.g. before and after a fix)."""
-    fig, ax = plt.subplots(figsize=(5, 3.4))
+    fig, ax = subplots(figsize=(5, 3.4))
     for name, values in curves.items():
         if values:
             ax.plot(t[: len(values)].cpu().numpy(), values, label=name)
     ax.set(xlabel="t", ylabel="rollout RMSE (normalised)", title="held-out rollout error")
     ax.set_yscale("symlog", linthresh=1e-3)
     ax.legend()
-    return _save(fig, Path(path))
+    return save_figure(fig, Path(path))

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import math
 import multiprocessing as mp
-import os
 import resource
 import statistics
 import time
@@ -81,21 +80,14 @@ def peak_memory_mb(fn: Callable[[], Any], threads: int = 1, timeout: float = 600
     `fn` must be picklable (a module-level function or a `functools.partial` of one). The child's baseline
     is taken after its imports (and its high-water mark reset there), so the number is what `fn` itself
     allocated at its peak. NaN on failure. The child is spawned, not forked (a forked child deadlocks in
-    OpenMP once the parent has used its thread pool), and it returns freed memory to the kernel
-    (MPSIM_KEEP_HEAP=0): otherwise pages freed during its imports would absorb fn's allocations unseen.
+    OpenMP once the parent has used its thread pool), and it returns freed memory to the kernel (glibc's
+    default: the child is not set up by `mpsim.process.configure_process`, which only the entry point calls),
+    otherwise pages freed during its imports would absorb fn's allocations unseen.
     """
     ctx = mp.get_context("spawn")
     queue = ctx.Queue()
     proc = ctx.Process(target=_child, args=(fn, threads, queue))
-    saved = os.environ.get("MPSIM_KEEP_HEAP")
-    os.environ["MPSIM_KEEP_HEAP"] = "0"  # read by the child when it imports mpsim
-    try:
-        proc.start()
-    finally:
-        if saved is None:
-            del os.environ["MPSIM_KEEP_HEAP"]
-        else:
-            os.environ["MPSIM_KEEP_HEAP"] = saved
+    proc.start()
     proc.join(timeout)
     if proc.is_alive():
         proc.kill()

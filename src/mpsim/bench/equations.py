@@ -16,6 +16,7 @@ from typing import Any
 import torch
 
 from mpsim.bench.common import Suite, timeit
+from mpsim.metrics import LOSSES
 from mpsim.models.base import Model
 from mpsim.models.equations import EquationsModel
 from mpsim.models.physics import PhysicsModel
@@ -23,7 +24,6 @@ from mpsim.solvers.odeint import ODESolver
 from mpsim.systems.base import System
 from mpsim.systems.lorenz import CoupledLorenz
 from mpsim.systems.pendulum import CoupledPendulums
-from mpsim.training.metrics import LOSSES
 
 PENDULUM_SPEC = {
     "states": ["theta", "omega"],
@@ -153,11 +153,9 @@ class EquationsBench(Suite):
         ]
 
     def plot(self, rows: list[dict[str, Any]], out_dir: Path) -> list[str]:
-        import matplotlib.pyplot as plt
+        from mpsim.plotting import save_figure, subplots
 
-        from mpsim.plotting import _save
-
-        fig, ax = plt.subplots(figsize=(5, 3.2))
+        fig, ax = subplots(figsize=(5, 3.2))
         labels = [r["case"] for r in rows]
         pos = torch.arange(len(rows)).tolist()
         ax.bar([p - 0.2 for p in pos], [1e3 * r["physics_step_s"] for r in rows], 0.4, label="physics (hand-written)")
@@ -165,4 +163,4 @@ class EquationsBench(Suite):
         ax.set_xticks(pos, labels)
         ax.set(ylabel="training step (ms)", title="spec model vs hand-written model")
         ax.legend()
-        return [str(_save(fig, Path(out_dir) / "equations_vs_physics.png"))]
+        return [str(save_figure(fig, Path(out_dir) / "equations_vs_physics.png"))]

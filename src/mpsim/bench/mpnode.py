@@ -96,14 +96,12 @@ class MPNODEBench(Suite):
         return lines
 
     def plot(self, rows: list[dict[str, Any]], out_dir: Path) -> list[str]:
-        import matplotlib.pyplot as plt
+        from mpsim.plotting import save_figure, subplots
 
-        from mpsim.plotting import _save
-
-        fig, ax = plt.subplots(figsize=(5, 3.6))
+        fig, ax = subplots(figsize=(5, 3.6))
         for b in self.batches:
             sub = [r for r in rows if r["B"] == b]
             ax.loglog([r["N"] for r in sub], [r["fwd_bwd_s"] for r in sub], "o-", label=f"B={b}")
         ax.set(xlabel="nodes N", ylabel="forward+backward time (s)", title=f"MP-NODE rollout, {self.graph} graph")
         ax.legend()
-        return [str(_save(fig, Path(out_dir) / "mpnode_scaling.png"))]
+        return [str(save_figure(fig, Path(out_dir) / "mpnode_scaling.png"))]

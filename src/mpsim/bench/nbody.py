@@ -287,11 +287,9 @@ class NBodyBench(Suite):
         return lines
 
     def plot(self, rows: list[dict[str, Any]], out_dir: Path) -> list[str]:
-        import matplotlib.pyplot as plt
+        from mpsim.plotting import save_figure, subplots
 
-        from mpsim.plotting import _save
-
-        fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+        fig, axes = subplots(1, 3, figsize=(13, 3.8))
         for ax, part, key, label in (
             (axes[0], "graph", "time_ms", "graph build (ms)"),
             (axes[1], "forward", "time_ms", "forward step (ms)"),
@@ -304,4 +302,4 @@ class NBodyBench(Suite):
             ax.set(xlabel="particles N", ylabel=label)
             ax.legend()
         fig.suptitle("N-body graphs and models against N")
-        return [str(_save(fig, Path(out_dir) / "nbody_scaling.png"))]
+        return [str(save_figure(fig, Path(out_dir) / "nbody_scaling.png"))]

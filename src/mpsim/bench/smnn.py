@@ -277,11 +277,9 @@ class SMNNBench(Suite):
         return out
 
     def plot(self, rows: list[dict[str, Any]], out_dir: Path) -> list[str]:
-        import matplotlib.pyplot as plt
+        from mpsim.plotting import save_figure, subplots
 
-        from mpsim.plotting import _save
-
-        fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+        fig, axes = subplots(1, 3, figsize=(13, 3.8))
         for lhs, style in zip(self.lhs_modes, ("-", "--"), strict=False):
             for method in self.methods:
                 label = f"{method} ({lhs})"
@@ -307,4 +305,4 @@ class SMNNBench(Suite):
         axes[1].set(xlabel="sequence length T", ylabel="peak memory (MiB)", title=f"batch {self.base_batch}")
         axes[2].set(xlabel="batch", ylabel="forward+backward (ms)", title=f"T = {self.base_length}")
         axes[0].legend(fontsize=7)
-        return [str(_save(fig, Path(out_dir) / "smnn_scaling.png"))]
+        return [str(save_figure(fig, Path(out_dir) / "smnn_scaling.png"))]

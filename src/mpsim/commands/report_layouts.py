@@ -21,22 +21,15 @@ training-set size, message size), never by where they lie. Every layout returns 
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import matplotlib
+import pandas as pd
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import pandas as pd  # noqa: E402
-
-from mpsim.files import atomic_write  # noqa: E402
-
-LAYOUTS = ("table2", "table1", "curves", "message_size")
+from mpsim.plotting import save_figure, subplots
 
 #: the paper's Table 2 (epochs to the minimum test error × that error; N/A where the paper has none)
 PAPER_TABLE2 = {
@@ -181,12 +174,6 @@ def _curve(run: str) -> pd.DataFrame | None:
     return m if len(m) else None
 
 
-def _save(fig: plt.Figure, path: Path) -> Path:
-    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=110, bbox_inches="tight"))
-    plt.close(fig)
-    return path
-
-
 def _targets(train: pd.DataFrame) -> list[str]:
     """Systems some run was finetuned on (all systems when none was)."""
     fine = sorted(set(train.loc[train["mode"] == "finetune", "system"]))
@@ -308,7 +295,7 @@ def _orderings(cell: dict, columns: list[str]) -> list[str]:
 
 
 def _bars(table: pd.DataFrame, columns: list[str], rows: list[str], path: Path) -> Path:
-    fig, ax = plt.subplots(figsize=(max(6.0, 1.3 * len(columns)), 3.8))
+    fig, ax = subplots(figsize=(max(6.0, 1.3 * len(columns)), 3.8))
     width = 0.8 / max(len(rows), 1)
     for k, r in enumerate(rows):
         part = table[table["row"] == r].set_index("column")
@@ -323,7 +310,7 @@ def _bars(table: pd.DataFrame, columns: list[str], rows: list[str], path: Path) 
     ax.set_xticks(range(len(columns)), columns, rotation=20, ha="right")
     ax.set(yscale="log", ylabel="epochs × min test error", title="Table 2: lower is better")
     ax.legend(fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 # ---- table 1 -----------------------------------------------------------------------------------------------
@@ -402,7 +389,7 @@ def _named_stats(values: pd.Series) -> dict[str, float]:
 
 
 def _error_bars(table: pd.DataFrame, columns: list[str], rows: list[str], path: Path) -> Path:
-    fig, ax = plt.subplots(figsize=(max(5.0, 1.4 * len(columns)), 3.6))
+    fig, ax = subplots(figsize=(max(5.0, 1.4 * len(columns)), 3.6))
     width = 0.8 / max(len(rows), 1)
     for k, r in enumerate(rows):
         part = table[table["row"] == r].set_index("column")
@@ -413,7 +400,7 @@ def _error_bars(table: pd.DataFrame, columns: list[str], rows: list[str], path: 
     ax.set_xticks(range(len(columns)), columns, rotation=15, ha="right")
     ax.set(ylabel="rollout RMSE (normalised)", title="Table 1: zero-shot generalisation")
     ax.legend(fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 # ---- curves (figure 5) -------------------------------------------------------------------------------------
@@ -427,7 +414,7 @@ def curves(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
     panels = sorted(train.groupby(["system", "n_train"]).groups, key=lambda k: (_column_key(k[0]), k[1]))
     n_col = min(3, len(panels))
     n_row = math.ceil(len(panels) / n_col)
-    fig, axes = plt.subplots(n_row, n_col, figsize=(4.2 * n_col, 3.2 * n_row), squeeze=False, layout="constrained")
+    fig, axes = subplots(n_row, n_col, figsize=(4.2 * n_col, 3.2 * n_row), squeeze=False, layout="constrained")
     records, sections = [], []
     for ax, (system, n_train) in zip(axes.flat, panels, strict=False):
         part = train[(train["system"] == system) & (train["n_train"] == n_train)]
@@ -459,7 +446,7 @@ def curves(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
     for ax in list(axes.flat)[len(panels) :]:
         ax.axis("off")
     fig.suptitle("Finetuned vs from scratch (mean over seeds, band: min–max)")
-    figure = _save(fig, out_dir / "curves.png")
+    figure = save_figure(fig, out_dir / "curves.png")
     return LayoutResult("\n\n".join(sections), pd.DataFrame(records), [figure])
 
 
@@ -493,8 +480,8 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
         return LayoutResult("No MP-NODE training runs found.", pd.DataFrame(), [])
     records, sections = [], []
     systems = sorted(mp["system"].unique(), key=_column_key)
-    fig, axes = plt.subplots(1, len(systems), figsize=(4.2 * len(systems), 3.4), squeeze=False, layout="constrained")
-    cfig, caxes = plt.subplots(2, len(systems), figsize=(4.2 * len(systems), 6.2), squeeze=False, layout="constrained")
+    fig, axes = subplots(1, len(systems), figsize=(4.2 * len(systems), 3.4), squeeze=False, layout="constrained")
+    cfig, caxes = subplots(2, len(systems), figsize=(4.2 * len(systems), 6.2), squeeze=False, layout="constrained")
     for k, system in enumerate(systems):
         part = mp[mp["system"] == system]
         rows = []
@@ -558,7 +545,7 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
         )
     fig.suptitle("Effect of message size (Figure 8; Figure 7 for quadrotors)")
     cfig.suptitle("Train loss and test error per message size (mean over seeds; L2S dashed)")
-    figures = [_save(fig, out_dir / "message_size.png"), _save(cfig, out_dir / "message_size_curves.png")]
+    figures = [save_figure(fig, out_dir / "message_size.png"), save_figure(cfig, out_dir / "message_size_curves.png")]
     return LayoutResult("\n\n".join(sections), pd.DataFrame(records), figures)
 
 
@@ -574,7 +561,3 @@ DEFAULT_TITLES = {
     "curves": "Figure 5: finetuning vs training from scratch",
     "message_size": "Figures 7 and 8: effect of the message size",
 }
-
-
-def load_summary(run: Path) -> dict[str, Any]:
-    return json.loads((run / "summary.json").read_text())
