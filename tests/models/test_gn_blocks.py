@@ -7,9 +7,10 @@ import math
 import pytest
 import torch
 
+from mpsim.graphs.batch import segment_sum
 from mpsim.graphs.hierarchy import build_hierarchy
 from mpsim.graphs.knn import full_graph, knn_graph
-from mpsim.models.gn_blocks import MLP, InteractionBlock, ParticleEdges, sample_sums, segment_sum
+from mpsim.models.gn_blocks import MLP, InteractionBlock, ParticleEdges, sample_sums
 
 
 def _state(b: int, n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, float]:

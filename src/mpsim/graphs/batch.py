@@ -65,6 +65,16 @@ def batch_graph(
     return BatchedGraph(src=src, dst=dst, n_graphs=n_graphs, n_nodes=n_nodes, inv_degree=inv[:, None])
 
 
+def segment_sum(
+    values: torch.Tensor,  # [E, ...] per-edge (or per-member) values
+    index: torch.Tensor,  # [E] segment of each row
+    n_segments: int,
+) -> torch.Tensor:
+    """[n_segments, ...] sums of the rows of `values` per segment (zeros for an empty segment): the one
+    scatter-sum of mpsim (graph aggregations, cell sums of a hierarchy, the graph-network blocks)."""
+    return values.new_zeros(n_segments, *values.shape[1:]).index_add(0, index, values)
+
+
 def mean_aggregate(
     values: torch.Tensor,  # [B, N, F] per-node values (e.g. outgoing messages)
     graph: BatchedGraph,
@@ -72,7 +82,7 @@ def mean_aggregate(
     """[B, N, F] mean over each node's in-neighbours of `values` (0 for a node with no neighbours)."""
     b, n, f = values.shape
     flat = values.reshape(b * n, f)
-    out = flat.new_zeros(b * n, f).index_add_(0, graph.dst, flat.index_select(0, graph.src))
+    out = segment_sum(flat.index_select(0, graph.src), graph.dst, b * n)
     return (out * graph.inv_degree.to(values.dtype)).reshape(b, n, f)
 
 
@@ -83,5 +93,4 @@ def sum_aggregate(
     """[B, N, F] sum over each node's in-neighbours of `values`."""
     b, n, f = values.shape
     flat = values.reshape(b * n, f)
-    out = flat.new_zeros(b * n, f).index_add_(0, graph.dst, flat.index_select(0, graph.src))
-    return out.reshape(b, n, f)
+    return segment_sum(flat.index_select(0, graph.src), graph.dst, b * n).reshape(b, n, f)

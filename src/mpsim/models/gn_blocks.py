@@ -31,9 +31,8 @@ import torch
 from torch import nn
 
 from mpsim.graphs.hierarchy import Hierarchy
-from mpsim.graphs.knn import minimum_image
-
-ACTIVATIONS: dict[str, type[nn.Module]] = {"relu": nn.ReLU, "softplus": nn.Softplus, "tanh": nn.Tanh, "silu": nn.SiLU}
+from mpsim.models.layers import activation, linear_stack
+from mpsim.periodic import minimum_image
 
 # Paper widths (Appendix B): (width, layers) per block.
 EDGE = (150, 2)
@@ -55,13 +54,6 @@ _TILE_ROWS_CUDA = 1 << 22
 Part = tuple[torch.Tensor, torch.Tensor | None]
 
 
-def activation(name: str) -> nn.Module:
-    """The activation module called `name` (relu, softplus, tanh, silu)."""
-    if name not in ACTIVATIONS:
-        raise ValueError(f"unknown activation {name!r}; choose one of {sorted(ACTIVATIONS)}.")
-    return ACTIVATIONS[name]()
-
-
 class MLP(nn.Module):
     """`n_layers` × (Linear + activation), the activation after every layer (the reference's blocks).
 
@@ -75,7 +67,7 @@ class MLP(nn.Module):
     def __init__(self, n_in: int, width: int, n_layers: int, act: str) -> None:
         super().__init__()
         sizes = [n_in] + [width] * n_layers
-        self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:], strict=True))
+        self.layers = nn.ModuleList(linear_stack(sizes))
         self.act = activation(act)
         self.n_in, self.width = n_in, width
 
@@ -102,7 +94,7 @@ class MLP(nn.Module):
     ) -> torch.Tensor:
         """[n_segments, width] Σ per segment of the rows of `forward_parts(parts)`, in tiles of rows.
 
-        The same sums as `segment_sum(forward_parts(parts), segment, n_segments)`, but the R rows (edges) are
+        The same sums as `graphs.batch.segment_sum(forward_parts(parts), segment, n_segments)`, but the R rows (edges) are
         run through the MLP a tile at a time and summed into the output at once: the per-row intermediates
         (R x 150 floats each, 0.8 GB at R = 1.4 M) never exist whole. Whole-graph intermediates cost page faults
         on every fresh allocation and a trip through main memory per layer; tiles stay in the CPU cache, which
@@ -157,15 +149,6 @@ class MLP(nn.Module):
         for layer in self.layers[1:]:
             h = self.act(layer(h))
         return h
-
-
-def segment_sum(
-    values: torch.Tensor,  # [E, F] per-edge (or per-member) values
-    index: torch.Tensor,  # [E] segment of each row
-    n_segments: int,
-) -> torch.Tensor:
-    """[n_segments, F] sums of the rows of `values` per segment (zeros for an empty segment)."""
-    return values.new_zeros(n_segments, values.shape[-1]).index_add(0, index, values)
 
 
 @dataclass(frozen=True)

@@ -31,17 +31,8 @@ from torch import nn
 from mpsim.effects import Effect
 from mpsim.graphs.batch import BatchedGraph, batch_graph, sum_aggregate
 from mpsim.models.controls import ControlledModel, ControlNormalisation, integrate_held, zero_order_hold
+from mpsim.models.layers import ACTIVATIONS, dense
 from mpsim.solvers.odeint import ODESolver
-
-ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU, "softplus": nn.Softplus, "silu": nn.SiLU, "gelu": nn.GELU}
-
-
-def dense(n_in: int, n_out: int) -> nn.Linear:
-    """Linear layer with Flux's default initialisation (Glorot-uniform weights, zero bias)."""
-    layer = nn.Linear(n_in, n_out)
-    nn.init.xavier_uniform_(layer.weight)
-    nn.init.zeros_(layer.bias)
-    return layer
 
 
 def dense_adjacency(graph: BatchedGraph, dtype: torch.dtype) -> torch.Tensor:

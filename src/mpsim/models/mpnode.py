@@ -23,23 +23,8 @@ from torch import nn
 from mpsim.effects import Effect, EffectContext, total
 from mpsim.graphs.batch import BatchedGraph, batch_graph, mean_aggregate, sum_aggregate
 from mpsim.models.controls import ControlledModel, ControlNormalisation, integrate_held, zero_order_hold
+from mpsim.models.layers import mlp
 from mpsim.solvers.odeint import ODESolver
-
-
-def mlp(n_in: int, hidden: int, n_out: int, n_hidden_layers: int = 2, activation: str = "tanh") -> nn.Sequential:
-    """Dense(in→h, act) → (n_hidden_layers − 1)×Dense(h→h, act) → Dense(h→out), Glorot weights, zero biases."""
-    act = {"tanh": nn.Tanh, "relu": nn.ReLU, "softplus": nn.Softplus, "silu": nn.SiLU, "gelu": nn.GELU}[activation]
-    sizes = [n_in] + [hidden] * n_hidden_layers
-    layers: list[nn.Module] = []
-    for a, b in zip(sizes[:-1], sizes[1:], strict=True):
-        layers += [nn.Linear(a, b), act()]
-    layers.append(nn.Linear(sizes[-1], n_out))
-    for layer in layers:
-        if isinstance(layer, nn.Linear):  # Flux's default init, as in the reference
-            nn.init.xavier_uniform_(layer.weight)
-            nn.init.zeros_(layer.bias)
-    return nn.Sequential(*layers)
-
 
 AGGREGATIONS = {"mean": mean_aggregate, "sum": sum_aggregate}
 

@@ -25,7 +25,7 @@ from torch import nn
 from mpsim.effects import Effect
 from mpsim.errors import IncompatibleError
 from mpsim.models.controls import ControlledModel, ControlNormalisation, integrate_held, zero_order_hold
-from mpsim.models.l2s import ACTIVATIONS, dense
+from mpsim.models.layers import ACTIVATIONS, dense
 from mpsim.solvers.odeint import ODESolver
 
 

@@ -26,7 +26,7 @@ from mpsim.effects import Effect, EffectContext, min_delay, total
 from mpsim.errors import ConfigError, IncompatibleError
 from mpsim.graphs.batch import batch_graph
 from mpsim.models.base import Model
-from mpsim.models.mpnode import mlp
+from mpsim.models.layers import mlp
 from mpsim.solvers.mnn_dense import dense_solve, mnn_dense_solve
 from mpsim.solvers.odeint import ODESolver
 from mpsim.solvers.smnn import METHODS, smnn_solve

@@ -26,7 +26,7 @@ from torch import nn
 from mpsim.errors import ConfigError
 from mpsim.graphs.batch import batch_graph, mean_aggregate
 from mpsim.models.base import Model
-from mpsim.models.mpnode import mlp
+from mpsim.models.layers import mlp
 from mpsim.models.smnn_discovery import LAYER_METHODS, solve_linear_ode, uniform_step
 from mpsim.solvers.odeint import ODESolver
 
