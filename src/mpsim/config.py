@@ -55,7 +55,7 @@ class DataConf:
 
 @dataclass
 class TrainerConf:
-    _target_: str = "mpsim.training.Trainer"
+    _target_: str = "mpsim.training.trainer.Trainer"
     max_epochs: int = 100
     batch_size: int = 32
     lr: float = 3.0e-3

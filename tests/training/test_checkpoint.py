@@ -100,7 +100,8 @@ def test_targets_outside_mpsim_need_the_users_own_config(tmp_path):
 @pytest.mark.parametrize(
     "target, ok",
     [
-        ("mpsim.models.MPNODE", True),
+        ("mpsim.models.mpnode.MPNODE", True),  # the configs' module paths
+        ("mpsim.models.MPNODE", True),  # package paths, as in checkpoints written before: they still load
         ("mpsim.effects.LinearDamping", True),
         ("mpsim.files.atomic_write", False),
         ("mpsim.training.checkpoint.torch", False),

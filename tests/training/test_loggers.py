@@ -61,7 +61,7 @@ def test_tensorboard_and_mlflow_read_back(cfg_factory, tmp_path):
     content = acc.PluginTagToContent("hparams")
     start = plugin_data_pb2.HParamsPluginData.FromString(content["_hparams_/session_start_info"])
     assert start.session_start_info.hparams["trainer.lr"].number_value == pytest.approx(0.004)
-    assert start.session_start_info.hparams["model._target_"].string_value == "mpsim.models.MPNODE"
+    assert start.session_start_info.hparams["model._target_"].string_value == "mpsim.models.mpnode.MPNODE"
 
     client = MlflowClient(tracking_uri=(tmp_path / "outputs" / "mlruns").as_uri())
     (run,) = client.search_runs([client.get_experiment_by_name("mpsim").experiment_id])

@@ -25,8 +25,6 @@ from mpsim.graphs.topology import make_topology
 
 #: random families and the keyword parameters `mpsim.graphs.topology` expects for each
 FAMILIES = {"erdos_renyi": ("p", "m"), "barabasi_albert": ("k",), "watts_strogatz": ("k", "p")}
-#: short names used in system names and reports
-SHORT = {"erdos_renyi": "er", "barabasi_albert": "ba", "watts_strogatz": "ws"}
 
 
 def graph_ensemble(
@@ -135,8 +133,3 @@ class GraphEnsembleSystem:
         if self.n_graphs == 1:
             return traj
         return replace(traj, edge_index=self.batch_edge_index(len(traj)))
-
-
-def family_name(graph: str) -> str:
-    """Short family name (``ba``, ``er``, ``ws``) for a random-graph family."""
-    return SHORT.get(graph, graph)

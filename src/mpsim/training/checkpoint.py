@@ -247,12 +247,3 @@ def check_config_targets(node: Any, where: str, allowed: Iterable[str] = ()) -> 
             )
 
     walk(node, "model")
-
-
-def rng_state() -> dict[str, Any]:
-    """Global torch RNG state (for an exact resume)."""
-    return {"torch": torch.get_rng_state()}
-
-
-def set_rng_state(state: dict[str, Any]) -> None:
-    torch.set_rng_state(state["torch"])
