@@ -13,8 +13,8 @@ graph must still be acyclic):
 
     0  base       errors, files, memory, conf, version, process   plain helpers: messages, atomic files, memory,
                                                                    the version, the entry points' process set-up
-    1  numerics   periodic, metrics, effects, equations,          the maths: periodic geometry, losses and
-                  graphs, solvers, nn                             metrics, effects, topologies, integrators, layers
+    1  numerics   periodic, polynomials, metrics, effects,        the maths: periodic geometry, monomials, losses
+                  equations, graphs, solvers                      and metrics, effects, topologies, integrators
     2  data       data                                           trajectories, file IO, splits, cache
     3  systems    systems                                        ground-truth simulators (they make `Trajectories`)
     4  models     models                                         learnable simulators
@@ -54,12 +54,12 @@ LAYERS: list[tuple[str, list[str]]] = [
         "numerics",
         [
             "mpsim.periodic",
+            "mpsim.polynomials",
             "mpsim.metrics",
             "mpsim.effects",
             "mpsim.equations",
             "mpsim.graphs",
             "mpsim.solvers",
-            "mpsim.nn",
         ],
     ),
     ("data", ["mpsim.data"]),

@@ -1,4 +1,5 @@
-"""Losses and metrics: one vocabulary for every model.
+"""Losses and metrics: one vocabulary for every model, and the one module that holds them (training, evaluation,
+the residual loop's held-out report and the benchmarks all read their numbers from here).
 
 Errors are computed on full rollouts. "Normalised" means in units of each state feature's standard
 deviation over the training split (the model's `state_std`), so errors are comparable across features.
@@ -105,6 +106,28 @@ def relative_energy_error(
     rel = rel[torch.isfinite(rel)]
     drift = ((e_true - e_true[:, :1]).abs() / e_true[:, :1].abs().clamp(min=1e-12)).max()
     return {"energy_error": float(rel.mean()) if rel.numel() else math.nan, "data_energy_drift": float(drift)}
+
+
+def valid_prediction_time(
+    pred: torch.Tensor,  # [B, T, N, D] predicted states
+    true: torch.Tensor,  # [B, T, N, D] true states
+    std: torch.Tensor,  # [D] feature scale
+    t: torch.Tensor,  # [T] times
+    threshold: float = 0.3,
+) -> float:
+    """Mean over trajectories of the time until the normalised RMSE (over nodes and features) first exceeds
+    `threshold` (the whole horizon if it never does)."""
+    err = ((pred - true) / std).pow(2).mean(dim=(2, 3)).sqrt()  # [B, T]
+    err = torch.where(torch.isfinite(err), err, torch.full_like(err, math.inf))
+    over = err > threshold
+    first = torch.where(over.any(dim=1), over.float().argmax(dim=1), torch.full((err.shape[0],), err.shape[1] - 1))
+    return float((t[first] - t[0]).mean())
+
+
+def relative_mse(u: torch.Tensor, exact: torch.Tensor) -> torch.Tensor:  # u: [T, D, 3], exact: [T, 3]
+    """[3] the S-MNN paper's Table 3 metric: relMSE_k = mean_t (û_k − x₀⁽ᵏ⁾)² / Var_t(x₀⁽ᵏ⁾) of the first
+    variable's value and derivatives (k = 0, 1, 2)."""
+    return ((u[:, 0, :] - exact) ** 2).mean(0) / exact.var(0, unbiased=False)
 
 
 def epochs_x_min_error(epochs: Sequence[int], errors: Sequence[float]) -> dict:

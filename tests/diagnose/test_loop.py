@@ -3,9 +3,10 @@ import pytest
 import torch
 
 from mpsim.data.io import load_trajectories
-from mpsim.diagnose.loop import find_effects, valid_prediction_time
+from mpsim.diagnose.loop import find_effects
 from mpsim.diagnose.noise import noise_level
 from mpsim.effects import LinearDamping
+from mpsim.metrics import valid_prediction_time
 from mpsim.models.physics import PhysicsModel
 from mpsim.solvers import ODESolver
 from mpsim.systems import CoupledPendulums

@@ -11,7 +11,8 @@ from mpsim.data.dataset import fit_normalisation
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError, IncompatibleError
 from mpsim.metrics import mse_loss
-from mpsim.models.smnn_discovery import SMNNDiscovery, monomial_name, monomials
+from mpsim.models.smnn_discovery import SMNNDiscovery, monomial_name
+from mpsim.polynomials import monomials
 from tests.conftest import run_cli
 
 F64 = torch.float64

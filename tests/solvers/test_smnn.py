@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from mpsim.bench.smnn_table3 import relative_mse, solver_inputs, table3_systems, truth
+from mpsim.bench.smnn_table3 import solver_inputs, table3_systems, truth
 from mpsim.errors import MpsimError
+from mpsim.metrics import relative_mse
 from mpsim.solvers import smnn_cyclic
 from mpsim.solvers.mnn_dense import dense_solve
 from mpsim.solvers.smnn import (

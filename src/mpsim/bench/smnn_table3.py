@@ -16,6 +16,7 @@ from typing import Any, NamedTuple
 import torch
 
 from mpsim.bench.common import Suite, timeit
+from mpsim.metrics import relative_mse
 from mpsim.solvers.mnn_dense import dense_solve
 from mpsim.solvers.smnn import smnn_solve
 
@@ -122,11 +123,6 @@ def solve(method: str, ode: LinearODE, n_steps: int, h: float) -> torch.Tensor:
     if method == "dense":
         return dense_solve(coef, rhs, init, h, n_steps=n_steps)
     return smnn_solve(coef, rhs, init, torch.tensor([h], dtype=F64), n_steps=n_steps, method=method)
-
-
-def relative_mse(u: torch.Tensor, exact: torch.Tensor) -> torch.Tensor:  # u: [T, D, 3], exact: [T, 3]
-    """[3] relMSE_k = mean_t (û_k − x₀⁽ᵏ⁾)² / Var_t(x₀⁽ᵏ⁾) of the first variable."""
-    return ((u[:, 0, :] - exact) ** 2).mean(0) / exact.var(0, unbiased=False)
 
 
 class Table3Bench(Suite):

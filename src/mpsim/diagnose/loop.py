@@ -32,6 +32,7 @@ from mpsim.diagnose.noise import noise_level
 from mpsim.diagnose.residual import Residual, one_step_residual
 from mpsim.diagnose.select import bootstrap, explained_alone, lstsq, project_out, stepwise_bic
 from mpsim.models.base import Model
+from mpsim.polynomials import monomial_features
 from mpsim.training.trainer import predict
 
 
@@ -216,7 +217,7 @@ def nuisance_columns(model: Model, data: Trajectories, represented: tuple[str, .
         cols = torch.cat([c.features for c in build_library(data, {}, [], represented)], dim=-1)  # [B, T-1, N, K]
         parts.append(cols.unsqueeze(-2).expand(-1, -1, -1, data.state_dim, -1))
     if model.represents_polynomials:
-        cols = state_polynomials(data.x.double(), model.represents_polynomials)  # [B, T, N, K]
+        cols = monomial_features(data.x.double(), model.represents_polynomials)  # [B, T, N, K]
         cols = 0.5 * (cols[:, 1:] + cols[:, :-1])
         parts.append(cols.unsqueeze(-2).expand(-1, -1, -1, data.state_dim, -1))
     return (torch.cat(parts, dim=-1) if parts else None), n_shared
@@ -237,17 +238,6 @@ def effect_columns(model: Model, data: Trajectories) -> torch.Tensor | None:
         full[..., effect.target, :] = feats
         cols.append(full)
     return torch.cat(cols, dim=-1) if cols else None
-
-
-def state_polynomials(x: torch.Tensor, degree: int) -> torch.Tensor:  # x: [B, T, N, D]
-    """[B, T, N, K] every monomial of a node's state variables of degree 1..`degree` (products within a node)."""
-    d = x.shape[-1]
-    cols = [x]
-    current = [(i,) for i in range(d)]
-    for _ in range(degree - 1):
-        current = [m + (j,) for m in current for j in range(m[-1], d)]
-        cols.append(torch.stack([x[..., list(m)].prod(-1) for m in current], dim=-1))
-    return torch.cat(cols, dim=-1)
 
 
 def find_effects(
@@ -534,19 +524,3 @@ def _null_check(model, data, omegas, delays, kinds, represented, sigma, seed, ph
         alone = explained_alone(flat, [g.reshape(flat.numel(), -1) for g in groups])
         level.append(left * math.sqrt(max(max(alone, default=0.0), 0.0)))
     return rms, level
-
-
-def valid_prediction_time(
-    pred: torch.Tensor,  # [B, T, N, D] predicted states
-    true: torch.Tensor,  # [B, T, N, D] true states
-    std: torch.Tensor,  # [D] feature scale
-    t: torch.Tensor,  # [T] times
-    threshold: float = 0.3,
-) -> float:
-    """Mean over trajectories of the time until the normalised RMSE (over nodes and features) first exceeds
-    `threshold` (the whole horizon if it never does)."""
-    err = ((pred - true) / std).pow(2).mean(dim=(2, 3)).sqrt()  # [B, T]
-    err = torch.where(torch.isfinite(err), err, torch.full_like(err, math.inf))
-    over = err > threshold
-    first = torch.where(over.any(dim=1), over.float().argmax(dim=1), torch.full((err.shape[0],), err.shape[1] - 1))
-    return float((t[first] - t[0]).mean())

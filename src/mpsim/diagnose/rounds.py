@@ -20,12 +20,12 @@ from mpsim.data.dataset import Splits
 from mpsim.data.trajectories import Trajectories
 from mpsim.diagnose.heldout import EFFECTS_NAMED, EXIT_CODES, Judgement, dynamic_rows, judge
 from mpsim.diagnose.library import build_library
-from mpsim.diagnose.loop import Diagnosis, find_effects, valid_prediction_time
+from mpsim.diagnose.loop import Diagnosis, find_effects
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.diagnose.residual import one_step_residual
 from mpsim.diagnose.shooting import own_parameters, window_error
 from mpsim.errors import DivergenceError
-from mpsim.metrics import rollout_metrics
+from mpsim.metrics import rollout_metrics, valid_prediction_time
 from mpsim.models.base import Model
 from mpsim.training.trainer import predict
 

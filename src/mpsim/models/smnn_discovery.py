@@ -15,7 +15,6 @@ restores the MLP), and the 1024-wide denoiser is optional (`denoiser_hidden`), r
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -27,6 +26,7 @@ from mpsim.errors import ConfigError, IncompatibleError
 from mpsim.graphs.batch import batch_graph
 from mpsim.models.base import Model
 from mpsim.models.layers import mlp
+from mpsim.polynomials import monomials
 from mpsim.solvers.mnn_dense import dense_solve, mnn_dense_solve
 from mpsim.solvers.odeint import ODESolver
 from mpsim.solvers.smnn import METHODS, smnn_solve
@@ -54,11 +54,6 @@ def solve_linear_ode(
     if method == "mnn":
         return mnn_dense_solve(coefficients, rhs, init, steps)[0]
     return smnn_solve(coefficients, rhs, init, steps, method=method)
-
-
-def monomials(n_vars: int, degree: int) -> list[tuple[int, ...]]:
-    """Variable-index tuples of every monomial of degree ≤ `degree`, graded (pysindy/reference order)."""
-    return [c for d in range(degree + 1) for c in itertools.combinations_with_replacement(range(n_vars), d)]
 
 
 def monomial_name(term: tuple[int, ...], names: Sequence[str]) -> str:
