@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -15,7 +15,12 @@ from mpsim.files import atomic_write
 
 
 def subplots(
-    nrows: int = 1, ncols: int = 1, *, figsize: tuple[float, float], layout: str | None = None, **kwargs: Any
+    nrows: int = 1,
+    ncols: int = 1,
+    *,
+    figsize: tuple[float, float],
+    layout: Literal["constrained", "compressed", "tight"] | None = None,
+    **kwargs: Any,
 ) -> tuple[Figure, Any]:
     """`(fig, axes)` as `pyplot.subplots` gives them, on a figure of its own with an Agg canvas: no pyplot, no
     GUI backend and no global figure registry, so plotting never switches the caller's matplotlib backend and

@@ -169,13 +169,14 @@ def _build(spec: dict[str, Any], device: torch.device) -> tuple[torch.nn.Module,
     if spec["case"] == "nbody":
         from mpsim.bench.nbody import uniform_state
         from mpsim.models.deltagn import DeltaGN
+        from mpsim.periodic import wrap_positions
 
         n, b, dt = spec["nbody_n"], spec["nbody_batch"], 0.01
         states = [uniform_state(n, seed=s) for s in range(b)]
         x0 = torch.cat([s[0] for s in states])  # [B, N, 4]
         box = states[0][2]
         x1 = x0.clone()
-        x1[..., :2] = torch.remainder(x0[..., :2] + dt * x0[..., 2:] + box / 2, box) - box / 2  # a drift step
+        x1[..., :2] = wrap_positions(x0[..., :2] + dt * x0[..., 2:], box)  # a drift step
         x = torch.stack([x0, x1], dim=1)  # [B, 2, N, 4]
         data = Trajectories(
             t=torch.tensor([0.0, dt], dtype=torch.float64),
