@@ -127,7 +127,7 @@ def owner(name: str, mods: dict[str, Module]) -> str | None:
 def scan(mods: dict[str, Module]) -> None:
     """Fill each module's import edges and its uses of other modules' private names."""
     for mod in mods.values():
-        aliases: dict[str, str] = {}  # local name -> mpsim module it is bound to
+        aliases: dict[str, str] = {}  # local name -> dotted mpsim path it is bound to (a module, or a name in one)
         for node in ast.walk(mod.tree):
             if isinstance(node, ast.Import):
                 for a in node.names:
@@ -135,26 +135,23 @@ def scan(mods: dict[str, Module]) -> None:
                     if target is None:
                         continue
                     mod.edges.setdefault(target, node.lineno)
-                    if a.asname:
-                        aliases[a.asname] = target
-                    else:
-                        aliases[a.name.split(".")[0]] = a.name.split(".")[0]
+                    check_private_module(mod, target, node.lineno)
+                    head = a.name.split(".")[0]
+                    aliases[a.asname or head] = target if a.asname else head
             elif isinstance(node, ast.ImportFrom):
                 base = resolve_from(mod, node)
-                if owner(base, mods) is None:
+                target = owner(base, mods)
+                if target is None:
                     continue
                 for a in node.names:
                     full = f"{base}.{a.name}"
+                    aliases[a.asname or a.name] = full
                     if full in mods:  # a submodule
                         mod.edges.setdefault(full, node.lineno)
-                        aliases[a.asname or a.name] = full
-                        if a.name.startswith("_") and not a.name.startswith("__"):
-                            if full.rsplit(".", 1)[0] != package_of(mod):
-                                mod.private_uses.append((node.lineno, base, a.name))
+                        check_private_module(mod, full, node.lineno)
                         continue
-                    target = owner(base, mods)
-                    assert target is not None
                     mod.edges.setdefault(target, node.lineno)
+                    check_private_module(mod, target, node.lineno)
                     if is_private(a.name):
                         mod.private_uses.append((node.lineno, target, a.name))
         for node in ast.walk(mod.tree):
@@ -169,6 +166,15 @@ def scan(mods: dict[str, Module]) -> None:
                 if target is not None and target != mod.name:
                     mod.private_uses.append((node.lineno, target, node.attr))
         mod.edges.pop(mod.name, None)
+
+
+def check_private_module(mod: Module, target: str, line: int) -> None:
+    """Record an import of a private module (`pkg._x`) from outside the package `pkg`."""
+    parts = target.split(".")
+    for i in range(1, len(parts)):
+        package = ".".join(parts[:i])
+        if is_private(parts[i]) and not (mod.name == package or mod.name.startswith(package + ".")):
+            mod.private_uses.append((line, package, parts[i]))
 
 
 def package_of(mod: Module) -> str:
@@ -340,6 +346,10 @@ def test_checker_finds_private_names_used_across_modules(tmp_path):
                 "import mpsim.plotting\nfrom mpsim.diagnose.select import _lstsq\n"
                 "from mpsim.diagnose import _solve\nmpsim.plotting._save()\n"
             ),
+            "commands/y.py": (
+                "import mpsim.diagnose._solve as s\nfrom mpsim.plotting import Figure\nFigure._canvas\n"
+                "def f(fig):\n    return fig._private_but_untracked\n"
+            ),
         },
     )
     found = sorted((m.name, target, name) for m in mods.values() for _, target, name in m.private_uses)
@@ -347,6 +357,8 @@ def test_checker_finds_private_names_used_across_modules(tmp_path):
         ("mpsim.commands.x", "mpsim.diagnose", "_solve"),
         ("mpsim.commands.x", "mpsim.diagnose.select", "_lstsq"),
         ("mpsim.commands.x", "mpsim.plotting", "_save"),
+        ("mpsim.commands.y", "mpsim.diagnose", "_solve"),
+        ("mpsim.commands.y", "mpsim.plotting", "_canvas"),
         ("mpsim.diagnose.loop", "mpsim.diagnose.select", "_lstsq"),
     ]
 
