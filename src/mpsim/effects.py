@@ -36,7 +36,7 @@ import torch
 from torch import nn
 
 from mpsim.errors import ConfigError
-from mpsim.graphs.batch import BatchedGraph, batch_graph, sum_aggregate
+from mpsim.graphs.batch import BatchedGraph, batch_graph, segment_sum, sum_aggregate
 
 
 @dataclass
@@ -268,7 +268,7 @@ def _phase_sum(fn, s: torch.Tensor, ctx: EffectContext) -> torch.Tensor:  # s: [
     b, n = s.shape
     flat = s.reshape(b * n)
     diff = fn(flat[ctx.graph.src] - flat[ctx.graph.dst])  # [E'] sender − receiver
-    return flat.new_zeros(b * n).index_add_(0, ctx.graph.dst, diff).reshape(b, n, 1)
+    return segment_sum(diff, ctx.graph.dst, b * n).reshape(b, n, 1)
 
 
 class SineCoupling(Effect):

@@ -37,7 +37,7 @@ import torch
 import yaml
 
 from mpsim.errors import ConfigError
-from mpsim.graphs.batch import BatchedGraph
+from mpsim.graphs.batch import BatchedGraph, segment_sum
 
 SUM_NBR = sympy.Function("sum_nbr")
 MEAN_NBR = sympy.Function("mean_nbr")
@@ -569,7 +569,7 @@ class EquationField:
             v = edge_fn(env)
             if not torch.is_tensor(v) or v.dim() == 0 or v.shape[0] != g.dst.shape[0]:
                 v = _as_tensor(v, env.x).expand(g.dst.shape[0])
-            out = env.x.new_zeros(env.b * env.n).index_add_(0, g.dst, v.to(env.x.dtype))
+            out = segment_sum(v.to(env.x.dtype), g.dst, env.b * env.n)
             if mean:
                 out = out * g.inv_degree[:, 0].to(out.dtype)
             return out.view(env.b, env.n)

@@ -58,11 +58,18 @@ def batch_graph(
         not_loop = src != dst
         src = torch.cat([src[not_loop], loops])
         dst = torch.cat([dst[not_loop], loops])
-    degree = torch.zeros(n_graphs * n_nodes, device=device, dtype=dtype).index_add_(
-        0, dst, torch.ones_like(dst, dtype=dtype)
-    )
-    inv = torch.where(degree > 0, 1.0 / degree.clamp(min=1), torch.zeros_like(degree))
-    return BatchedGraph(src=src, dst=dst, n_graphs=n_graphs, n_nodes=n_nodes, inv_degree=inv[:, None])
+    inv = inverse_degree(dst, n_graphs * n_nodes, dtype)
+    return BatchedGraph(src=src, dst=dst, n_graphs=n_graphs, n_nodes=n_nodes, inv_degree=inv)
+
+
+def inverse_degree(
+    dst: torch.Tensor,  # [E] receiver of each edge
+    n_nodes: int,
+    dtype: torch.dtype,
+) -> torch.Tensor:
+    """[n_nodes, 1] 1 / in-degree of each node (0 for a node without in-neighbours)."""
+    degree = segment_sum(torch.ones_like(dst, dtype=dtype), dst, n_nodes)
+    return torch.where(degree > 0, 1.0 / degree.clamp(min=1), torch.zeros_like(degree))[:, None]
 
 
 def segment_sum(

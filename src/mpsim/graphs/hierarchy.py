@@ -309,7 +309,7 @@ def build_hierarchy(
         dense, occupied = _compact(child_counts)
         level["parent"] = dense[parent_key]
         # particles per parent cell (the bincount above counts children)
-        counts = torch.zeros_like(child_counts).index_add_(0, parent_key, level["count"])
+        counts = segment_sum(level["count"], parent_key, child_counts.shape[0])
 
     feats = cell_features(
         particle_cell,

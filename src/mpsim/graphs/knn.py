@@ -18,7 +18,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from mpsim.errors import ConfigError
-from mpsim.graphs.batch import BatchedGraph
+from mpsim.graphs.batch import BatchedGraph, inverse_degree
 from mpsim.periodic import minimum_image
 
 # Pairwise work is tiled so that one tile holds at most this many pairs: 512 kB float64 temporaries stay in
@@ -55,11 +55,8 @@ class ParticleGraph:
     def as_batched(self, dtype: torch.dtype = torch.float32) -> BatchedGraph:
         """The same edges as a `BatchedGraph` (for `sum_aggregate` / `mean_aggregate`)."""
         src, dst = self.edge_index
-        n = self.n_graphs * self.n_nodes
-        ones = torch.ones_like(dst, dtype=dtype)
-        degree = torch.zeros(n, dtype=dtype, device=dst.device).index_add_(0, dst, ones)
-        inv = torch.where(degree > 0, 1.0 / degree.clamp(min=1), torch.zeros_like(degree))
-        return BatchedGraph(src, dst, n_graphs=self.n_graphs, n_nodes=self.n_nodes, inv_degree=inv[:, None])
+        inv = inverse_degree(dst, self.n_graphs * self.n_nodes, dtype)
+        return BatchedGraph(src, dst, n_graphs=self.n_graphs, n_nodes=self.n_nodes, inv_degree=inv)
 
 
 def edge_vectors(
