@@ -80,7 +80,7 @@ class Module:
 
     name: str
     is_package: bool
-    path: Path
+    rel: str  # path under the source root, for messages
     tree: ast.Module
     edges: dict[str, int] = field(default_factory=dict)  # imported mpsim module -> first line
     private_uses: list[tuple[int, str, str]] = field(default_factory=list)  # (line, module, private name)
@@ -99,7 +99,7 @@ def load_modules(src: Path = SRC, root: str = ROOT) -> dict[str, Module]:
     mods = {}
     for path in sorted((src / root).rglob("*.py")):
         name, is_package = module_name(path, src)
-        mods[name] = Module(name, is_package, path, ast.parse(path.read_text(), str(path)))
+        mods[name] = Module(name, is_package, str(path.relative_to(src)), ast.parse(path.read_text(), str(path)))
     return mods
 
 
@@ -226,11 +226,12 @@ def find_cycle(edges: dict[str, set[str]]) -> list[str] | None:
 
 
 def layer_of(name: str, layers: list[tuple[str, list[str]]] = LAYERS) -> int:
-    """Index of the layer whose longest prefix matches the module `name`."""
+    """Index of the layer whose longest prefix matches the module `name` (the root package `mpsim` matches only
+    itself, so that a new module must be given a layer)."""
     best, best_len = -1, -1
     for i, (_, prefixes) in enumerate(layers):
         for p in prefixes:
-            if (name == p or name.startswith(p + ".")) and len(p) > best_len:
+            if (name == p or (p != ROOT and name.startswith(p + "."))) and len(p) > best_len:
                 best, best_len = i, len(p)
     if best < 0:
         raise AssertionError(f"module {name} is in no layer: add it to LAYERS in {__file__}")
@@ -245,10 +246,10 @@ def upward_imports(mods: dict[str, Module], layers: list[tuple[str, list[str]]] 
         for target, line in sorted(mod.edges.items()):
             high = layer_of(target, layers)
             if high > low:
-                bad.append(f"{mod.path.name}:{line} {mod.name} ({layers[low][0]}) imports {target} ({layers[high][0]})")
+                bad.append(f"{mod.rel}:{line} {mod.name} ({layers[low][0]}) imports {target} ({layers[high][0]})")
             elif target in COMMANDS and mod.name.startswith("mpsim.commands"):
                 kind = "command" if mod.name in COMMANDS else "command helper"
-                bad.append(f"{mod.path.name}:{line} {kind} {mod.name} imports command {target}")
+                bad.append(f"{mod.rel}:{line} {kind} {mod.name} imports command {target}")
     return bad
 
 
@@ -274,11 +275,7 @@ def test_no_upward_import(modules):
 
 
 def test_no_private_name_across_modules(modules):
-    bad = [
-        f"{m.path.relative_to(SRC)}:{line} uses {target}.{name}"
-        for m in modules.values()
-        for line, target, name in m.private_uses
-    ]
+    bad = [f"{m.rel}:{line} uses {target}.{name}" for m in modules.values() for line, target, name in m.private_uses]
     assert not bad, "private names used outside their module:\n" + "\n".join(sorted(bad))
 
 
