@@ -1,8 +1,11 @@
-"""`mpsim` end to end, in subprocesses, on tiny configs."""
+"""`mpsim` end to end on tiny configs: in this process (`tests.helpers.run_mpsim`), except the entry points'
+own exit codes and Ctrl-C, and the joblib launcher's worker processes, which need real processes."""
 
 from __future__ import annotations
 
 import json
+import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -12,7 +15,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from tests.conftest import TINY_TRAIN, run_cli
+from tests.helpers import TINY_TRAIN, run_cli, run_mpsim, run_mpsim_ok
 
 
 def _runs(root: Path, task: str = "train") -> list[Path]:
@@ -23,12 +26,12 @@ def _runs(root: Path, task: str = "train") -> list[Path]:
 def lorenz_ws(tmp_path_factory):
     """A workspace where `mpsim train system=lorenz3` has run (tiny)."""
     ws = tmp_path_factory.mktemp("lorenz")
-    run_cli(["train", "system=lorenz3", *TINY_TRAIN], ws, check=True)
+    run_mpsim_ok(["train", "system=lorenz3", *TINY_TRAIN], ws)
     return ws
 
 
 def test_default_train_writes_every_output(tmp_path):
-    proc = run_cli(["train", *TINY_TRAIN], tmp_path, check=True)
+    proc = run_mpsim_ok(["train", *TINY_TRAIN], tmp_path)
     assert "mpsim train: pendulum2 (scratch)" in proc.stdout and "epochs_x_min_error" in proc.stdout
     (run,) = _runs(tmp_path)
     metrics = pd.read_csv(run / "metrics.csv")
@@ -49,6 +52,7 @@ def test_default_train_writes_every_output(tmp_path):
         "train.log",
     ):
         assert (run / name).is_file(), name
+    assert "scratch: MPNODE (1,413 params) on pendulum2" in (run / "train.log").read_text()
     assert (tmp_path / "checkpoints" / "pendulum2.ckpt").is_file()
 
 
@@ -56,30 +60,38 @@ def test_same_seed_same_summary(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
     for ws in (a, b):
         ws.mkdir()
-        run_cli(["train", *TINY_TRAIN], ws, check=True)
+        run_mpsim_ok(["train", *TINY_TRAIN, "eval.plots=false"], ws)
     sa, sb = (json.loads((_runs(ws)[0] / "summary.json").read_text()) for ws in (a, b))
     drop = ("wall_time", "command_time", "run_dir", "checkpoint", "exported")
     assert {k: v for k, v in sa.items() if k not in drop} == {k: v for k, v in sb.items() if k not in drop}
+    other = tmp_path / "c"
+    other.mkdir()
+    run_mpsim_ok(["train", *TINY_TRAIN, "eval.plots=false", "seed=1"], other)
+    sc = json.loads((_runs(other)[0] / "summary.json").read_text())
+    assert sc["final"] != sa["final"]  # the seed matters: equal summaries above are not a constant
 
 
 def test_lorenz3_then_finetune_zeroshot_eval_simulate(lorenz_ws):
     ws = lorenz_ws
     assert (ws / "checkpoints" / "lorenz3.ckpt").is_file()
-    run_cli(["train", "system=lorenz10", "init=lorenz3.ckpt", *TINY_TRAIN], ws, check=True)
+    run_mpsim_ok(["train", "system=lorenz10", "init=lorenz3.ckpt", *TINY_TRAIN, "eval.plots=false"], ws)
     fine = json.loads((_runs(ws)[-1] / "summary.json").read_text())
     assert fine["mode"] == "finetune" and fine["init"].endswith("lorenz3.ckpt") and fine["system"]["n_nodes"] == 10
     assert (ws / "checkpoints" / "lorenz10.ckpt").is_file()
 
-    proc = run_cli(["train", "mode=zeroshot", "init=lorenz3.ckpt", "system=lorenz10", *TINY_TRAIN], ws, check=True)
+    args = ["train", "mode=zeroshot", "init=lorenz3.ckpt", "system=lorenz10", *TINY_TRAIN, "eval.plots=false"]
+    proc = run_mpsim_ok(args, ws)
     assert "zero-shot" in proc.stdout
     zs = json.loads((_runs(ws)[-1] / "summary.json").read_text())
     assert zs["mode"] == "zeroshot" and zs["test_error"] > 0 and not (_runs(ws)[-1] / "metrics.csv").exists()
 
-    run_cli(["eval", "init=lorenz3.ckpt", "system=lorenz10", "data.n_test=3", "data.horizon=10"], ws, check=True)
-    ev = json.loads((_runs(ws, "eval")[-1] / "summary.json").read_text())
+    run_mpsim_ok(["eval", "init=lorenz3.ckpt", "system=lorenz10", "data.n_test=3", "data.horizon=10"], ws)
+    (ev_run,) = _runs(ws, "eval")
+    ev = json.loads((ev_run / "summary.json").read_text())
     assert ev["trained_on"] == "lorenz3" and ev["system"]["name"] == "lorenz10"
+    assert list((ev_run / "plots").glob("*.png"))
 
-    run_cli(["simulate", "system=lorenz10", "init=lorenz3.ckpt", "format=csv", "n=2", "data.horizon=5"], ws, check=True)
+    run_mpsim_ok(["simulate", "system=lorenz10", "init=lorenz3.ckpt", "format=csv", "n=2", "data.horizon=5"], ws)
     (sim,) = _runs(ws, "simulate")
     for name in ("trajectories.csv", "trajectories_edges.csv", "trajectories.json", "trajectories_model.csv"):
         assert (sim / name).is_file(), name
@@ -87,11 +99,11 @@ def test_lorenz3_then_finetune_zeroshot_eval_simulate(lorenz_ws):
     assert list(frame.columns) == ["traj", "t", "node", "x", "y", "z"] and len(frame) == 2 * 6 * 10
 
 
-def test_trained_file_data_round_trip(lorenz_ws, tmp_path):
+def test_trained_file_data_round_trip(tmp_path):
     # simulate → CSV → train on the file as measured data
-    run_cli(["simulate", "system=pendulum2", "format=csv", "n=9", "data.horizon=10"], tmp_path, check=True)
+    run_mpsim_ok(["simulate", "system=pendulum2", "format=csv", "n=9", "data.horizon=10"], tmp_path)
     (sim,) = _runs(tmp_path, "simulate")
-    run_cli(["train", f"data.path={sim / 'trajectories.csv'}", *TINY_TRAIN], tmp_path, check=True)
+    run_mpsim_ok(["train", f"data.path={sim / 'trajectories.csv'}", *TINY_TRAIN, "eval.plots=false"], tmp_path)
     summary = json.loads((_runs(tmp_path)[-1] / "summary.json").read_text())
     assert (
         summary["data"]["source"].endswith("trajectories.csv") and summary["data"]["train"] == 7
@@ -100,64 +112,69 @@ def test_trained_file_data_round_trip(lorenz_ws, tmp_path):
 
 def test_sweep_gives_every_job_its_own_directory(lorenz_ws):
     ws = lorenz_ws
-    proc = run_cli(
-        ["train", "-m", *TINY_TRAIN, "system=lorenz10", "data.n_train=4,6", "init=lorenz3.ckpt,null"], ws, check=True
-    )
+    args = ["train", "-m", *TINY_TRAIN, "eval.plots=false", "system=lorenz10", "data.n_train=4,6"]
+    proc = run_mpsim_ok([*args, "init=lorenz3.ckpt,null"], ws)
     jobs = sorted(p.parent for p in (ws / "outputs" / "multirun").rglob("summary.json"))
     assert len(jobs) == 4 and len({j.name for j in jobs}) == 4, proc.stderr
     modes = sorted(json.loads((j / "summary.json").read_text())["mode"] for j in jobs)
     assert modes == ["finetune", "finetune", "scratch", "scratch"]
-    report = run_cli(["report", "runs=[outputs/multirun]"], ws, check=True)
+    n_train = sorted(json.loads((j / "summary.json").read_text())["data"]["train"] for j in jobs)
+    assert n_train == [4, 4, 6, 6]
+    report = run_mpsim_ok(["report", "runs=[outputs/multirun]"], ws)
     assert "data.n_train" in report.stdout and "init" in report.stdout
 
 
 def test_joblib_launcher_runs_jobs_in_parallel_processes(tmp_path):
+    # the launcher starts worker processes: a subprocess, so that they end with it
     proc = run_cli(
-        ["train", "-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "seed=0,1", *TINY_TRAIN],
+        [
+            "train",
+            "-m",
+            "hydra/launcher=joblib",
+            "hydra.launcher.n_jobs=2",
+            "seed=0,1",
+            *TINY_TRAIN,
+            "eval.plots=false",
+        ],
         tmp_path,
         check=True,
     )
     jobs = sorted(p.parent for p in (tmp_path / "outputs" / "multirun").rglob("summary.json"))
     assert len(jobs) == 2, proc.stderr
-    assert "Joblib.Parallel" in proc.stderr or "joblib" in proc.stderr.lower()
+    assert sorted(json.loads((j / "summary.json").read_text())["seed"] for j in jobs) == [0, 1]
+    # Hydra's joblib launcher announces its pool; the basic launcher would log "Launching 2 jobs locally"
+    output = proc.stdout + proc.stderr
+    assert "Joblib.Parallel(n_jobs=2" in output and "Launching 2 jobs locally" not in output, output[-3000:]
 
 
-def test_resume_after_interrupt_matches_an_uninterrupted_run(tmp_path):
-    args = [
-        "train",
-        "trainer=quick",
-        "trainer.max_epochs=8",
-        "trainer.progress=false",
-        "data.n_train=8",
-        "data.n_val=4",
-        "data.n_test=4",
-        "data.horizon=10",
-    ]
+def test_resume_after_interrupt_matches_an_uninterrupted_run(tmp_path, monkeypatch):
+    from mpsim.training.trainer import Trainer
+
+    args = ["train", "trainer=quick", "trainer.max_epochs=6", "trainer.progress=false", "eval.plots=false"]
+    args += ["data.n_train=8", "data.n_val=4", "data.n_test=4", "data.horizon=10"]
     full_ws, cut_ws = tmp_path / "full", tmp_path / "cut"
     full_ws.mkdir(), cut_ws.mkdir()
-    run_cli(args, full_ws, check=True)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mpsim.cli", *args],
-        cwd=cut_ws,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    deadline = time.time() + 120
-    while time.time() < deadline:
-        metrics = list((cut_ws / "outputs").rglob("metrics.csv"))
-        if metrics and len(metrics[0].read_text().splitlines()) >= 4:  # header + epochs 0..2
-            break
-        time.sleep(0.05)
-    proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=60)
-    if proc.returncode == 0:
-        pytest.skip("the run finished before it could be interrupted")
-    assert proc.returncode == 130 and "resume=true" in err
-    run_cli([*args, "resume=true"], cut_ws, check=True)
+    run_mpsim_ok(args, full_ws)
+
+    train_epoch = Trainer._train_epoch
+
+    def ctrl_c_in_epoch_3(self, model, data, opt, loss_fn, shuffle, epoch):
+        if epoch == 3:  # after a few batches' worth of work: what Ctrl-C during epoch 3 raises
+            raise KeyboardInterrupt
+        return train_epoch(self, model, data, opt, loss_fn, shuffle, epoch)
+
+    monkeypatch.setattr(Trainer, "_train_epoch", ctrl_c_in_epoch_3)
+    cut = run_mpsim(args, cut_ws)
+    monkeypatch.undo()
+    assert cut.code == 130 and "resume=true" in cut.err, (cut.code, cut.err[-2000:])
+    (cut_run,) = _runs(cut_ws) or [m.parent for m in (cut_ws / "outputs").rglob("metrics.csv")]
+    assert len(pd.read_csv(cut_run / "metrics.csv")) == 3  # epochs 0..2 finished before the interrupt
+    res = run_mpsim_ok([*args, "resume=true"], cut_ws)
+    assert f"mpsim train: resuming {cut_run.relative_to(cut_ws)}" in res.err
     (full_run,), (cut_run,) = _runs(full_ws), _runs(cut_ws)
     cols = ["epoch", "train_loss", "val_error", "test_error", "lr"]
     a, b = pd.read_csv(full_run / "metrics.csv")[cols], pd.read_csv(cut_run / "metrics.csv")[cols]
+    assert len(a) == 7
     pd.testing.assert_frame_equal(a, b)
     sa, sb = (json.loads((r / "summary.json").read_text()) for r in (full_run, cut_run))
     assert sa["min_test_error"] == sb["min_test_error"] and sa["test"]["rmse"] == sb["test"]["rmse"]
@@ -165,19 +182,20 @@ def test_resume_after_interrupt_matches_an_uninterrupted_run(tmp_path):
 
 def _fails(args, cwd, match, code=2):
     before = {p for p in cwd.rglob("*") if p.is_file()}
-    proc = run_cli(args, cwd)
-    assert proc.returncode == code, (proc.returncode, proc.stdout, proc.stderr)
-    assert match in proc.stderr, proc.stderr
-    assert "Traceback" not in proc.stderr
+    proc = run_mpsim(args, cwd)
+    assert proc.code == code, (proc.code, proc.out[-2000:], proc.err[-2000:])
+    lines = proc.error_lines()
+    assert len(lines) == 1 and match in lines[0], proc.err
+    assert "Traceback" not in proc.err
     new = {p for p in cwd.rglob("*") if p.is_file()} - before
-    # nothing half-written: no results, no checkpoints, no partial data (only Hydra's run record and log)
-    assert not [p for p in new if p.suffix in (".ckpt", ".csv", ".png", ".npz") or p.name == "summary.json"], new
+    # nothing half-written: no results, no checkpoints, no partial data, no run directory
+    assert not [p for p in new if "/.cache/" not in str(p)], new
     return proc
 
 
 def test_bad_inputs_end_with_one_clear_message(lorenz_ws, tmp_path):
     ws = lorenz_ws
-    assert "Could not find 'system/lorenz4'" in run_cli(["train", "system=lorenz4"], ws).stderr
+    _fails(["train", "system=lorenz4"], ws, "Could not find 'system/lorenz4'")
     _fails(["train", "init=nowhere.ckpt", *TINY_TRAIN], ws, "init=nowhere.ckpt: no such checkpoint")
     _fails(["train", "mode=finetune", *TINY_TRAIN], ws, "mode=finetune needs init=<checkpoint>")
     _fails(["train", "mode=zeroshot", *TINY_TRAIN], ws, "mode=zeroshot needs init=<checkpoint>")
@@ -195,14 +213,66 @@ def test_bad_inputs_end_with_one_clear_message(lorenz_ws, tmp_path):
     (tmp_path / "bad.csv").write_text("traj,t,node,theta\n0,0.0,0,1.0\n0,0.1,0,nan\n")
     (tmp_path / "bad_edges.csv").write_text("src,dst\n")
     _fails(["train", f"data.path={tmp_path / 'bad.csv'}", *TINY_TRAIN], ws, "row 3, column 'theta' is empty")
-    assert run_cli(["frobnicate"], ws).returncode == 2
-    typo = run_cli(["train", "trainer.lrr=1"], ws)
-    assert typo.returncode != 0 and "trainer.lrr" in typo.stderr
+    unknown = run_mpsim(["frobnicate"], ws)
+    assert unknown.code == 2 and "unknown command 'frobnicate'" in unknown.err
+    _fails(["train", "trainer.lrr=1"], ws, "Did you mean trainer.lr?")
+
+
+def _entry_points() -> list[list[str]]:
+    script = Path(sys.executable).with_name("mpsim")
+    found = str(script) if script.is_file() else shutil.which("mpsim")
+    assert found, "the `mpsim` console script is not installed (pip install -e .)"
+    return [[found], [sys.executable, "-m", "mpsim"]]
+
+
+def test_entry_points_exit_codes_and_stderr(tmp_path):
+    """The installed `mpsim` script and `python -m mpsim` as a user runs them: real exit codes, one error line on
+    stderr, no traceback, no files; and Ctrl-C (SIGINT) in a training run exits 130 with the resume hint."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    (tmp_path / "f").write_text("x")
+    for entry in _entry_points():
+        ok = subprocess.run([*entry, "--version"], cwd=tmp_path, capture_output=True, text=True, env=env)
+        assert ok.returncode == 0 and ok.stdout.startswith("mpsim "), (entry, ok.stderr)
+        for args, code, match in (
+            (["frobnicate"], 2, "unknown command 'frobnicate'"),
+            (["train", "trainer.lrr=1"], 2, "Did you mean trainer.lr?"),
+        ):
+            proc = subprocess.run([*entry, *args], cwd=tmp_path, capture_output=True, text=True, env=env)
+            assert proc.returncode == code, (entry, args, proc.returncode, proc.stderr)
+            lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("mpsim")]
+            assert len(lines) == 1 and match in lines[0], (entry, proc.stderr)
+            assert "Traceback" not in proc.stderr and proc.stdout == ""
+            assert [p.name for p in tmp_path.iterdir()] == ["f"]
+        unwritable = subprocess.run(
+            [*entry, "train", "paths.output_root=f/o"], cwd=tmp_path, capture_output=True, text=True, env=env
+        )
+        assert unwritable.returncode == 4 and "is a file, not a directory" in unwritable.stderr
+        assert [p.name for p in tmp_path.iterdir()] == ["f"]
+
+    # Ctrl-C: far more epochs than can finish, so the signal always lands in a running training loop
+    args = ["train", "trainer=quick", "trainer.max_epochs=100000", "trainer.early_stop_patience=0"]
+    args += ["trainer.progress=false", "data.n_train=8", "data.n_val=4", "data.n_test=4", "data.horizon=10"]
+    proc = subprocess.Popen(
+        [*_entry_points()[0], *args], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+    )
+    try:
+        deadline = time.time() + 120
+        while time.time() < deadline and proc.poll() is None:
+            metrics = list((tmp_path / "outputs").rglob("metrics.csv"))
+            if metrics and len(metrics[0].read_text().splitlines()) >= 3:  # header + epochs 0..1
+                break
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130 and "interrupted" in err and "resume=true" in err, (proc.returncode, err[-2000:])
+    assert "Traceback" not in err
 
 
 def test_bench_writes_table_and_plot(tmp_path):
-    run_cli(
-        ["bench", "bench.nodes=[2,4]", "bench.batches=[1,2]", "bench.steps=3", "bench.repeats=1"], tmp_path, check=True
-    )
+    run_mpsim_ok(["bench", "bench.nodes=[2,4]", "bench.batches=[1,2]", "bench.steps=3", "bench.repeats=1"], tmp_path)
     (run,) = sorted(p.parent for p in (tmp_path / "outputs" / "bench").rglob("bench.md"))
     assert "fwd_bwd_s" in (run / "bench.md").read_text() and (run / "plots" / "mpnode_scaling.png").is_file()

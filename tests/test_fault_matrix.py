@@ -2,15 +2,15 @@
 half-written (issue 12). Also the outcomes that must hold when nothing is wrong: checkpoint exports that never
 destroy another run's model, file permissions, `--help` without torch.
 
-Cases run `mpsim.cli.main` in-process (one subprocess case checks that torch is not imported). Each case gets
-a fresh directory to start from; a module workspace holds a trained tiny lorenz3 checkpoint and its run.
+Cases run `mpsim.cli.main` in-process (`tests.helpers.run_mpsim`; one subprocess case checks that torch is not
+imported). Each case gets a fresh directory to start from; a module workspace holds a trained tiny lorenz3
+checkpoint and its run.
 """
 
 from __future__ import annotations
 
 import errno
 import json
-import logging
 import os
 import shutil
 import stat
@@ -24,54 +24,12 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from hydra.core.global_hydra import GlobalHydra
-from hydra.core.hydra_config import HydraConfig
 
-from mpsim import cli
 from mpsim.training.checkpoint import save_checkpoint
-from tests.conftest import TINY_TRAIN
+from tests.helpers import TINY_TRAIN, run_mpsim
 
 EVAL = ["data.n_test=3", "data.horizon=5", "eval.plots=false"]
 NO_TORCH = "import sys; from mpsim.cli import main\n"
-
-
-# ---- running mpsim in-process ------------------------------------------------------------------------------
-@dataclass
-class Result:
-    code: int
-    out: str
-    err: str
-
-    def error_lines(self) -> list[str]:
-        return [ln for ln in self.err.splitlines() if ": error:" in ln]
-
-
-def _reset_hydra() -> None:
-    GlobalHydra.instance().clear()
-    HydraConfig.instance().cfg = None
-
-
-def run(args: list[str], cwd: Path, capsys, monkeypatch) -> Result:
-    """`mpsim <args>` started from `cwd`, in this process."""
-    monkeypatch.chdir(cwd)
-    monkeypatch.setattr(sys, "argv", ["mpsim", *args])
-    root = logging.getLogger()
-    handlers, level = list(root.handlers), root.level
-    capsys.readouterr()
-    code = 0
-    try:
-        cli.main(list(args))
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
-    finally:
-        _reset_hydra()
-        for h in root.handlers:
-            if h not in handlers:
-                h.close()
-        root.handlers[:] = handlers
-        root.setLevel(level)
-    captured = capsys.readouterr()
-    return Result(code, captured.out, captured.err)
 
 
 def snapshot(*roots: Path) -> dict[Path, tuple[int, int]]:
@@ -84,15 +42,8 @@ def snapshot(*roots: Path) -> dict[Path, tuple[int, int]]:
 def ws(tmp_path_factory):
     """A workspace where `mpsim train system=lorenz3` (tiny) has run: checkpoints/lorenz3.ckpt and its run dir."""
     root = tmp_path_factory.mktemp("faults")
-    mp = pytest.MonkeyPatch()
-    try:
-        mp.chdir(root)
-        cli.main(["train", "system=lorenz3", *TINY_TRAIN])
-    except SystemExit as exc:
-        assert not exc.code, exc.code
-    finally:
-        _reset_hydra()
-        mp.undo()
+    res = run_mpsim(["train", "system=lorenz3", *TINY_TRAIN], root)
+    assert res.code == 0, res.err
     assert (root / "checkpoints" / "lorenz3.ckpt").is_file()
     return root
 
@@ -419,11 +370,11 @@ CASES: dict[str, Case] = {
 
 
 @pytest.mark.parametrize("name", list(CASES))
-def test_bad_input_ends_with_one_message(name, ws, tmp_path, capsys, monkeypatch):
+def test_bad_input_ends_with_one_message(name, ws, tmp_path):
     case = CASES[name]
     args = case.args(ws, tmp_path)
     before = snapshot(tmp_path, ws)
-    res = run(args, tmp_path, capsys, monkeypatch)
+    res = run_mpsim(args, tmp_path)
     assert res.code == case.code, (res.code, res.err[-2000:])
     assert "Traceback" not in res.err
     lines = res.error_lines() or [ln for ln in res.err.splitlines() if ln.startswith("mpsim")]
@@ -447,10 +398,10 @@ def test_the_malicious_payload_is_live_without_the_allowlist(tmp_path):
 
 
 # ---- outcomes when nothing is wrong, and faults in the middle of a run ------------------------------------------
-def test_single_run_keeps_the_export_it_replaces(ws, tmp_path, capsys, monkeypatch):
+def test_single_run_keeps_the_export_it_replaces(ws, tmp_path):
     args = _replace_export(ws, tmp_path)
     old = (tmp_path / "checkpoints" / "pendulum2.ckpt").read_bytes()
-    res = run(args, tmp_path, capsys, monkeypatch)
+    res = run_mpsim(args, tmp_path)
     assert res.code == 0, res.err
     kept = [p for p in (tmp_path / "checkpoints").glob("pendulum2.*.ckpt")]
     assert len(kept) == 1 and kept[0].read_bytes() == old
@@ -458,8 +409,8 @@ def test_single_run_keeps_the_export_it_replaces(ws, tmp_path, capsys, monkeypat
     assert "replaced an earlier export, kept as" in res.out and kept[0].name in res.out
 
 
-def test_sweep_jobs_keep_their_models_in_their_run_directories(ws, tmp_path, capsys, monkeypatch):
-    res = run(["train", "-m", *TINY_TRAIN, "eval.plots=false", "seed=0,1"], tmp_path, capsys, monkeypatch)
+def test_sweep_jobs_keep_their_models_in_their_run_directories(ws, tmp_path):
+    res = run_mpsim(["train", "-m", *TINY_TRAIN, "eval.plots=false", "seed=0,1"], tmp_path)
     assert res.code == 0, res.err
     assert not (tmp_path / "checkpoints").exists()
     bests = sorted((tmp_path / "outputs" / "multirun").rglob("best.ckpt"))
@@ -468,17 +419,17 @@ def test_sweep_jobs_keep_their_models_in_their_run_directories(ws, tmp_path, cap
         assert f"use init={best}" in res.out
 
 
-def test_export_name_from_a_file_stays_inside_ckpt_dir(ws, tmp_path, capsys, monkeypatch):
+def test_export_name_from_a_file_stays_inside_ckpt_dir(ws, tmp_path):
     meta = json.dumps({"system": "../../escaped", "state_names": ["theta", "omega"]})
     (tmp_path / "work").mkdir()
     path = write_npz(tmp_path / "work", meta=np.array(meta))
-    res = run(data_args(path), tmp_path / "work", capsys, monkeypatch)
+    res = run_mpsim(data_args(path), tmp_path / "work")
     assert res.code == 0, res.err
     assert not list(tmp_path.glob("escaped*")) and not list((tmp_path / "work").glob("escaped*"))
     assert [p.name for p in (tmp_path / "work" / "checkpoints").iterdir()] == ["escaped.ckpt"]
 
 
-def test_divergence_in_epoch_1_does_not_claim_a_best_checkpoint(ws, tmp_path, capsys, monkeypatch):
+def test_divergence_in_epoch_1_does_not_claim_a_best_checkpoint(ws, tmp_path, monkeypatch):
     from mpsim.errors import DivergenceError
     from mpsim.training.trainer import Trainer
 
@@ -486,7 +437,7 @@ def test_divergence_in_epoch_1_does_not_claim_a_best_checkpoint(ws, tmp_path, ca
         raise DivergenceError("training diverged in epoch 1, batch 0: test")
 
     monkeypatch.setattr(Trainer, "_train_epoch", diverge)
-    res = run(["train", *TINY_TRAIN, "eval.plots=false"], tmp_path, capsys, monkeypatch)
+    res = run_mpsim(["train", *TINY_TRAIN, "eval.plots=false"], tmp_path)
     assert res.code == 3
     assert "no epoch finished" in res.err and "best checkpoint so far" not in res.err
     assert not (tmp_path / "checkpoints").exists()  # nothing exported
@@ -494,14 +445,14 @@ def test_divergence_in_epoch_1_does_not_claim_a_best_checkpoint(ws, tmp_path, ca
     assert json.loads(summary.read_text())["status"] == "diverged"
 
 
-def test_failed_export_still_writes_the_summary(ws, tmp_path, capsys, monkeypatch):
+def test_failed_export_still_writes_the_summary(ws, tmp_path, monkeypatch):
     import mpsim.commands.train as train_cmd
 
     def full_disk(src, dst):
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(train_cmd.shutil, "copyfileobj", full_disk)
-    res = run(["train", *TINY_TRAIN, "eval.plots=false"], tmp_path, capsys, monkeypatch)
+    res = run_mpsim(["train", *TINY_TRAIN, "eval.plots=false"], tmp_path)
     assert res.code == 4 and "the disk is full" in res.err and "Traceback" not in res.err
     (summary,) = (tmp_path / "outputs").rglob("summary.json")
     saved = json.loads(summary.read_text())
@@ -509,23 +460,23 @@ def test_failed_export_still_writes_the_summary(ws, tmp_path, capsys, monkeypatc
     assert not [p for p in tmp_path.rglob("*.tmp")]  # no temporary file left behind
 
 
-def test_full_disk_mid_command_leaves_nothing_half_written(ws, tmp_path, capsys, monkeypatch):
+def test_full_disk_mid_command_leaves_nothing_half_written(ws, tmp_path, monkeypatch):
     import mpsim.files as files
 
     def full_disk(src, dst):
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(files.os, "replace", full_disk)
-    res = run(["simulate", "n=2", "data.horizon=3"], tmp_path, capsys, monkeypatch)
+    res = run_mpsim(["simulate", "n=2", "data.horizon=3"], tmp_path)
     assert res.code == 4 and "the disk is full" in res.err
     assert not [p for p in tmp_path.rglob("*") if p.is_file()]  # no data, no temp file, no run directory
 
 
 @pytest.mark.parametrize("umask, mode", [(0o022, 0o644), (0o027, 0o640)])
-def test_output_files_honour_the_umask(tmp_path, capsys, monkeypatch, umask, mode):
+def test_output_files_honour_the_umask(tmp_path, umask, mode):
     old = os.umask(umask)
     try:
-        res = run(["simulate", "n=2", "data.horizon=3", "format=both"], tmp_path, capsys, monkeypatch)
+        res = run_mpsim(["simulate", "n=2", "data.horizon=3", "format=both"], tmp_path)
     finally:
         os.umask(old)
     assert res.code == 0, res.err
@@ -553,11 +504,11 @@ def test_the_matrix_is_large_enough():
     assert len(CASES) >= 45
 
 
-def test_resume_uses_the_runs_own_overrides_and_keeps_its_record(ws, tmp_path, capsys, monkeypatch):
+def test_resume_uses_the_runs_own_overrides_and_keeps_its_record(ws, tmp_path):
     run_dir = tmp_path / "run"
     shutil.copytree(lorenz_run(ws), run_dir)
     record = {p.name: p.read_bytes() for p in (run_dir / ".hydra").iterdir()}
-    res = run(["train", f"resume={run_dir}"], tmp_path, capsys, monkeypatch)
+    res = run_mpsim(["train", f"resume={run_dir}"], tmp_path)
     assert res.code == 0, res.err
     assert "mpsim train: lorenz3" in res.out  # the run's own system=lorenz3, not the default pendulum2
     assert {p.name: p.read_bytes() for p in (run_dir / ".hydra").iterdir()} == record

@@ -7,7 +7,8 @@ import json
 
 import pytest
 import yaml
-from conftest import TINY_TRAIN, run_cli
+
+from tests.helpers import TINY_TRAIN, run_cli
 
 
 def _jobs(root):

@@ -7,7 +7,7 @@ import math
 import pytest
 
 from mpsim.bench.smnn import SMNNBench, lorenz_inputs
-from tests.conftest import run_cli
+from tests.helpers import run_cli
 
 
 def test_inputs_have_the_lorenz_discovery_shapes():

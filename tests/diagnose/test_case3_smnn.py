@@ -21,7 +21,7 @@ from mpsim.effects import CubicStiffness
 from mpsim.models.smnn_discovery import SMNNDiscovery
 from mpsim.solvers import ODESolver
 from mpsim.systems.lorenz import CoupledLorenz
-from tests.conftest import run_cli
+from tests.helpers import run_cli
 
 C_TRUE = 0.005
 LORENZ = {

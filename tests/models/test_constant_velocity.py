@@ -10,7 +10,7 @@ import torch
 from mpsim.errors import ConfigError
 from mpsim.models.constant_velocity import ConstantVelocity
 from mpsim.systems.nbody import NBody
-from tests.conftest import run_cli
+from tests.helpers import run_cli
 
 
 def test_exact_on_free_particles() -> None:

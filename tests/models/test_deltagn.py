@@ -12,7 +12,7 @@ from mpsim.data.trajectories import Trajectories
 from mpsim.errors import IncompatibleError
 from mpsim.models.deltagn import DeltaGN
 from mpsim.systems.nbody import NBody
-from tests.conftest import run_cli
+from tests.helpers import run_cli
 
 GRAPHS = ["full", "knn", "hierarchical"]
 

@@ -13,7 +13,7 @@ from mpsim.errors import ConfigError, IncompatibleError
 from mpsim.metrics import mse_loss
 from mpsim.models.smnn_discovery import SMNNDiscovery, monomial_name
 from mpsim.polynomials import monomials
-from tests.conftest import run_cli
+from tests.helpers import run_cli
 
 F64 = torch.float64
 A_TRUE = torch.tensor([[-0.1, 2.0], [-2.0, -0.1]], dtype=F64)  # dx/dt = A x: a decaying rotation

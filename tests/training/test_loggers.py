@@ -6,11 +6,11 @@ import math
 
 import pandas as pd
 import pytest
-from conftest import TINY_TRAIN
 
 from mpsim.commands.train import run_train
 from mpsim.errors import ConfigError
 from mpsim.training.loggers import CSVLogger, LoggerGroup, flatten, scalars
+from tests.helpers import TINY_TRAIN
 
 
 def test_csv_logger_rewrites_the_history_it_resumes_from(tmp_path):
