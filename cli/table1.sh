@@ -22,6 +22,7 @@ fi
 SEEDS=${SEEDS:-"0 1 2"}
 MODELS=${MODELS:-"mpnode l2s"}   # add node for the monolithic baseline (same 16 nodes, so it can run zero-shot)
 JOBS=${JOBS:-2}
+EXTRA=${EXTRA:-}                 # extra train overrides for an ablation, e.g. EXTRA=model.aggregation=sum OUT=outputs/table1_sum
 common=(paths.output_root=$OUT trainer=$TRAINER trainer.progress=false trainer.early_stop_patience=0 eval.plots=false)
 
 [ "${FRESH:-0}" = 1 ] && rm -rf "$OUT"
@@ -30,7 +31,7 @@ for seed in $SEEDS; do  # one checkpoint directory per seed: every run exports <
   for model in $MODELS; do
     epochs=$EPOCHS; [ $model = l2s ] && epochs=$L2S_EPOCHS
     echo "train_once $OUT/train/$model/s$seed system=gene_ba_small model=$model seed=$seed data.n_train=$N_TRAIN \
-      trainer.max_epochs=$epochs paths.ckpt_dir=$OUT/checkpoints/$model/s$seed ${common[*]}"
+      trainer.max_epochs=$epochs paths.ckpt_dir=$OUT/checkpoints/$model/s$seed ${common[*]} $EXTRA"
   done
 done | parallel "$JOBS"
 for seed in $SEEDS; do
