@@ -1,4 +1,5 @@
-"""`mpsim diagnose` end to end: train a white-box model on data with a hidden effect, find it, fix it."""
+"""`mpsim diagnose` end to end, in this process: train a white-box model on data with a hidden effect, find it,
+fix it."""
 
 from __future__ import annotations
 
@@ -7,14 +8,14 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import run_cli
+from tests.helpers import TINY_TRAIN, run_mpsim, run_mpsim_ok
 
 SMALL = ["data.n_train=32", "data.n_val=8", "data.n_test=16", "trainer.progress=false", "diagnose.n_boot=30"]
 
 
 def test_hidden_damping_found_added_and_error_drops(tmp_path):
-    run_cli(["train", "experiment=pendulum_damped", "trainer.max_epochs=15", *SMALL[:-1]], tmp_path, check=True)
-    proc = run_cli(
+    run_mpsim_ok(["train", "experiment=pendulum_damped", "trainer.max_epochs=15", *SMALL[:-1]], tmp_path)
+    proc = run_mpsim_ok(
         [
             "diagnose",
             "experiment=pendulum_damped",
@@ -24,7 +25,6 @@ def test_hidden_damping_found_added_and_error_drops(tmp_path):
             *SMALL,
         ],
         tmp_path,
-        check=True,
     )
     assert "effects named" in proc.stdout
     (run,) = [p.parent for p in (tmp_path / "outputs" / "diagnose").rglob("diagnosis.json")]
@@ -49,9 +49,9 @@ def test_hidden_damping_found_added_and_error_drops(tmp_path):
 
 def test_clean_data_gives_nothing_missing(tmp_path):
     clean = ["experiment=pendulum_damped", "system.effects=[]", "system.name=pendulum2_clean"]
-    run_cli(["train", *clean, "trainer.max_epochs=15", *SMALL[:-1]], tmp_path, check=True)
-    proc = run_cli(["diagnose", *clean, "init=pendulum2_clean.ckpt", "fix=true", *SMALL], tmp_path)
-    assert proc.returncode == 10, proc.stderr  # the verdict's own exit code
+    run_mpsim_ok(["train", *clean, "trainer.max_epochs=15", *SMALL[:-1]], tmp_path)
+    proc = run_mpsim(["diagnose", *clean, "init=pendulum2_clean.ckpt", "fix=true", *SMALL], tmp_path)
+    assert proc.code == 10, proc.err[-2000:]  # the verdict's own exit code
     assert "nothing missing" in proc.stdout
     (run,) = [p.parent for p in (tmp_path / "outputs" / "diagnose").rglob("diagnosis.json")]
     result = json.loads((run / "diagnosis.json").read_text())
@@ -59,11 +59,39 @@ def test_clean_data_gives_nothing_missing(tmp_path):
 
 
 def test_diagnose_needs_a_checkpoint(tmp_path):
-    proc = run_cli(["diagnose"], tmp_path)
-    assert proc.returncode != 0 and "init" in proc.stderr
+    proc = run_mpsim(["diagnose"], tmp_path)
+    assert proc.code == 2 and "Traceback" not in proc.err
+    (line,) = proc.error_lines()
+    assert line.startswith("mpsim diagnose: error:") and "init=" in line
+    assert not [p for p in tmp_path.rglob("*") if p.is_file()]  # refused before a run directory exists
 
 
-@pytest.mark.parametrize("bad", ["diagnose.n_boot=many", "diagnose.kinds=[Wobble]"])
-def test_bad_diagnose_settings(tmp_path, bad):
-    proc = run_cli(["diagnose", "init=x.ckpt", bad], tmp_path)
-    assert proc.returncode != 0
+@pytest.fixture(scope="module")
+def tiny_ckpt(tmp_path_factory):
+    """A tiny trained pendulum2 checkpoint, so that a bad setting is what the command refuses (not the init)."""
+    ws = tmp_path_factory.mktemp("diagnose_ckpt")
+    run_mpsim_ok(["train", *TINY_TRAIN, "eval.plots=false"], ws)
+    return ws / "checkpoints" / "pendulum2.ckpt"
+
+
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        ("diagnose.n_boot=many", "diagnose.n_boot=many"),
+        pytest.param(
+            "diagnose.kinds=[Wobble]",
+            "Wobble",
+            marks=pytest.mark.xfail(
+                strict=True,
+                reason="bug in src: an unknown effect kind is not checked; build_library raises AttributeError "
+                "(exit 1, traceback) after the data is built. Drop this mark when it is refused with exit 2.",
+            ),
+        ),
+    ],
+)
+def test_bad_diagnose_settings(tmp_path, tiny_ckpt, bad, match):
+    proc = run_mpsim(["diagnose", f"init={tiny_ckpt}", bad, *TINY_TRAIN[2:]], tmp_path)
+    assert proc.code == 2 and "Traceback" not in proc.err, (proc.code, proc.err[-2000:])
+    (line,) = proc.error_lines()
+    assert match in line
+    assert not [p for p in tmp_path.rglob("*") if p.is_file()]
