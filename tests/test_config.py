@@ -3,10 +3,13 @@
 from pathlib import Path
 
 import pytest
+import yaml
 from hydra.errors import ConfigCompositionException
 from hydra.utils import instantiate
+from omegaconf import OmegaConf
 
 import mpsim
+from mpsim.cli import COMMANDS
 from mpsim.commands.common import inline_specs
 from mpsim.config import check_targets
 from mpsim.errors import ConfigError
@@ -42,16 +45,33 @@ def test_every_model_builds(cfg_factory, name):
 
 @pytest.mark.parametrize("group", ["solver", "trainer", "mode", "experiment"])
 def test_every_option_of_the_other_groups_composes(cfg_factory, group):
-    for name in _options(group):
+    default = OmegaConf.to_container(cfg_factory("train"))
+    names = _options(group)
+    assert len(names) >= 2, names
+    for name in names:
         cfg = cfg_factory("train", f"{group}={name}")
-        if group in cfg and "_target_" in cfg[group]:
-            instantiate(cfg[group])
+        if group == "experiment":  # a global-package option: it must change the default job
+            assert OmegaConf.to_container(cfg) != default, name
+            continue
+        own = yaml.safe_load((CONF / group / f"{name}.yaml").read_text())
+        scalars = {k: v for k, v in own.items() if k != "defaults" and not isinstance(v, dict | list)}
+        assert scalars and {k: cfg[group][k] for k in scalars} == scalars, name  # this option, composed
+        if "_target_" in cfg[group]:
+            built = instantiate(cfg[group])
+            assert f"{type(built).__module__}.{type(built).__qualname__}" == cfg[group]._target_, name
 
 
-@pytest.mark.parametrize("command", ["train", "eval", "simulate", "report"])
+def test_every_command_has_a_primary_config():
+    assert {p.stem for p in CONF.glob("*.yaml")} >= set(COMMANDS)
+
+
+@pytest.mark.parametrize("command", list(COMMANDS))
 def test_primary_configs_compose(cfg_factory, command):
-    extra = ["init=x.ckpt"] if command == "eval" else []
-    assert cfg_factory(command, *extra).task == command
+    extra = ["init=x.ckpt"] if command in ("eval", "diagnose") else []
+    cfg = cfg_factory(command, *extra)
+    assert cfg.task == command and cfg.paths.output_root.endswith("/outputs")
+    if extra:
+        assert cfg.init == "x.ckpt"
 
 
 def test_typo_in_a_target_node_suggests_the_right_key(cfg_factory):
