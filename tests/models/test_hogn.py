@@ -101,9 +101,14 @@ def test_spatial_reordering_changes_nothing_but_speed(graph: str) -> None:
     model = _model(graph, charge=True)
     data = NBody(n_particles=200, force="coulomb", n_steps=1).generate(2, seed=4)
     x, nf, box = data.x[:, 1], data.node_features, data.meta["box_size"]
-    assert model.build_graph(x[..., :2], nf, x[..., 2:], box).order is not None
+    order = model.build_graph(x[..., :2], nf, x[..., 2:], box).order
+    # a real renumbering: a permutation of the 2 x 200 particles that keeps each sample's own and moves most
+    assert order is not None and torch.equal(order.sort().values, torch.arange(400))
+    assert torch.equal(order.view(2, 200) // 200, torch.tensor([[0], [1]]).expand(2, 200))
+    assert (order != torch.arange(400)).float().mean() > 0.5
     a, ha = model.step(x, nf, box, 0.01), model.energy_of(x, nf, box)
     model.reorder_particles = False
+    assert model.build_graph(x[..., :2], nf, x[..., 2:], box).order is None  # b below is the plain order's
     b, hb = model.step(x, nf, box, 0.01), model.energy_of(x, nf, box)
     assert torch.allclose(a, b, rtol=0, atol=1e-12)
     assert torch.allclose(ha, hb, rtol=1e-12, atol=1e-12)
