@@ -8,7 +8,7 @@ import json
 import pytest
 import yaml
 
-from tests.helpers import TINY_TRAIN, run_cli
+from tests.helpers import TINY_TRAIN, run_cli, run_mpsim_ok
 
 
 def _jobs(root):
@@ -32,8 +32,9 @@ def test_submitit_local_runs_a_two_job_sweep(tmp_path):
 
 
 def test_optuna_search_minimises_the_objective(tmp_path):
+    # in this process: the Optuna sweeper runs its trials with Hydra's basic launcher, one after another
     pytest.importorskip("hydra_plugins.hydra_optuna_sweeper")
-    proc = run_cli(
+    proc = run_mpsim_ok(
         [
             "train",
             "hparams_search=mpnode_lorenz10",
@@ -45,7 +46,6 @@ def test_optuna_search_minimises_the_objective(tmp_path):
             *TINY_TRAIN,
         ],
         tmp_path,
-        check=True,
     )
     jobs = _jobs(tmp_path / "outputs" / "multirun")
     assert len(jobs) == 3, proc.stderr
