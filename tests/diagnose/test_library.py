@@ -52,9 +52,8 @@ def test_a_drive_with_a_phase_per_recording_is_found_by_the_incoherent_periodogr
     r = 1.5 * torch.sin(3.1 * t_mid[None, :] + phases[:, None])[..., None].expand(24, 200, 2)
     r = r + 0.3 * torch.randn(r.shape, generator=g, dtype=torch.float64)
     assert incoherent_frequency(r, t_mid) == pytest.approx(3.1, rel=0.01)
-    # the phase-coherent periodogram of the average residual sees the drive cancel out
-    coherent, _, _ = dominant_frequency(r, t_mid)
-    assert abs(coherent - 3.1) > 0.05 or float(r.mean(dim=(0, 2)).std()) < 0.3
+    # the average over recordings, which a phase-coherent periodogram sees, keeps a quarter of the drive at most
+    assert float(r.mean(dim=(0, 2)).std()) < 0.3 * float(r.std())
     data = Trajectories(
         t=torch.linspace(0, 10, 11, dtype=torch.float64),
         x=torch.zeros(3, 11, 2, 1),
