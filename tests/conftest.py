@@ -4,10 +4,14 @@ Helpers (tiny configs, `make_cfg`, `run_mpsim`, `run_cli`) live in `tests/helper
 
 from __future__ import annotations
 
+import os
+
 import pytest
 import torch
+from hydra.core.global_hydra import GlobalHydra
+from hydra.core.hydra_config import HydraConfig
 
-from tests.helpers import make_cfg
+from tests.helpers import make_cfg, reset_hydra
 
 
 @pytest.fixture(autouse=True)
@@ -15,6 +19,30 @@ def _one_thread():
     # tiny tensors: one intra-op thread is fastest and keeps tests quiet on a shared 2-core machine
     torch.set_num_threads(1)
     yield
+
+
+@pytest.fixture(autouse=True)
+def _no_leaked_process_state():
+    """A test that leaves the working directory, torch's default dtype, the umask or Hydra's global state
+    changed fails (and the state is put back, so that later tests do not fail for it)."""
+    cwd, dtype = os.getcwd(), torch.get_default_dtype()
+    umask = os.umask(0o022)
+    os.umask(umask)
+    yield
+    leaked = []
+    if os.getcwd() != cwd:
+        leaked.append(f"cwd {os.getcwd()}")
+        os.chdir(cwd)
+    if torch.get_default_dtype() != dtype:
+        leaked.append(f"default dtype {torch.get_default_dtype()}")
+        torch.set_default_dtype(dtype)
+    now = os.umask(umask)
+    if now != umask:
+        leaked.append(f"umask {now:o}")
+    if GlobalHydra.instance().is_initialized() or HydraConfig.initialized():
+        leaked.append("Hydra's global state")
+        reset_hydra()
+    assert not leaked, f"the test changed process state: {', '.join(leaked)}"
 
 
 @pytest.fixture

@@ -26,7 +26,7 @@ def _runs(root: Path, task: str = "train") -> list[Path]:
 def lorenz_ws(tmp_path_factory):
     """A workspace where `mpsim train system=lorenz3` has run (tiny)."""
     ws = tmp_path_factory.mktemp("lorenz")
-    run_mpsim_ok(["train", "system=lorenz3", *TINY_TRAIN], ws)
+    run_mpsim_ok(["train", "system=lorenz3", *TINY_TRAIN, "eval.plots=false"], ws)
     return ws
 
 
