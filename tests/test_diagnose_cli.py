@@ -78,15 +78,7 @@ def tiny_ckpt(tmp_path_factory):
     "bad, match",
     [
         ("diagnose.n_boot=many", "diagnose.n_boot=many"),
-        pytest.param(
-            "diagnose.kinds=[Wobble]",
-            "Wobble",
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="bug in src: an unknown effect kind is not checked; build_library raises AttributeError "
-                "(exit 1, traceback) after the data is built. Drop this mark when it is refused with exit 2.",
-            ),
-        ),
+        ("diagnose.kinds=[Wobble]", "unknown effect kind 'Wobble'"),
     ],
 )
 def test_bad_diagnose_settings(tmp_path, tiny_ckpt, bad, match):

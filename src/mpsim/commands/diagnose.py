@@ -73,6 +73,7 @@ def _params(cfg: DictConfig) -> DiagnoseParams:
 
 def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, overrides: list[str] | None = None) -> dict:
     """Diagnose `init=` on held-in data, judge on held-out data; with `fix=true` also add, finetune, compare."""
+    params = _params(cfg)  # settings are checked before anything is read or built
     rt = setup_runtime(cfg, output_dir, overrides)
     if not cfg.init:
         raise ConfigError("mpsim diagnose needs init=<checkpoint> (the trained model to diagnose).")
@@ -80,7 +81,6 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
     system = None if cfg.data.path and cfg.data.graph != "system" else build_system(cfg)
     model, model_cfg, splits = model_and_data(cfg, rt, system, ckpt, refit=False)
     model.latent_reset = cfg.trainer.window  # latent states (messages) were trained over windows this long
-    params = _params(cfg)
     horizons = list(cfg.eval.horizons)
     log.info(
         f"diagnosing {Path(ckpt['path']).name} on {len(splits.train)} held-in trajectories "

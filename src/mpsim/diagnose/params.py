@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from mpsim.equations import did_you_mean
+from mpsim.errors import ConfigError
+
 #: effect kinds of the default candidate library, by class name in `mpsim.effects`
 DEFAULT_KINDS = [
     "Bias",
@@ -72,3 +75,11 @@ class DiagnoseParams:
     vpt_threshold: float = 0.3
     fix_lr_factor: float = 0.1
     rounds: int = 3
+
+    def __post_init__(self) -> None:
+        for kind in self.kinds:
+            if kind not in DEFAULT_KINDS:
+                raise ConfigError(
+                    f"diagnose.kinds: unknown effect kind {kind!r}; the library holds {', '.join(DEFAULT_KINDS)}."
+                    + did_you_mean(str(kind), DEFAULT_KINDS)
+                )
