@@ -25,7 +25,6 @@ only one end of the edge is evaluated per node and gathered, so `sin(theta_j)` c
 from __future__ import annotations
 
 import ast
-import difflib
 import keyword
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -36,7 +35,7 @@ import sympy
 import torch
 import yaml
 
-from mpsim.errors import ConfigError
+from mpsim.errors import ConfigError, did_you_mean
 from mpsim.graphs.batch import BatchedGraph, segment_sum
 
 SUM_NBR = sympy.Function("sum_nbr")
@@ -71,11 +70,6 @@ NEIGHBOUR_SUFFIX = "_j"
 MODEL_KEYS = ("states", "equations", "params", "learnable", "kinematic", "nodes", "description")
 #: what a simulation also needs (`system=equations`); a model reads the same file and ignores them
 SYSTEM_KEYS = ("name", "graph", "graph_params", "edges", "directed", "init", "dt", "horizon", "integrator", "substep")
-
-
-def did_you_mean(name: str, choices: Sequence[str]) -> str:
-    close = difflib.get_close_matches(name, list(choices), n=2)
-    return f" Did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
 
 
 def load_spec_file(path: str | Path) -> dict[str, Any]:

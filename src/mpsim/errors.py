@@ -16,6 +16,9 @@ Exit codes (documented in the README, "What mpsim guarantees"):
 | 130 | interrupted (Ctrl-C); `resume=true` continues |
 """
 
+import difflib
+from collections.abc import Sequence
+
 EXIT_CODES = {
     0: "success",
     1: "bug (traceback)",
@@ -65,3 +68,9 @@ class ResourceError(MpsimError, MemoryError):
     """The job would not fit in the memory available (estimated before it starts)."""
 
     exit_code = 5
+
+
+def did_you_mean(name: str, choices: Sequence[str]) -> str:
+    """ " Did you mean 'x'?" for the closest of `choices` to a misspelt `name` (empty when none is close)."""
+    close = difflib.get_close_matches(name, list(choices), n=2)
+    return f" Did you mean {' or '.join(repr(c) for c in close)}?" if close else ""

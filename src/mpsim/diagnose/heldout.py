@@ -38,8 +38,7 @@ from mpsim.diagnose.shooting import (
     window_error,
     with_effect,
 )
-from mpsim.equations import did_you_mean
-from mpsim.errors import ConfigError
+from mpsim.errors import ConfigError, did_you_mean
 from mpsim.models.base import Model
 
 EFFECTS_NAMED, NOTHING_MISSING, UNEXPLAINED = "effects named", "nothing missing", "unexplained structured residual"

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from mpsim.equations import did_you_mean
-from mpsim.errors import ConfigError
+from mpsim.errors import ConfigError, did_you_mean
 
 #: effect kinds of the default candidate library, by class name in `mpsim.effects`
 DEFAULT_KINDS = [
