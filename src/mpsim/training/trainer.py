@@ -94,6 +94,10 @@ def rollout_error(model: Model, data: Trajectories, batch_size: int = 512, dist:
 class Trainer:
     """Fits a `Model` to trajectories by full-rollout single shooting.
 
+    The defaults are CPU-sized and are the ones `mpsim train` uses (`conf/trainer/default.yaml` and the
+    `TrainerConf` schema are checked against this signature by `tests/training/test_trainer_defaults.py`);
+    the reference's settings are `trainer=paper`.
+
     Args:
         max_epochs: upper bound on epochs.
         batch_size: trajectories per optimiser step (reference: 128; the last batch may be partial).
@@ -122,16 +126,16 @@ class Trainer:
     def __init__(
         self,
         max_epochs: int = 100,
-        batch_size: int = 128,
-        lr: float = 1e-3,
+        batch_size: int = 32,
+        lr: float = 3e-3,
         weight_decay: float = 0.0,
         clip_norm: float = 500.0,
         loss: str = "huber",
         huber_delta: float = 1.0,
-        plateau_patience: int = 25,
+        plateau_patience: int = 10,
         plateau_factor: float = 0.5,
         min_lr: float = 1e-6,
-        early_stop_patience: int = 100,
+        early_stop_patience: int = 30,
         eval_batch_size: int = 512,
         progress: bool = True,
         window: int | None = None,
