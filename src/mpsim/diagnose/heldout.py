@@ -29,7 +29,7 @@ from mpsim import effects as fx
 from mpsim.data.trajectories import Trajectories
 from mpsim.diagnose.library import Candidate, evaluate_effect, step_average
 from mpsim.diagnose.loop import Diagnosis, Finding, model_sensitivities
-from mpsim.diagnose.params import DiagnoseParams
+from mpsim.diagnose.params import KIND_COMPLEXITY, DiagnoseParams
 from mpsim.diagnose.shooting import (
     horizon_from_data,
     null_data,
@@ -45,20 +45,6 @@ EFFECTS_NAMED, NOTHING_MISSING, UNEXPLAINED = "effects named", "nothing missing"
 EXIT_CODES = {EFFECTS_NAMED: 0, NOTHING_MISSING: 10, UNEXPLAINED: 11}
 #: a simpler kind is preferred when its held-out error is within this factor of the best candidate's
 SIMPLER_WITHIN = 1.25
-#: among candidates that predict held-out data equally well, the simplest kind is named (a delayed copy of a
-#: state imitates damping within a step; a drive needs three numbers)
-COMPLEXITY = {
-    "Bias": 0,
-    "LinearDamping": 0,
-    "DryFriction": 1,
-    "QuadraticDrag": 1,
-    "CubicStiffness": 1,
-    "DiffusiveCoupling": 1,
-    "SineCoupling": 1,
-    "CosineCoupling": 1,
-    "PeriodicForcing": 2,
-    "DelayedFeedback": 3,
-}
 
 
 def dynamic_rows(model: Model, data: Trajectories, targets: list[str] | None) -> list[int]:
@@ -225,7 +211,7 @@ def judge(
             break
         best_err = min(t[2].error_after for t in passing)
         close = [t for t in passing if t[2].error_after <= SIMPLER_WITHIN * best_err]
-        chosen = min(close, key=lambda t: (COMPLEXITY.get(t[2].kind, 1), t[2].error_after))
+        chosen = min(close, key=lambda t: (KIND_COMPLEXITY.get(t[2].kind, 1), t[2].error_after))
         trials.append(chosen[2])
         current, e_current = chosen[3], chosen[4]
         if chosen[2].kind == "PeriodicForcing" and "phases" in chosen[2].effect:
