@@ -419,7 +419,8 @@ class _Env:
     __slots__ = ("t", "x", "cols", "p", "graph", "cache", "b", "n")
 
     def __init__(self, t, x, p, graph) -> None:  # x: [B, N, D]
-        self.t, self.x, self.p, self.graph, self.cache = t, x, p, graph, {}
+        self.cache: dict = {}
+        self.t, self.x, self.p, self.graph = t, x, p, graph
         self.cols = x.unbind(-1)  # D views [B, N]: one operation for every state's column
         self.b, self.n = x.shape[0], x.shape[1]
 

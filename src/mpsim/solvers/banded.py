@@ -32,7 +32,10 @@ def banded_factor(
     d0, d1 = a0.unbind(0), a1.unbind(0)
     d2 = None if a2 is None else a2.unbind(0)
     tri = torch.linalg.solve_triangular
-    chol, low1, low2, infos = [], [], [], []
+    chol: list[torch.Tensor] = []
+    low1: list[torch.Tensor] = []
+    low2: list[torch.Tensor] = []
+    infos: list[torch.Tensor] = []
     for s in range(T):  # the inherent sequential dependency (see smnn_cyclic.py for the parallel variant)
         diag = d0[s]
         if s >= 1:
@@ -57,9 +60,9 @@ def banded_factor(
         ldl2 = tri(chol_t[:-2], torch.stack(low2), upper=False, left=False) if T > 2 else a2.clone()
     split = lambda m: None if m is None else list(m.unbind(0))  # noqa: E731
     fac = BandedFactors(
-        split(torch.cholesky_inverse(chol_t)),
-        split(ldl1),
-        split(ldl1.mT),
+        list(torch.cholesky_inverse(chol_t).unbind(0)),
+        list(ldl1.unbind(0)),
+        list(ldl1.mT.unbind(0)),
         split(ldl2),
         split(None if ldl2 is None else ldl2.mT),
     )

@@ -47,7 +47,8 @@ class SMNNProblem:
 
     @property
     def dims(self) -> tuple[int, int, int]:  # (E, D, O)
-        return tuple(self.coefficients.shape[-3:])
+        e, d, o = self.coefficients.shape[-3:]
+        return e, d, o
 
 
 class Blocks(NamedTuple):
@@ -313,7 +314,7 @@ def permuted_copy(
     0.5 s against 0.14 s). Size-1 dims are dropped and dims that stay neighbours in memory are merged first.
     """
     out_shape = [x.shape[p] for p in perm]
-    phys = sorted((d for d in range(x.dim()) if x.shape[d] != 1), key=lambda d: -x.stride(d))  # memory order
+    phys = sorted((d for d in range(x.dim()) if x.shape[d] != 1), key=lambda d: -x.stride()[d])  # memory order
     stride = 1
     for d in reversed(phys):
         if x.stride(d) != stride:  # overlapping or gapped (e.g. broadcast): nothing to merge safely
