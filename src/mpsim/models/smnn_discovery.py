@@ -161,7 +161,21 @@ class SMNNDiscovery(Model):
     """
 
     #: constants and linear terms are in every library (degree ≥ 1): the residual loop refits them as nuisance
-    represents = ("Bias", "LinearDamping")
+    represents: tuple[str, ...] = ("Bias", "LinearDamping")
+
+    # buffers and optional submodules (nn.Module.__getattr__ would type them as Tensor | Module)
+    term_index: torch.Tensor
+    mask: torch.Tensor
+    precond: torch.Tensor
+    deriv_scale: torch.Tensor
+    initialised: torch.Tensor
+    n_updates: torch.Tensor
+    rounds_done: torch.Tensor
+    param_in: torch.Tensor
+    param_net: nn.Sequential | None
+    theta: nn.Parameter | None
+    denoiser: nn.Sequential | None
+    terms: list[tuple[int, ...]] | None
 
     def __init__(
         self,
