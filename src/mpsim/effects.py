@@ -153,8 +153,12 @@ class Effect(nn.Module):
         return {
             "_target_": f"{type(self).__module__}.{type(self).__qualname__}",
             "coef": coef if len(coef) > 1 else coef[0],
-            "target": self.state_names[self.target] if hasattr(self, "state_names") else self.target_ref,
-            "source": self.state_names[self.source] if hasattr(self, "state_names") else self.source_ref,
+            "target": self.state_names[self.target]
+            if self.target is not None and hasattr(self, "state_names")
+            else self.target_ref,
+            "source": self.state_names[self.source]
+            if self.source is not None and hasattr(self, "state_names")
+            else self.source_ref,
         }
 
     def extra_repr(self) -> str:
@@ -413,14 +417,16 @@ def _minus(coef: torch.Tensor) -> str:  # coef: [K] the first entry is c of a te
     return f"-{c:.4g}" if c >= 0 else f"+{-c:.4g}"
 
 
-def total(effects: Sequence[Effect], t: torch.Tensor, x: torch.Tensor, ctx: EffectContext) -> torch.Tensor:
-    """[B, N, D] sum of the effects' terms (zeros when there are none)."""
+def total(
+    effects: Sequence[Effect] | nn.ModuleList, t: torch.Tensor, x: torch.Tensor, ctx: EffectContext
+) -> torch.Tensor:
+    """[B, N, D] sum of the effects' terms (zeros when there are none); `effects` may be a model's ModuleList."""
     out = torch.zeros_like(x)
     for effect in effects:  # a handful of named terms, not a loop over nodes
         out = out + effect(t, x, ctx)
     return out
 
 
-def min_delay(effects: Sequence[Effect]) -> float:
+def min_delay(effects: Sequence[Effect] | nn.ModuleList) -> float:
     """The smallest delay among `effects` (0 if there is no delayed term)."""
     return min((e.delay for e in effects if isinstance(e, DelayedFeedback)), default=0.0)
