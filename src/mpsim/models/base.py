@@ -48,6 +48,10 @@ class Model(nn.Module):
     #: steps — set to the training window, over which the latent state was trained (None: carry it throughout)
     latent_reset: int | None = None
 
+    # buffers (nn.Module.__getattr__ would type them as Tensor | Module)
+    state_mean: torch.Tensor
+    state_std: torch.Tensor
+
     def __init__(self, state_dim: int, control_dim: int = 0, effects: Sequence[Effect] = ()) -> None:
         super().__init__()
         if state_dim < 1:

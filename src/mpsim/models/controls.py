@@ -37,6 +37,11 @@ class ControlNormalisation(nn.Module):
         min_std: a channel whose spread is below this is only centred (a constant input).
     """
 
+    # buffers, registered when control_dim > 0 (nn.Module.__getattr__ would type them as Tensor | Module)
+    mean: torch.Tensor
+    std: torch.Tensor
+    fitted: torch.Tensor
+
     def __init__(self, control_dim: int, min_std: float = 1e-6) -> None:
         super().__init__()
         self.control_dim, self.min_std = int(control_dim), float(min_std)
