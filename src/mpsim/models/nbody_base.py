@@ -171,6 +171,10 @@ class ParticleModel(Model):
     # of the forward pass's gathers and segment sums; see `graphs.order`). False: keep the caller's order.
     reorder_particles: bool = True
 
+    # buffers (nn.Module.__getattr__ would type them as Tensor | Module)
+    pair_draws: torch.Tensor
+    trained_dt: torch.Tensor
+
     def build_graph(
         self,
         pos: torch.Tensor,  # [B, N, 2] positions

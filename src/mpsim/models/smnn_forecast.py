@@ -57,6 +57,10 @@ class SMNNForecaster(Model):
         solver: unused (the layer is the solver); accepted because every model receives one.
     """
 
+    # submodule and buffer (nn.Module.__getattr__ would type them as Tensor | Module)
+    encoder: nn.Sequential
+    n_updates: torch.Tensor
+
     def __init__(
         self,
         state_dim: int,
