@@ -224,7 +224,9 @@ def _chunk_set(
     for j in range(1, m):  # forward substitution of the spike: only the first block is coupled
         e.append(-(inner.low1[j - 1] @ e[-1]))
     h = [ej.mT @ dj for ej, dj in zip(e, inner.dinv, strict=True)]
-    q_left = sum(hj @ ej for hj, ej in zip(h, e, strict=True))
+    q_left = h[0] @ e[0]  # m ≥ 1 blocks
+    for hj, ej in zip(h[1:], e[1:], strict=True):
+        q_left = q_left + hj @ ej
     if right is None:
         return (
             ChunkSet(inner, h, [dj @ ej for dj, ej in zip(inner.dinv, e, strict=True)], None),
