@@ -263,6 +263,7 @@ def _chunked_factor(
         left.reshape(P * L, b, b),
         to_sep.reshape(P * L, b, b),
     )
+    assert s_right is not None and s_cross is not None  # given a right separator
     q_left = q_left.view(P, L, b, b)
     # Schur complement on the separators: S_pp = D_p − E_rᵀM⁻¹E_r (chunk p) − E_lᵀM⁻¹E_l (chunk p+1 or tail)
     from_next = torch.cat([q_left[1:], _zero_block(q_left)])
