@@ -7,7 +7,7 @@ F static node features. mpsim is batch-first everywhere; the torchdiffeq boundar
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, overload
 
 import torch
 
@@ -163,6 +163,10 @@ class Trajectories:
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Trajectories:
         """Move tensors to `device`; cast floating tensors to `dtype` (time stays float64 on CPU)."""
 
+        @overload
+        def cast(a: torch.Tensor) -> torch.Tensor: ...
+        @overload
+        def cast(a: None) -> None: ...
         def cast(a: torch.Tensor | None) -> torch.Tensor | None:
             if a is None:
                 return None
