@@ -154,6 +154,7 @@ class EquationsSystem(System):
         where: str = "the sampling step (system.dt or data.dt)",
     ) -> list[int]:
         """Euler steps of size `substep` between consecutive output times (each interval a whole number of them)."""
+        assert self.substep is not None  # set with integrator=semi_implicit_euler, the only caller
         intervals = (t[1:] - t[:-1]).double()
         steps = torch.round(intervals / self.substep)
         bad = (steps < 1) | ((intervals - steps * self.substep).abs() > 1e-9 * torch.clamp(intervals.abs(), min=1.0))
@@ -250,6 +251,7 @@ class EquationsSystem(System):
     def _simulate(self, x0, t, rtol, atol, method) -> Trajectories:
         if self.integrator == "dopri5":
             return super()._simulate(x0, t, rtol, atol, method)
+        assert self.substep is not None  # _integrator requires it for semi_implicit_euler
         x = semi_implicit_euler(self.rhs, self._kinematic_mask(x0), x0, t, self.substep, self._steps_per_interval(t))
         return Trajectories(t=t, x=x, edge_index=self.edge_index, meta=self.meta(grid_step(t)))
 
