@@ -143,13 +143,14 @@ def run_loop(
         names = [t.label for t in j.named]
         log(f"round {k}: adding {'; '.join(names)} and finetuning")
         fitted = j.model
-        options = [("multiple-shooting fit", fitted, None)]
+        assert fitted is not None  # a judgement that names effects carries the model they were fitted into
+        options: list[tuple[str, Model, str | None]] = [("multiple-shooting fit", fitted, None)]
         if not white_box(fitted):  # a network must relearn what it made up for; a white-box fit is already done
             try:
                 tuned, tuned_path = finetune(copy.deepcopy(fitted), k)
-            except DivergenceError as err:
+            except DivergenceError as exc:
                 raise DivergenceError(
-                    f"the fix of round {k} ({'; '.join(names)}) diverged while finetuning: {err}"
+                    f"the fix of round {k} ({'; '.join(names)}) diverged while finetuning: {exc}"
                 ) from None
             options.insert(0, ("finetuned", tuned, tuned_path))
         scored = [(name, m, path, float(window_error(m, test, j.horizon).mean())) for name, m, path in options]
