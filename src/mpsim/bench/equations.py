@@ -46,20 +46,21 @@ LORENZ_SPEC = {
 
 def twins(case: str, solver: ODESolver) -> tuple[System, Model, Model]:
     """(system, hand-written physics model, spec model) with the same equations and learnable parameters."""
+    system: System
     if case == "pendulum2":
         system = CoupledPendulums()
         p = system.params()
         spec = {**PENDULUM_SPEC, "params": {k: p[k] for k in ("gravity", "length", "spring", "mass")}}
     elif case == "lorenz10":
-        system = CoupledLorenz(name="lorenz10", n_nodes=10, coupling=1.0)
+        lorenz = system = CoupledLorenz(name="lorenz10", n_nodes=10, coupling=1.0)
         spec = {
             **LORENZ_SPEC,
             "params": {
-                "sigma": system.sigma,
-                "rho": system.rho,
-                "beta": system.beta,
-                "coupling": system.coupling,
-                "H": system.H_unit.tolist(),
+                "sigma": lorenz.sigma,
+                "rho": lorenz.rho,
+                "beta": lorenz.beta,
+                "coupling": lorenz.coupling,
+                "H": lorenz.H_unit.tolist(),
             },
         }
     else:
