@@ -38,7 +38,7 @@ has d_chain_friction && spec_case d_chain_friction d_chain_friction_data.yaml d_
   'system.effects=[{_target_: mpsim.effects.DryFriction, coef: 0.5, target: v, scale: 0.001}]'
 has e_pendulum_sin2 && spec_case e_pendulum_sin2 e_pendulum_sin2_data.yaml e_pendulum_sin2_model.yaml
 
-if has case1; then  # README case 1: pendulum pair, hidden damping 0.2, built-in white-box `physics` model
+if has case1; then  # case 1 (docs/residual_loop.md): pendulum pair, hidden damping 0.2, built-in white-box `physics` model
   run=$OUT/case1; start=$SECONDS
   { mpsim train experiment=pendulum_damped hydra.run.dir=$run/train "${common[@]}" &&
     mpsim diagnose experiment=pendulum_damped init=pendulum2_damped.ckpt fix=true hydra.run.dir=$run/diagnose \
@@ -46,7 +46,7 @@ if has case1; then  # README case 1: pendulum pair, hidden damping 0.2, built-in
   echo "$(( SECONDS - start ))" > "$run/wall_s"
 fi
 
-if has case2; then  # README case 2: Lorenz3 with a hidden drive dx/dt += 20 sin(20 t); black-box MP-NODE (~35 min)
+if has case2; then  # case 2 (docs/residual_loop.md): Lorenz3 with a hidden drive dx/dt += 20 sin(20 t); black-box MP-NODE (about 7 minutes)
   run=$OUT/case2; mkdir -p "$run"; start=$SECONDS
   # the network must relearn its autonomous part once the drive is explicit: finetune at the full learning rate
   { mpsim train experiment=lorenz3_forced hydra.run.dir=$run/train "${common[@]}" &&

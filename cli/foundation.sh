@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Foundation evidence (README "Results"), CPU-sized: about 30 minutes on 2 cores.
+# Foundation evidence (docs/results_mpnode.md), CPU-sized: about 30 minutes on 2 cores.
 #   1. Lorenz3: test error of the trained model vs the untrained one.
 #   2. Lorenz10: finetuning the Lorenz3 model vs training from scratch — epochs to reach the same test error
 #      (the level both runs reach) and the MP-NODE paper's epochs_x_min_error.

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# N-body scaling benchmark (README "N-body"): graph construction time and edges per particle vs N (100 … 100 000)
+# N-body scaling benchmark (docs/results_nbody.md): graph construction time and edges per particle vs N (100 … 100 000)
 # for the full, 15-NN and quadtree-hierarchy graphs; DeltaGN forward time vs N per graph kind with fitted
 # exponents and peak memory; simulator time per base step and energy drift vs N. About 10 minutes on one thread.
 # Extra arguments are Hydra overrides, e.g. threads=2 (the targets are for 2 cores), or the full grid:

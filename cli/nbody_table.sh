@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# N-body evidence (README "N-body"): a CPU-sized reproduction of the shape of Martinkus et al.'s Table 2 /
+# N-body evidence (docs/results_nbody.md): a CPU-sized reproduction of the shape of Martinkus et al.'s Table 2 /
 # Figure 2 — hierarchical vs full vs 15-NN DeltaGN at N = 100 and N = 1000, next to the constant-velocity
 # baseline and the paper's numbers, with rollout-step time, training-step time and memory; plus the
 # generalisation across N, 100 -> 1000 and 1000 -> 100 (the paper's Figure 5). One thread per process; the

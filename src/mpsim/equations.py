@@ -193,7 +193,7 @@ def merge_spec(spec: Mapping[str, Any] | None, inline: Mapping[str, Any], where:
     if not merged:
         raise ConfigError(
             f"{where}: no equations. Pass {where}.spec=<file.yaml> or {where}.states / "
-            f"{where}.equations / {where}.params inline (see README, 'Your own equations')."
+            f"{where}.equations / {where}.params inline (see docs/equations.md)."
         )
     return merged
 

@@ -3,7 +3,7 @@
 Each message says what was wrong, where (file, row, column, config key) and how to fix it. The CLI prints
 the message without a traceback; anything that is not an `MpsimError` is a bug and keeps its traceback.
 
-Exit codes (documented in the README, "What mpsim guarantees"):
+Exit codes (documented in docs/guarantees.md and the README, "What mpsim guarantees"):
 
 | code | meaning |
 |---|---|

@@ -55,7 +55,7 @@ def load_npz(path: str | Path, edge_index: torch.Tensor | None = None) -> Trajec
     if missing:
         raise DataError(
             f"{path}: missing array(s) {missing}; found {sorted(arrays)}. An mpsim .npz needs t [T] and "
-            "x [B, T, N, D] (see README, 'Data formats')."
+            "x [B, T, N, D] (see docs/data_formats.md)."
         )
     meta: dict[str, Any] = {}
     if "meta" in arrays:
@@ -294,7 +294,7 @@ def load_trajectories(
         return load_npz(path, ei)
     if path.suffix == ".csv":
         return load_csv(path, edges, edge_index, control_columns)
-    raise DataError(f"{path}: unknown data format {path.suffix!r}; use .npz or .csv (see README, 'Data formats').")
+    raise DataError(f"{path}: unknown data format {path.suffix!r}; use .npz or .csv (see docs/data_formats.md).")
 
 
 # ---- helpers -------------------------------------------------------------------------------------------
