@@ -8,8 +8,8 @@ without any outside bookkeeping. Training losses are computed in normalised unit
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, overload
 
 import torch
 from torch import nn
@@ -20,6 +20,20 @@ from mpsim.solvers.dde import rk4_delay
 
 if TYPE_CHECKING:
     from mpsim.data.trajectories import Trajectories
+
+
+class EffectList(nn.ModuleList):
+    """`nn.ModuleList` of `Effect`s, typed as such (a plain ModuleList's items read as `Module`)."""
+
+    def __iter__(self) -> Iterator[Effect]:
+        return super().__iter__()  # type: ignore[return-value]  # only Effects are ever appended
+
+    @overload
+    def __getitem__(self, idx: slice) -> EffectList: ...
+    @overload
+    def __getitem__(self, idx: int) -> Effect: ...
+    def __getitem__(self, idx: int | slice) -> Effect | EffectList:
+        return super().__getitem__(idx)  # type: ignore[return-value]
 
 
 class Model(nn.Module):
@@ -57,7 +71,7 @@ class Model(nn.Module):
         if state_dim < 1:
             raise IncompatibleError(f"a model needs state_dim >= 1; got {state_dim}.")
         self.state_dim, self.control_dim = int(state_dim), int(control_dim)
-        self.effects = nn.ModuleList(effects)
+        self.effects = EffectList(effects)
         self.register_buffer("state_mean", torch.zeros(state_dim))
         self.register_buffer("state_std", torch.ones(state_dim))
 
