@@ -57,7 +57,7 @@ def test_mpnode_prediction_at_a_sample_time_ignores_that_samples_input():
     u = torch.zeros(1, 5, 3, 1, dtype=torch.float64)
     late = u.clone()
     late[:, 3:] = 1.0
-    base, changed = model.rollout(x0, t, complete(3), u), model.rollout(x0, t, complete(3), late)
+    base, changed = model.rollout(x0, t, complete(3), u=u), model.rollout(x0, t, complete(3), u=late)
     assert torch.equal(base[:, :4], changed[:, :4]) and not torch.allclose(base[:, 4], changed[:, 4])
 
 

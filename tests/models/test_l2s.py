@@ -78,10 +78,10 @@ def test_controls_enter_with_zero_order_hold():
     x0 = torch.randn(1, 3, 2, dtype=torch.float64)
     t = torch.linspace(0, 1, 5, dtype=torch.float64)
     u = torch.zeros(1, 5, 3, 1, dtype=torch.float64)
-    base = model.rollout(x0, t, chain(3), u)
+    base = model.rollout(x0, t, chain(3), u=u)
     u_late = u.clone()
     u_late[:, 3:] = 1.0  # changes from t[3] on: the first three steps are unaffected
-    late = model.rollout(x0, t, chain(3), u_late)
+    late = model.rollout(x0, t, chain(3), u=u_late)
     assert torch.equal(base[:, :4], late[:, :4]) and not torch.allclose(base[:, 4], late[:, 4])
 
 

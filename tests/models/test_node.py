@@ -50,4 +50,4 @@ def test_controls_are_flattened_with_the_states():
     model = NODE(2, control_dim=1, n_nodes=3)
     assert model.net[0].in_features == 3 * (2 + 1)
     u = torch.zeros(2, 4, 3, 1)
-    assert model.rollout(torch.randn(2, 3, 2), torch.linspace(0, 1, 4), chain(3), u).shape == (2, 4, 3, 2)
+    assert model.rollout(torch.randn(2, 3, 2), torch.linspace(0, 1, 4), chain(3), u=u).shape == (2, 4, 3, 2)

@@ -63,10 +63,10 @@ def test_runs_on_any_graph_and_with_controls():
     for n, edges in ((2, complete(2)), (7, chain(7))):
         x = torch.randn(3, 4, n, 3)
         u = torch.randn(3, 12, n, 2)
-        pred = model.rollout(x, t, edges, u)
+        pred = model.rollout(x, t, edges, u=u)
         assert pred.shape == (3, 12, n, 3) and torch.isfinite(pred).all()
     # the controls of the predicted chunk reach the prediction
-    other = model.rollout(x, t, edges, u + 1.0)
+    other = model.rollout(x, t, edges, u=u + 1.0)
     assert not torch.allclose(other[:, 4:], pred[:, 4:])
 
 

@@ -34,6 +34,7 @@ from mpsim.diagnose.rounds import LoopResult, holdout_metrics, run_loop
 from mpsim.errors import ConfigError, DivergenceError
 from mpsim.files import atomic_write, write_json
 from mpsim.models.base import Model
+from mpsim.models.capabilities import LatentState
 from mpsim.training.checkpoint import save_checkpoint
 
 log = logging.getLogger(__name__)
@@ -80,7 +81,8 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
     ckpt = load_init(cfg, rt)
     system = None if cfg.data.path and cfg.data.graph != "system" else build_system(cfg)
     model, model_cfg, splits = model_and_data(cfg, rt, system, ckpt, refit=False)
-    model.latent_reset = cfg.trainer.window  # latent states (messages) were trained over windows this long
+    if isinstance(model, LatentState):
+        model.latent_reset = cfg.trainer.window  # latent states (messages) were trained over windows this long
     horizons = list(cfg.eval.horizons)
     log.info(
         f"diagnosing {Path(ckpt['path']).name} on {len(splits.train)} held-in trajectories "
@@ -98,7 +100,8 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
             cfg, rt, Shape.of(splits.train), {**ckpt, "model": {**ckpt["model"], "config": fixed_cfg}}
         )
         built.load_state_dict(fixed.state_dict())  # fitted coefficients and refit own parameters
-        built.latent_reset = model.latent_reset
+        if isinstance(built, LatentState) and isinstance(model, LatentState):
+            built.latent_reset = model.latent_reset
         trainer = build(cfg.trainer, "trainer", lr=cfg.trainer.lr * params.fix_lr_factor)
         run_dir = rt.output_dir / "fix" / f"round{k}"
         base = checkpoint_base(fixed_cfg, built, splits.train.meta, {"mode": "finetune", "init": ckpt["path"]})

@@ -40,6 +40,7 @@ from mpsim.diagnose.shooting import (
 )
 from mpsim.errors import ConfigError, did_you_mean
 from mpsim.models.base import Model
+from mpsim.models.capabilities import Interpretable
 
 EFFECTS_NAMED, NOTHING_MISSING, UNEXPLAINED = "effects named", "nothing missing", "unexplained structured residual"
 EXIT_CODES = {EFFECTS_NAMED: 0, NOTHING_MISSING: 10, UNEXPLAINED: 11}
@@ -291,7 +292,7 @@ def phase_lag(
     """
     values_now = getattr(model, "parameters_now", None)
     sens = model_sensitivities(model, data)  # [B, T-1, N, D, P] or None
-    if sens is None or values_now is None:
+    if sens is None or values_now is None or not isinstance(model, Interpretable):
         return None
     sine = fx.SineCoupling(1.0, target=row, source=row).bind(data.state_names)
     feat = step_average(evaluate_effect(sine, data))[..., 0].flatten()  # [B·(T−1)·N]

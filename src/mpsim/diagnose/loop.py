@@ -32,6 +32,7 @@ from mpsim.diagnose.noise import noise_level
 from mpsim.diagnose.residual import Residual, one_step_residual
 from mpsim.diagnose.select import bootstrap, explained_alone, lstsq, project_out, stepwise_bic
 from mpsim.models.base import Model
+from mpsim.models.capabilities import ExpressesEffects, Interpretable
 from mpsim.polynomials import monomial_features
 from mpsim.training.trainer import predict
 
@@ -183,6 +184,8 @@ def _rows(library: list[Candidate], res: Residual, d: int, keep: torch.Tensor, b
 @torch.no_grad()
 def model_sensitivities(model: Model, data: Trajectories) -> torch.Tensor | None:
     """[B, T−1, N, D, P] step-averaged sensitivities of the model's field to its own parameters (or None)."""
+    if not isinstance(model, Interpretable):
+        return None
     b, n_t, n, d = data.x.shape
     device, dtype = model.state_mean.device, model.state_mean.dtype
     flat = data.x.reshape(b * n_t, n, d).to(device=device, dtype=dtype)
@@ -216,7 +219,7 @@ def nuisance_columns(model: Model, data: Trajectories, represented: tuple[str, .
     if represented:
         cols = torch.cat([c.features for c in build_library(data, {}, [], represented)], dim=-1)  # [B, T-1, N, K]
         parts.append(cols.unsqueeze(-2).expand(-1, -1, -1, data.state_dim, -1))
-    if model.represents_polynomials:
+    if isinstance(model, ExpressesEffects) and model.represents_polynomials:
         cols = monomial_features(data.x.double(), model.represents_polynomials)  # [B, T, N, K]
         cols = 0.5 * (cols[:, 1:] + cols[:, :-1])
         parts.append(cols.unsqueeze(-2).expand(-1, -1, -1, data.state_dim, -1))
@@ -273,8 +276,11 @@ def find_effects(
     keep = torch.isfinite(res.r).flatten(1).all(dim=1)
     omegas, spectra = _forcing_omegas(res, data) if "PeriodicForcing" in kinds else ({}, {})
     phased = _phased_omegas(res, data, targets) if "PeriodicForcing" in kinds else {}
-    represented = tuple(k for k in kinds if k in model.represents)
-    undecidable = tuple(k for k in kinds if k in model.indistinguishable)
+    expressed, undecided = (
+        (model.represents, model.indistinguishable) if isinstance(model, ExpressesEffects) else ((), ())
+    )
+    represented = tuple(k for k in kinds if k in expressed)
+    undecidable = tuple(k for k in kinds if k in undecided)
     kinds = tuple(k for k in kinds if k not in represented and k not in undecidable)
     library = build_library(data, omegas, delays, kinds, phased)
     base, n_shared = nuisance_columns(model, data, represented)
@@ -386,7 +392,8 @@ def _confirm_by_integration(
     labels = {c.label(diag.state_names): i for i, c in enumerate(library)}
     order = sorted(diag.accepted, key=lambda f: f.gain, reverse=True)  # share of its own row's residual
     trial = copy.deepcopy(model)
-    trial.shift_parameters(diag.parameter_shifts)  # the joint refit's correction of the model's own parameters
+    if isinstance(trial, Interpretable):
+        trial.shift_parameters(diag.parameter_shifts)  # the joint refit's correction of the model's own parameters
     dtype = model.state_mean.dtype
     names = diag.state_names
     for i, strong in enumerate(order):
@@ -487,7 +494,8 @@ def _joint_refit(
     for f, coef in refits:
         f.coef = coef
         f.effect = library[labels[f.label.split(": ", 1)[1]]].effect_config(coef, f.target, diag.state_names)
-    names = model.sensitivity_names()  # the first of the shared columns (then the model's effects, not shifted)
+    # the first of the shared columns (then the model's effects, not shifted)
+    names = model.sensitivity_names() if isinstance(model, Interpretable) else []
     if base is not None and names:
         diag.parameter_shifts = {name: float(v) for name, v in zip(names, sol[at : at + len(names)], strict=True)}
     return True

@@ -14,6 +14,7 @@ import torch
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError, DivergenceError
 from mpsim.models.base import Model
+from mpsim.models.capabilities import one_step
 
 
 @dataclass
@@ -38,7 +39,7 @@ def one_step_residual(model: Model, data: Trajectories, batch_size: int = 1024) 
 
     Each step is a batched one-step rollout of all trajectories from the observed state at its absolute
     time, so time-dependent terms (periodic forcing) are evaluated at the right phase; a model's latent state
-    (MP-NODE messages) is carried along the observed trajectory (see `Model.one_step`).
+    (MP-NODE messages) is carried along the observed trajectory (see `mpsim.models.capabilities.one_step`).
     """
     if model.context_steps != 1:
         raise ConfigError(
@@ -58,7 +59,7 @@ def one_step_residual(model: Model, data: Trajectories, batch_size: int = 1024) 
             if nf is not None and nf.dim() == 3:
                 nf = nf[sl]
             try:
-                parts.append(model.one_step(x[sl], t, ei.to(device), u, nf, data.meta))
+                parts.append(one_step(model, x[sl], t, ei.to(device), u=u, node_features=nf, meta=data.meta))
             except DivergenceError:
                 parts.append(torch.full_like(x[sl, 1:], float("nan")))
     pred = torch.cat(parts).double().cpu()  # [B, T-1, N, D]

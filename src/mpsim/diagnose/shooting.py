@@ -23,6 +23,7 @@ from torch import nn
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import DivergenceError
 from mpsim.models.base import Model
+from mpsim.models.capabilities import Interpretable
 
 
 def own_parameters(model: Model) -> list[nn.Parameter]:
@@ -33,7 +34,7 @@ def own_parameters(model: Model) -> list[nn.Parameter]:
     if isinstance(raw, nn.ParameterDict):
         return list(raw.values())
     theta = getattr(model, "theta", None)
-    if isinstance(theta, nn.Parameter) and model.sensitivity_names():
+    if isinstance(theta, nn.Parameter) and isinstance(model, Interpretable) and model.sensitivity_names():
         return [theta]
     return []
 
@@ -52,7 +53,9 @@ def window_predictions(model: Model, data: Trajectories, length: int) -> list[tu
     for s in _starts(data.n_times, length):  # sequential in time only; each rollout batches every trajectory
         end = min(s + length, data.n_times - 1)
         u = None if data.u is None else data.u[:, s : end + 1].to(x)
-        out.append((s, model.rollout(x[:, s], t[s : end + 1], ei, u, data.node_features, data.meta)))
+        out.append(
+            (s, model.rollout(x[:, s], t[s : end + 1], ei, u=u, node_features=data.node_features, meta=data.meta))
+        )
     return out
 
 

@@ -1,6 +1,6 @@
 """`Model`: the interface every learned or white-box simulator implements.
 
-A model maps initial node states to a predicted trajectory on a given graph: `rollout(x0, t, edge_index, u)`.
+A model maps initial node states to a predicted trajectory on a given graph: `rollout(x0, t, edge_index, *, u)`.
 It holds the normalisation statistics of the data it was trained on (`state_mean`, `state_std`, buffers
 saved with its weights) and takes and returns states in raw units, so a checkpoint can be used on new data
 without any outside bookkeeping. Training losses are computed in normalised units (see `normalise`).
@@ -39,6 +39,9 @@ class EffectList(nn.ModuleList):
 class Model(nn.Module):
     """Base class: normalisation buffers, compatibility checks and the rollout signature.
 
+    What only the residual loop reads (represented effect kinds, a latent state, one-step predictions,
+    interpretable parameters) is optional: the protocols of `mpsim.models.capabilities`.
+
     Args:
         state_dim: D, state variables per node.
         control_dim: C, control inputs per node (0 without controls).
@@ -48,19 +51,9 @@ class Model(nn.Module):
 
     #: whether a trained model can run on a graph with a different number of nodes
     transfers_across_graphs: bool = True
-    #: effect kinds (class names in `mpsim.effects`) the model can express by itself; the residual loop refits
-    #: them as nuisance directions instead of naming them
-    represents: tuple[str, ...] = ()
-    #: effect kinds that cannot be told apart from this model's own error and are left out of the library
-    indistinguishable: tuple[str, ...] = ()
-    #: degree of the polynomials of a node's own state the model can express (0: none); refit as nuisance
-    represents_polynomials: int = 0
     #: observed states a rollout starts from: 1 = x0 [B, N, D]; K > 1 = the first K states [B, K, N, D]
     #: (forecasters that read a window); errors are then measured from step K on
     context_steps: int = 1
-    #: one-step residuals of a model with a latent state (MP-NODE messages) restart it at zero every this many
-    #: steps — set to the training window, over which the latent state was trained (None: carry it throughout)
-    latent_reset: int | None = None
 
     # buffers (nn.Module.__getattr__ would type them as Tensor | Module)
     state_mean: torch.Tensor
@@ -139,6 +132,7 @@ class Model(nn.Module):
         x0: torch.Tensor,  # [B, N, D] initial states (raw units)
         t: torch.Tensor,  # [T] times, t[0] is the time of x0
         edge_index: torch.Tensor,  # [2, E] shared or [B, 2, E] per-trajectory graph (padded with -1)
+        *,
         u: torch.Tensor | None = None,  # [B, T, N, C] controls
         node_features: torch.Tensor | None = None,  # [N, F] or [B, N, F] static node features (mass, charge)
         meta: dict[str, Any] | None = None,  # the data's metadata (e.g. box_size of a periodic domain)
@@ -156,7 +150,9 @@ class Model(nn.Module):
         """(loss, [B, T, N, D] prediction) for one batch. Default: MPNODE.jl's single shooting — a free
         rollout of the whole trajectory from its first state, loss on the normalised states. Models trained
         differently (one-step targets, windows) override this."""
-        pred = self.rollout(self.initial(batch.x), t, batch.edge_index, batch.u, batch.node_features, batch.meta)
+        pred = self.rollout(
+            self.initial(batch.x), t, batch.edge_index, u=batch.u, node_features=batch.node_features, meta=batch.meta
+        )
         return loss_fn(self.normalise(pred), self.normalise(batch.x), delta), pred
 
     def initial(self, x: torch.Tensor) -> torch.Tensor:  # x: [B, T, N, D] observed trajectories
@@ -171,42 +167,6 @@ class Model(nn.Module):
         """(label, text) rows for the end-of-run summary on screen; default: none."""
         return []
 
-    def one_step(
-        self,
-        x: torch.Tensor,  # [B, T, N, D] observed states (raw units)
-        t: torch.Tensor,  # [T] times
-        edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
-        u: torch.Tensor | None = None,  # [B, T, N, C] controls
-        node_features: torch.Tensor | None = None,  # [N, F] or [B, N, F]
-        meta: dict[str, Any] | None = None,
-    ) -> torch.Tensor:
-        """[B, T−1, N, D] the model's prediction of each x_{k+1} from the observed x_k (one step each, at its
-        absolute time). Models with latent state (MP-NODE messages) carry it along the observed trajectory
-        instead of resetting it every step."""
-        steps = []
-        for k in range(x.shape[1] - 1):  # sequential in time only; each step batches every trajectory
-            uk = None if u is None else u[:, k : k + 2]
-            steps.append(self.rollout(x[:, k], t[k : k + 2], edge_index, uk, node_features, meta)[:, 1])
-        return torch.stack(steps, dim=1)
-
-    def sensitivities(
-        self,
-        t: torch.Tensor,  # [M, 1] or [] times
-        x: torch.Tensor,  # [M, N, D] states (raw units)
-        edge_index: torch.Tensor,  # [2, E] graph
-    ) -> torch.Tensor | None:
-        """[M, N, D, P] derivatives of the model's vector field with respect to its P interpretable
-        parameters (white-box models), or None. The residual loop refits these alongside its candidates so
-        that a parameter that absorbed part of a missing effect is not mistaken for another effect."""
-        return None
-
-    def sensitivity_names(self) -> list[str]:
-        """Names of the P parameters of `sensitivities` (empty for black-box models)."""
-        return []
-
-    def shift_parameters(self, shifts: dict[str, float]) -> None:
-        """Add `shifts` to the named interpretable parameters (see `sensitivities`); default: nothing."""
-
     def after_step(self) -> None:
         """Called after every optimiser step (e.g. sparsity thresholding); default: nothing."""
 
@@ -215,12 +175,13 @@ class Model(nn.Module):
         x0: torch.Tensor,  # [B, N, D] initial states
         t: torch.Tensor,  # [T] times
         edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
+        *,
         u: torch.Tensor | None = None,  # [B, T, N, C] controls
         node_features: torch.Tensor | None = None,  # [N, F] or [B, N, F]
         meta: dict[str, Any] | None = None,
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """Prediction plus internal signals worth plotting (e.g. MP-NODE messages); default: none."""
-        return self.rollout(x0, t, edge_index, u, node_features, meta), {}
+        return self.rollout(x0, t, edge_index, u=u, node_features=node_features, meta=meta), {}
 
     def describe(self) -> dict[str, Any]:
         """Plain facts for summaries: class, parameter count."""

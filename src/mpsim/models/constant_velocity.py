@@ -62,6 +62,7 @@ class ConstantVelocity(Model):
         x0: torch.Tensor,  # [B, N, 4] initial states
         t: torch.Tensor,  # [T] times
         edge_index: torch.Tensor,  # unused
+        *,
         u: torch.Tensor | None = None,  # unused
         node_features: torch.Tensor | None = None,  # [B, N, 2] or [N, 2] (mass, charge), for the energy
         meta: dict[str, Any] | None = None,  # box_size (positions wrap when given), params (energy)

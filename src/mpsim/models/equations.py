@@ -22,6 +22,7 @@ from mpsim.equations import SYSTEM_KEYS, EquationField, Spec, check_nodes, check
 from mpsim.errors import ConfigError, IncompatibleError
 from mpsim.graphs.batch import BatchedGraph, batch_graph
 from mpsim.models.base import Model
+from mpsim.models.capabilities import one_step_by_rollouts
 from mpsim.solvers.odeint import ODESolver
 
 ENTRY = re.compile(r"^(?P<name>\w+)\[(?P<i>\d+)\]$")
@@ -143,6 +144,7 @@ class EquationsModel(Model):
         x0: torch.Tensor,  # [B, N, D] initial states (raw units)
         t: torch.Tensor,  # [T] times
         edge_index: torch.Tensor,  # [2, E] or [B, 2, E] the data's graph (neighbour terms run over it)
+        *,
         u: torch.Tensor | None = None,  # [B, T, N, C] unused (no controls)
         node_features: torch.Tensor | None = None,  # unused
         meta: dict[str, Any] | None = None,  # unused
@@ -156,6 +158,7 @@ class EquationsModel(Model):
         x: torch.Tensor,  # [B, T, N, D] observed states (raw units)
         t: torch.Tensor,  # [T] times
         edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
+        *,
         u: torch.Tensor | None = None,  # [B, T, N, C] unused
         node_features: torch.Tensor | None = None,  # unused
         meta: dict[str, Any] | None = None,  # unused
@@ -168,7 +171,7 @@ class EquationsModel(Model):
         uniform = n_t > 1 and bool((dts - dts[0]).abs().max() <= 1e-9 * dts[0].abs().clamp(min=1e-300))
         special = min_delay(self.effects) > 0 or any(type(e).__name__ == "PhasedDrive" for e in self.effects)
         if not uniform or special:
-            return super().one_step(x, t, edge_index, u, node_features, meta)
+            return one_step_by_rollouts(self, x, t, edge_index, u=u, node_features=node_features, meta=meta)
         x0 = x[:, :-1].reshape(b * (n_t - 1), n, d)
         offset = t[:-1].to(x).repeat(b)[:, None]  # [B·(T−1), 1]
         ei = edge_index if edge_index.dim() == 2 else edge_index.repeat_interleave(n_t - 1, dim=0)

@@ -142,6 +142,7 @@ class L2S(ControlledModel):
         x0: torch.Tensor,  # [B, N, D] initial states (raw units)
         t: torch.Tensor,  # [T] times
         edge_index: torch.Tensor,  # [2, E] shared or [B, 2, E] per-trajectory graph (padded with −1)
+        *,
         u: torch.Tensor | None = None,  # [B, T, N, C] controls (zero-order hold)
         node_features: torch.Tensor | None = None,  # unused: nodes are identical
         meta: dict[str, Any] | None = None,  # unused

@@ -100,6 +100,9 @@ class MPNODE(ControlledModel):
     # along a deterministic trajectory a delayed state x(t − τ) is a (complicated) function of the current
     # state, which a neural ODE can learn: against it a delay is indistinguishable from training error
     indistinguishable = ("DelayedFeedback",)
+    #: one-step residuals restart the messages at zero every this many steps (the training window), see
+    #: `mpsim.models.capabilities.LatentState` (None: carry them throughout)
+    latent_reset: int | None = None
 
     def __init__(
         self,
@@ -141,6 +144,7 @@ class MPNODE(ControlledModel):
         x0: torch.Tensor,  # [B, N, D] initial states (raw units)
         t: torch.Tensor,  # [T] times
         edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
+        *,
         u: torch.Tensor | None = None,  # [B, T, N, C] controls
         node_features: torch.Tensor | None = None,  # unused: nodes are identical
         meta: dict[str, Any] | None = None,  # unused
@@ -156,7 +160,16 @@ class MPNODE(ControlledModel):
         ys = integrate_held(lambda f, y, tt: self.integrate(f, y, tt, self.solver), field, y0, t)  # [B, T, N, D+M]
         return self.denormalise(ys[..., :d]), {"messages": ys[..., d:]}
 
-    def one_step(self, x, t, edge_index, u=None, node_features=None, meta=None):
+    def one_step(
+        self,
+        x: torch.Tensor,  # [B, T, N, D] observed states (raw units)
+        t: torch.Tensor,  # [T] times
+        edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
+        *,
+        u: torch.Tensor | None = None,  # [B, T, N, C] controls
+        node_features: torch.Tensor | None = None,  # unused: nodes are identical
+        meta: dict[str, Any] | None = None,  # unused
+    ) -> torch.Tensor:
         """One-step predictions along an observed trajectory with the messages carried from step to step
         (starting at zero at t0, as in a rollout, and again every `latent_reset` steps if set), so each step
         sees the latent state a rollout would."""
@@ -183,8 +196,9 @@ class MPNODE(ControlledModel):
         x0: torch.Tensor,  # [B, N, D] initial states (raw units)
         t: torch.Tensor,  # [T] times
         edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
+        *,
         u: torch.Tensor | None = None,  # [B, T, N, C] controls
         node_features: torch.Tensor | None = None,  # unused: nodes are identical
         meta: dict[str, Any] | None = None,  # unused
     ) -> torch.Tensor:
-        return self.rollout_aux(x0, t, edge_index, u)[0]
+        return self.rollout_aux(x0, t, edge_index, u=u)[0]

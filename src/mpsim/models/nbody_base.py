@@ -240,6 +240,7 @@ class ParticleModel(Model):
         x0: torch.Tensor,  # [B, N, 4] initial states (raw units)
         t: torch.Tensor,  # [T] times
         edge_index: torch.Tensor,  # unused: graphs are rebuilt from the state at every step
+        *,
         u: torch.Tensor | None = None,  # unused: no controls
         node_features: torch.Tensor | None = None,  # [B, N, 2] or [N, 2] (mass, charge)
         meta: dict[str, Any] | None = None,  # data metadata: box_size, params (for the energy metric)

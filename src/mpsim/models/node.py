@@ -131,6 +131,7 @@ class NODE(ControlledModel):
         x0: torch.Tensor,  # [B, N, D] initial states (raw units)
         t: torch.Tensor,  # [T] times
         edge_index: torch.Tensor,  # [2, E] or [B, 2, E]: unused, the network sees every node
+        *,
         u: torch.Tensor | None = None,  # [B, T, N, C] controls (zero-order hold)
         node_features: torch.Tensor | None = None,  # unused
         meta: dict[str, Any] | None = None,  # unused

@@ -115,6 +115,7 @@ class PhysicsModel(Model):
         x0: torch.Tensor,  # [B, N, D] initial states (raw units)
         t: torch.Tensor,  # [T] times
         edge_index: torch.Tensor,  # [2, E] or [B, 2, E]; the system's own graph is used for its equations
+        *,
         u: torch.Tensor | None = None,  # [B, T, N, C] unused
         node_features: torch.Tensor | None = None,  # unused
         meta: dict[str, Any] | None = None,  # unused

@@ -25,6 +25,7 @@ from mpsim.effects import Effect, EffectContext, min_delay, total
 from mpsim.errors import ConfigError, IncompatibleError
 from mpsim.graphs.batch import batch_graph
 from mpsim.models.base import Model
+from mpsim.models.capabilities import one_step_by_rollouts
 from mpsim.models.layers import mlp
 from mpsim.polynomials import monomials
 from mpsim.solvers.mnn_dense import dense_solve, mnn_dense_solve
@@ -162,6 +163,8 @@ class SMNNDiscovery(Model):
 
     #: constants and linear terms are in every library (degree ≥ 1): the residual loop refits them as nuisance
     represents: tuple[str, ...] = ("Bias", "LinearDamping")
+    indistinguishable: tuple[str, ...] = ()
+    represents_polynomials: int  # the library's degree: the residual loop projects these out
 
     # buffers and optional submodules (nn.Module.__getattr__ would type them as Tensor | Module)
     term_index: torch.Tensor
@@ -215,7 +218,7 @@ class SMNNDiscovery(Model):
         self.solver_method, self.threshold, self.seed = solver_method, float(threshold), int(seed)
         self.threshold_every, self.threshold_rounds = int(threshold_every), int(threshold_rounds)
         self.solver = solver or ODESolver()
-        self.represents_polynomials = int(degree)  # the residual loop projects these out (`Model`)
+        self.represents_polynomials = int(degree)  # the residual loop projects these out (`ExpressesEffects`)
         if degree >= 3:
             self.represents = (*type(self).represents, "CubicStiffness")
         self.names_given = bool(state_names)
@@ -447,6 +450,7 @@ class SMNNDiscovery(Model):
         x0: torch.Tensor,  # [B, N, D] initial states (raw units)
         t: torch.Tensor,  # [T] times
         edge_index: torch.Tensor,  # [2, E] or [B, 2, E] graph, read only by effects that couple neighbours
+        *,
         u: torch.Tensor | None = None,  # unused: no controls
         node_features: torch.Tensor | None = None,  # unused
         meta: dict[str, Any] | None = None,  # unused
@@ -460,6 +464,7 @@ class SMNNDiscovery(Model):
         x: torch.Tensor,  # [B, T, N, D] observed states (raw units)
         t: torch.Tensor,  # [T] times
         edge_index: torch.Tensor,  # [2, E] or [B, 2, E] graph, read only by effects that couple neighbours
+        *,
         u: torch.Tensor | None = None,  # unused: no controls
         node_features: torch.Tensor | None = None,  # unused
         meta: dict[str, Any] | None = None,  # unused
@@ -473,7 +478,7 @@ class SMNNDiscovery(Model):
         if n_t < 2:
             return x[:, :0]
         if min_delay(self.effects) > 0:  # a delayed term needs each step's history: step by step
-            return super().one_step(x, t, edge_index, u, node_features, meta)
+            return one_step_by_rollouts(self, x, t, edge_index, u=u, node_features=node_features, meta=meta)
         t = t.to(x)
         dt = t[1:] - t[:-1]  # [T-1]
         starts = x[:, :-1].reshape(b * (n_t - 1), n, d)

@@ -154,6 +154,7 @@ class SMNNForecaster(Model):
         x0: torch.Tensor,  # [B, K, N, D] first K observed states (raw units), or [B, N, D] when K = 1
         t: torch.Tensor,  # [T] times
         edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
+        *,
         u: torch.Tensor | None = None,  # [B, T, N, C] controls
         node_features: torch.Tensor | None = None,  # unused
         meta: dict[str, Any] | None = None,  # unused
@@ -229,7 +230,7 @@ class SMNNForecaster(Model):
         else:
             x = x[:, :length]
             sub_u = None if sub_u is None else sub_u[:, :length]
-        pred = self.rollout(x[:, :k], t[:length], batch.edge_index, sub_u)
+        pred = self.rollout(x[:, :k], t[:length], batch.edge_index, u=sub_u)
         # the first K − 1 steps are given; loss over the last context state and everything predicted
         return loss_fn(self.normalise(pred[:, k - 1 :]), self.normalise(x[:, k - 1 :]), delta), pred
 

@@ -55,15 +55,9 @@ def predict(
         for start in range(0, len(data), batch_size):
             part = data.subset(slice(start, start + batch_size)).to(device, model.state_mean.dtype)
             try:
-                args = (
-                    model.initial(part.x),
-                    t.to(part.x.dtype),
-                    part.edge_index,
-                    part.u,
-                    part.node_features,
-                    part.meta,
-                )
-                p, a = model.rollout_aux(*args) if aux else (model.rollout(*args), {})
+                x0, tt, ei = model.initial(part.x), t.to(part.x.dtype), part.edge_index
+                inputs: dict[str, Any] = {"u": part.u, "node_features": part.node_features, "meta": part.meta}
+                p, a = model.rollout_aux(x0, tt, ei, **inputs) if aux else (model.rollout(x0, tt, ei, **inputs), {})
             except DivergenceError:
                 p, a = torch.full_like(part.x, math.nan), {}
             preds.append(p.cpu())
