@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from mpsim.data.cache import cache_key, cached
-from mpsim.data.dataset import fit_normalisation, simulate_splits, split_trajectories
+from mpsim.data.dataset import DatasetSpec, fit_normalisation, simulate_splits, split_trajectories
 from mpsim.errors import DataError
 from mpsim.systems import CoupledLorenz, CoupledPendulums
 
@@ -13,8 +13,8 @@ SPEC = {"_target_": "mpsim.systems.CoupledPendulums", "name": "pendulum2"}
 
 def test_test_split_does_not_depend_on_training_size(tmp_path):
     system = CoupledPendulums()
-    small = simulate_splits(system, SPEC, 4, 2, 3, seed=0, horizon=5, cache_dir=tmp_path)
-    large = simulate_splits(system, SPEC, 10, 2, 3, seed=0, horizon=5, cache_dir=tmp_path)
+    small = simulate_splits(system, DatasetSpec(SPEC, 4, 2, 3, seed=0, horizon=5), cache_dir=tmp_path)
+    large = simulate_splits(system, DatasetSpec(SPEC, 10, 2, 3, seed=0, horizon=5), cache_dir=tmp_path)
     assert torch.equal(small.test.x, large.test.x)
     # a larger training set extends the smaller one: same initial states; trajectories agree to the solver tolerance
     assert torch.equal(small.train.x[:, 0], large.train.x[:4, 0])
@@ -24,7 +24,7 @@ def test_test_split_does_not_depend_on_training_size(tmp_path):
 
 def test_normalisation_uses_the_training_split_only():
     system = CoupledLorenz(n_nodes=2)
-    splits = simulate_splits(system, {"n": 2}, 6, 3, 3, seed=1, horizon=20)
+    splits = simulate_splits(system, DatasetSpec({"n": 2}, 6, 3, 3, seed=1, horizon=20))
     mean, std = fit_normalisation(splits.train)
     flat = splits.train.x.reshape(-1, 3)
     assert torch.allclose(mean, flat.mean(0)) and torch.allclose(std, flat.std(0))

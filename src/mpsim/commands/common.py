@@ -20,7 +20,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from mpsim.config import check_targets, validate_values
-from mpsim.data.dataset import Splits, add_noise, fit_normalisation, simulate_splits, split_trajectories
+from mpsim.data.dataset import DatasetSpec, Splits, add_noise, fit_normalisation, simulate_splits, split_trajectories
 from mpsim.data.io import check_representable, load_trajectories
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import CheckpointError, ConfigError, IncompatibleError, MpsimError
@@ -193,20 +193,19 @@ def load_splits(cfg: DictConfig, rt: Runtime, system: System | None) -> Splits:
     fit_horizons(cfg, rt, horizon, f"system={system.name} with {horizon} steps per trajectory")
     check_simulation_memory(cfg, system, [data.n_train, data.n_val, data.n_test], int(data.burn_in) + horizon + 1)
     cache_dir = resolve_path(cfg.paths.cache_dir, rt.start_dir) if data.cache else None
-    return simulate_splits(
-        system,
-        system_spec(cfg),
-        data.n_train,
-        data.n_val,
-        data.n_test,
-        data.seed,
-        data.dt,
-        data.horizon,
-        data.gt_rtol,
-        data.gt_atol,
-        cache_dir,
-        data.burn_in,
+    spec = DatasetSpec(
+        system=system_spec(cfg),
+        n_train=data.n_train,
+        n_val=data.n_val,
+        n_test=data.n_test,
+        seed=data.seed,
+        dt=data.dt,
+        horizon=data.horizon,
+        burn_in=data.burn_in,
+        rtol=data.gt_rtol,
+        atol=data.gt_atol,
     )
+    return simulate_splits(system, spec, cache_dir)
 
 
 def fit_horizons(cfg: DictConfig, rt: Runtime, steps: int, source: str) -> None:

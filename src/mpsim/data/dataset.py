@@ -52,43 +52,46 @@ class Splits:
         return {"train": len(self.train), "val": len(self.val), "test": len(self.test)}
 
 
-def simulate_splits(
-    system: Simulator,
-    system_spec: dict[str, Any],
-    n_train: int,
-    n_val: int,
-    n_test: int,
-    seed: int = 0,
-    dt: float | None = None,
-    horizon: int | None = None,
-    rtol: float = 1e-8,
-    atol: float = 1e-10,
-    cache_dir: str | Path | None = None,
-    burn_in: int = 0,
-) -> Splits:
-    """Generate (or fetch from the cache) the three splits of a simulated dataset.
+@dataclass(frozen=True)
+class DatasetSpec:
+    """What a simulated dataset is (every field is part of its cache key).
 
-    Args:
-        system: the ground-truth system.
-        system_spec: the system's full config (part of the cache key).
+    Attributes:
+        system: the system's full config.
         n_train, n_val, n_test: trajectories per split.
-        seed: dataset seed.
+        seed: dataset seed (initial states; the splits use the streams 3·seed, 3·seed + 1, 3·seed + 2).
         dt, horizon: sampling step and steps per trajectory (None: the system's defaults).
-        rtol, atol: ground-truth solver tolerances.
-        cache_dir: dataset cache (None: no cache).
         burn_in: steps simulated and discarded before each record (systems' `generate`).
+        rtol, atol: ground-truth solver tolerances.
     """
-    dt = system.dt if dt is None else float(dt)
-    horizon = system.horizon if horizon is None else int(horizon)
-    sizes = {"train": n_train, "val": n_val, "test": n_test}
+
+    system: dict[str, Any]
+    n_train: int
+    n_val: int
+    n_test: int
+    seed: int = 0
+    dt: float | None = None
+    horizon: int | None = None
+    burn_in: int = 0
+    rtol: float = 1e-8
+    atol: float = 1e-10
+
+
+def simulate_splits(system: Simulator, spec: DatasetSpec, cache_dir: str | Path | None = None) -> Splits:
+    """Generate (or fetch from the cache) the three splits of the dataset `spec` describes, from `system` (the
+    ground truth that `spec.system` configures); `cache_dir` None: no cache."""
+    seed, rtol, atol, burn_in = spec.seed, spec.rtol, spec.atol, spec.burn_in
+    dt = system.dt if spec.dt is None else float(spec.dt)
+    horizon = system.horizon if spec.horizon is None else int(spec.horizon)
+    sizes = {"train": spec.n_train, "val": spec.n_val, "test": spec.n_test}
     for name, n in sizes.items():
         if n < 1:
             raise ConfigError(f"data.n_{name} must be >= 1; got {n}.")
     out = {}
     for k, name in enumerate(SPLITS):
         split_seed = 3 * int(seed) + k
-        spec = {
-            "system": system_spec,
+        key = {
+            "system": spec.system,
             "n": sizes[name],
             "seed": split_seed,
             "dt": dt,
@@ -100,7 +103,7 @@ def simulate_splits(
         extra = {"burn_in": burn_in} if burn_in else {}  # only systems that support it are asked for it
         out[name] = cached(
             cache_dir,
-            spec,
+            key,
             lambda n=sizes[name], s=split_seed, e=extra: system.generate(
                 n, s, dt=dt, horizon=horizon, rtol=rtol, atol=atol, **e
             ),
