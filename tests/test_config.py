@@ -10,7 +10,7 @@ from omegaconf import OmegaConf
 
 import mpsim
 from mpsim.cli import COMMANDS
-from mpsim.commands.common import inline_specs
+from mpsim.commands.runtime import inline_specs
 from mpsim.config import check_targets
 from mpsim.errors import ConfigError
 from mpsim.models.base import Model

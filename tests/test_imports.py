@@ -24,7 +24,7 @@ graph must still be acyclic):
     8  entry      cli, __main__, mpsim (the package facade)        command dispatch, process set-up
 
 A command (one of `COMMANDS`) never imports another command: what two commands share lives in a helper module of
-`mpsim.commands` (`common`, `console`, ...) or in a library module below; a helper never imports a command.
+`mpsim.commands` (`runtime`, `building`, `console`, ...) or in a library module below; a helper never imports a command.
 
 A private name (`_x`, not a dunder) defined in one module is never imported or used (`module._x`) from another;
 a private module (`_x.py`) may be imported only from inside its own package.

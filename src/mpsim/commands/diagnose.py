@@ -16,17 +16,10 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from mpsim import plotting
-from mpsim.commands.common import (
-    Shape,
-    build,
-    build_model_for,
-    build_system,
-    checkpoint_base,
-    load_init,
-    model_and_data,
-    setup_runtime,
-)
+from mpsim.commands.building import Shape, build, build_model_for, build_system, model_and_data
+from mpsim.commands.checkpoints import checkpoint_base, load_init
 from mpsim.commands.console import fmt, print_summary
+from mpsim.commands.runtime import setup_runtime
 from mpsim.data.trajectories import Trajectories
 from mpsim.diagnose.heldout import EFFECTS_NAMED, NOTHING_MISSING
 from mpsim.diagnose.params import DiagnoseParams

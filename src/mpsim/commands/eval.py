@@ -6,8 +6,8 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from mpsim.commands.common import setup_runtime
 from mpsim.commands.evaluation import evaluate_checkpoint
+from mpsim.commands.runtime import setup_runtime
 from mpsim.errors import ConfigError
 
 

@@ -10,8 +10,10 @@ from typing import Any
 from omegaconf import DictConfig
 
 from mpsim import plotting
-from mpsim.commands.common import Runtime, build_system, load_init, model_and_data
+from mpsim.commands.building import build_system, model_and_data
+from mpsim.commands.checkpoints import load_init
 from mpsim.commands.console import fmt, print_summary
+from mpsim.commands.runtime import Runtime
 from mpsim.data.trajectories import Trajectories
 from mpsim.files import write_json
 from mpsim.metrics import relative_energy_error, rollout_metrics

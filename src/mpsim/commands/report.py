@@ -22,9 +22,9 @@ import pandas as pd
 import yaml
 from omegaconf import DictConfig
 
-from mpsim.commands.common import locate, resolve_path
 from mpsim.commands.console import markdown, print_summary
 from mpsim.commands.report_layouts import DEFAULT_TITLES, LAYOUT_FUNCS, run_facts, settings_caption
+from mpsim.commands.runtime import locate, resolve_path
 from mpsim.errors import ConfigError, DataError
 from mpsim.files import atomic_write
 from mpsim.metrics import first_epoch_below

@@ -9,15 +9,11 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from mpsim import plotting
-from mpsim.commands.common import (
-    Shape,
-    build_model_for,
-    build_system,
-    check_simulation_memory,
-    load_init,
-    setup_runtime,
-)
+from mpsim.commands.building import Shape, build_model_for, build_system
+from mpsim.commands.checkpoints import load_init
 from mpsim.commands.console import fmt, print_summary
+from mpsim.commands.runtime import setup_runtime
+from mpsim.commands.splits import check_simulation_memory
 from mpsim.data.io import save_csv, save_npz
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError

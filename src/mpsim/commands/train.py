@@ -15,21 +15,12 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from mpsim import plotting
-from mpsim.commands.common import (
-    Runtime,
-    build,
-    build_system,
-    check_training_memory,
-    checkpoint_base,
-    is_multirun,
-    load_init,
-    model_and_data,
-    noisy_train,
-    resolve_path,
-    setup_runtime,
-)
+from mpsim.commands.building import build, build_system, model_and_data
+from mpsim.commands.checkpoints import checkpoint_base, load_init
 from mpsim.commands.console import duration, fmt, print_summary
 from mpsim.commands.evaluation import evaluate_checkpoint, evaluate_model, horizon_rows
+from mpsim.commands.runtime import Runtime, is_multirun, resolve_path, setup_runtime
+from mpsim.commands.splits import check_training_memory, noisy_train
 from mpsim.config import check_target_node
 from mpsim.errors import CheckpointError, ConfigError, OutputError
 from mpsim.files import atomic_write, child_path, keep_previous, safe_name, write_json
