@@ -8,15 +8,9 @@ import pytest
 import torch
 
 from mpsim.errors import ConfigError, IncompatibleError
-from mpsim.systems.quadrotor import (
-    CEILING,
-    DOOR_CENTRES,
-    DOOR_RADIUS,
-    LOAD_RADIUS,
-    QUAD_RADIUS,
-    QuadrotorSwarm,
-    quat_to_rotation,
-)
+from mpsim.systems.quadrotor import QuadrotorSwarm
+from mpsim.systems.quadrotor_dynamics import quat_to_rotation
+from mpsim.systems.quadrotor_scenarios import CEILING, DOOR_CENTRES, DOOR_RADIUS, LOAD_RADIUS, QUAD_RADIUS
 
 F64 = torch.float64
 
