@@ -176,6 +176,8 @@ def test_gravity_features_and_errors() -> None:
         NBody(n_particles=10, force="coulomb").energy(traj.x)
     with pytest.raises(ConfigError, match="force"):
         NBody(force="magnetic")
+    with pytest.raises(ConfigError, match="burn_in"):
+        NBody(n_particles=10, n_steps=2).generate(1, seed=0, burn_in=5)
 
 
 def test_generic_config_any_size_and_force(cfg_factory) -> None:

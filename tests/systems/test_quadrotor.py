@@ -239,6 +239,8 @@ def test_config_errors(quad3: QuadrotorSwarm) -> None:
         quad3.generate(n=1, seed=0, dt=0.025, horizon=2)
     with pytest.raises(ConfigError, match="n_quads"):
         QuadrotorSwarm(n_quads=1).generate(n=1, seed=0, horizon=2)
+    with pytest.raises(ConfigError, match="burn_in"):
+        quad3.generate(n=1, seed=0, horizon=2, burn_in=3)
     with pytest.raises(IncompatibleError, match="load"):
         quad3.rhs(torch.tensor(0.0), torch.zeros(1, 3, 13, dtype=F64))
 

@@ -33,11 +33,12 @@ IC_KINDS = ("hotspot", "uniform")
 
 def default_gene_graph_params(graph: str, n_nodes: int) -> dict[str, Any]:
     """MPNODE.jl's parameters: ER p = 0.5; BA k = n/2; WS k = n/2, p = 0.5."""
-    return {
+    params: dict[str, dict[str, Any]] = {
         "erdos_renyi": {"p": 0.5},
         "barabasi_albert": {"k": n_nodes // 2},
         "watts_strogatz": {"k": n_nodes // 2, "p": 0.5},
-    }.get(graph, {})
+    }
+    return params.get(graph, {})
 
 
 def hotspot_states(

@@ -38,7 +38,12 @@ from mpsim.systems.graph_ensemble import GraphEnsembleSystem
 
 def default_kuramoto_graph_params(graph: str) -> dict[str, Any]:
     """MPNODE.jl's Kuramoto10_5 parameters: BA k = 5; ER m = 5 edges; WS k = 5, p = 0.5."""
-    return {"erdos_renyi": {"m": 5}, "barabasi_albert": {"k": 5}, "watts_strogatz": {"k": 5, "p": 0.5}}.get(graph, {})
+    params: dict[str, dict[str, Any]] = {
+        "erdos_renyi": {"m": 5},
+        "barabasi_albert": {"k": 5},
+        "watts_strogatz": {"k": 5, "p": 0.5},
+    }
+    return params.get(graph, {})
 
 
 def natural_frequencies(dim: int, seed: int) -> torch.Tensor:

@@ -321,13 +321,16 @@ class NBody(System):
         horizon: int | None = None,
         rtol: float | None = None,
         atol: float | None = None,
+        burn_in: int = 0,
         device: torch.device | str | None = None,
     ) -> Trajectories:
         """`n` trajectories of `horizon` steps of `dt` from initial states and charges drawn with `seed`.
 
         The draws happen on the CPU (so a seed gives the same data on every device); the integration runs
-        on `device` (default CPU). `rtol`/`atol` are ignored (fixed-step integrator).
+        on `device` (default CPU). `rtol`/`atol` are ignored (fixed-step integrator); `burn_in` must be 0.
         """
+        if burn_in:
+            raise ConfigError(f"{self.name}: N-body data has no burn-in; got burn_in={burn_in}. Set data.burn_in=0.")
         dt = self.dt if dt is None else dt
         horizon = self.horizon if horizon is None else horizon
         if dt <= 0 or horizon < 1 or n < 1:

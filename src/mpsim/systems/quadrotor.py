@@ -489,8 +489,12 @@ class QuadrotorSwarm(System):
         horizon: int | None = None,
         rtol: float = 1e-8,
         atol: float = 1e-10,
+        burn_in: int = 0,
     ) -> Trajectories:
-        """`n` accepted trajectories (node data only; see `generate_full`). rtol/atol are unused (fixed-step RK4)."""
+        """`n` accepted trajectories (node data only; see `generate_full`). rtol/atol are unused (fixed-step RK4);
+        `burn_in` must be 0 (each scenario starts at rest on its own trajectory)."""
+        if burn_in:
+            raise ConfigError(f"{self.name}: quadrotor data has no burn-in; got burn_in={burn_in}. Set data.burn_in=0.")
         return self.generate_full(n, seed, dt, horizon).trajectories
 
     def simulate(

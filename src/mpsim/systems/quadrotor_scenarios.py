@@ -147,13 +147,17 @@ class DoorwayScenarios:
         def uniform(lo: float, hi: float, *shape: int) -> torch.Tensor:
             return lo + (hi - lo) * torch.rand(n, *shape, generator=generator, dtype=f64)
 
+        def in_range(bounds: tuple[float, ...]) -> torch.Tensor:  # [n] from a (lo, hi) range
+            lo, hi = bounds
+            return uniform(lo, hi)
+
         start = torch.stack([uniform(-0.5, 0.0), uniform(-0.75, 0.75), uniform(0.25, 0.6)], dim=-1)  # [n, 3]
         goal = torch.stack([uniform(5.8, 6.5), uniform(-0.75, 0.75), uniform(0.25, 0.6)], dim=-1)
-        z_door = uniform(*self.z_door_range)
-        r_config = uniform(*self.r_config_range)
+        z_door = in_range(self.z_door_range)
+        r_config = in_range(self.r_config_range)
         phi = uniform(0.0, 2 * math.pi / N)
-        beta = torch.deg2rad(uniform(*self.fan_half_angle))
-        durations = torch.stack([uniform(*r) for r in self.phase_ranges], dim=-1)  # [n, 3]
+        beta = torch.deg2rad(in_range(self.fan_half_angle))
+        durations = torch.stack([in_range(r) for r in self.phase_ranges], dim=-1)  # [n, 3]
 
         n_circ = circle_directions(self.n_quads, self.cable_length, r_config, phi)
         # Fan slots ψ ∈ linspace(−β, β) go to the quads in order of their circle x-offset, front (largest x,
