@@ -22,6 +22,7 @@ import math
 import re
 import types
 import typing
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -370,6 +371,7 @@ def _sweep_variants(args: list[str]) -> list[list[str]] | None:
             except Exception:  # noqa: BLE001 - glob() and friends need Hydra's config loader
                 return None
         else:
+            assert item.input_line is not None  # parse_overrides sets it on every override it returns
             values.append([item.input_line])
     first = [v[0] for v in values]
     variants = [first]
@@ -492,6 +494,7 @@ def _unknown_key(key: str, others: list[str], compose_fn: Any, config_dir: str) 
         )
     target = node.get("_target_") if parent else None
     if isinstance(target, str):
+        params: Mapping[str, inspect.Parameter]
         try:
             obj = _import(target, parent)
             params = inspect.signature(obj.__init__ if inspect.isclass(obj) else obj).parameters

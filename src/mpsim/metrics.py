@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch
 
@@ -73,7 +74,7 @@ def rollout_metrics(
         return {"rmse": nan, "rmse_raw": nan, "per_step_rmse": [], "horizons": {}, "n_diverged": n_div}
     se_n, se_r = squared_errors(pred[finite], target[finite], std, periods)  # [B', T]
     per_step = se_n.mean(0).sqrt()  # [T]
-    out = {
+    out: dict[str, Any] = {
         "rmse": float(se_n[:, first:].mean().sqrt()),
         "rmse_raw": float(se_r[:, first:].mean().sqrt()),
         "per_step_rmse": [float(v) for v in per_step],

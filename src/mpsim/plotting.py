@@ -85,7 +85,7 @@ def trajectories(
                     ax.set_ylabel(f"traj {i}\n{state_names[j]}")
                 if i == 0 and j == 0:
                     ax.set_title(f"node {k}")
-            if rows_per > d:
+            if messages is not None and rows_per > d:
                 ax = axes[i * rows_per + d, k]
                 ax.plot(tt, messages[i, :, k].norm(dim=-1).cpu().numpy(), color="tab:green", lw=1.2)
                 if k == 0:

@@ -127,6 +127,15 @@ def test_container_checks_time_grid():
         Trajectories(t=torch.tensor([0.0, 1.0, 1.0]), x=torch.zeros(1, 3, 1, 1), edge_index=torch.zeros(2, 0).long())
 
 
+def test_concat_refuses_to_drop_controls():
+    grid, ei = torch.tensor([0.0, 1.0]), torch.zeros(2, 0).long()
+    with_u = Trajectories(t=grid, x=torch.zeros(1, 2, 1, 1), edge_index=ei, u=torch.zeros(1, 2, 1, 1))
+    without_u = Trajectories(t=grid, x=torch.zeros(1, 2, 1, 1), edge_index=ei)
+    assert Trajectories.concat([with_u, with_u]).u.shape == (2, 2, 1, 1)
+    with pytest.raises(DataError, match="without"):
+        Trajectories.concat([with_u, without_u])
+
+
 def test_empty_traj_cell_is_named(tmp_path):
     rows = _grid()
     rows[3][0] = None

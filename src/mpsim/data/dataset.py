@@ -8,6 +8,7 @@ shares its steps across a batch, so trajectories agree to its tolerance).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -104,8 +105,8 @@ def simulate_splits(system: Simulator, spec: DatasetSpec, cache_dir: str | Path 
         out[name] = cached(
             cache_dir,
             key,
-            lambda n=sizes[name], s=split_seed, e=extra: system.generate(
-                n, s, dt=dt, horizon=horizon, rtol=rtol, atol=atol, **e
+            functools.partial(
+                system.generate, sizes[name], split_seed, dt=dt, horizon=horizon, rtol=rtol, atol=atol, **extra
             ),
         )
     return Splits(**out)

@@ -103,8 +103,9 @@ def save_csv(traj: Trajectories, path: str | Path) -> tuple[Path, Path]:
     }
     for k, name in enumerate(traj.state_names):
         grid[name] = traj.x[..., k].double().cpu().numpy().reshape(-1)
-    for k, name in enumerate(traj.control_names):
-        grid[name] = traj.u[..., k].double().cpu().numpy().reshape(-1)
+    if traj.u is not None:
+        for k, name in enumerate(traj.control_names):
+            grid[name] = traj.u[..., k].double().cpu().numpy().reshape(-1)
     frame = pd.DataFrame(grid)
     atomic_write(path, lambda f: frame.to_csv(f, index=False, float_format="%.17g"), mode="w")
     ei = traj.edge_index.cpu()
@@ -325,6 +326,7 @@ META_TYPES: dict[str, tuple[type, ...]] = {
     "params": (dict,),
     "periods": (list,),
 }
+_JSON_TYPE_NAMES: dict[type, str] = {str: "string", list: "list", dict: "object"}
 
 
 def check_meta(meta: Any, where: str) -> dict[str, Any]:
@@ -343,17 +345,15 @@ def check_meta(meta: Any, where: str) -> dict[str, Any]:
         if value is None:
             continue
         if not isinstance(value, kinds) or isinstance(value, bool):
-            names = " or ".join(
-                "number" if k in (int, float) else {str: "string", list: "list", dict: "object"}[k]
-                for k in kinds
-                if k is not int
-            )
+            names = " or ".join("number" if k in (int, float) else _JSON_TYPE_NAMES[k] for k in kinds if k is not int)
             raise DataError(f"{where}: key '{key}' must be a {names}; got {json.dumps(value)[:80]}.")
-        if key in ("state_names", "control_names", "control_columns", "node_feature_names") and not all(
-            isinstance(v, str) for v in value
+        if (
+            key in ("state_names", "control_names", "control_columns", "node_feature_names")
+            and isinstance(value, list)
+            and not all(isinstance(v, str) for v in value)
         ):
             raise DataError(f"{where}: key '{key}' must be a list of strings; got {json.dumps(value)[:80]}.")
-        if key == "dt" and not (np.isfinite(value) and value > 0):
+        if key == "dt" and isinstance(value, (int, float)) and not (np.isfinite(value) and value > 0):
             raise DataError(f"{where}: key 'dt' must be a finite number > 0; got {value}.")
     return meta
 

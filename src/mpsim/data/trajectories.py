@@ -197,11 +197,14 @@ class Trajectories:
             per = [p.edge_index.expand(len(p), -1, -1) if p.shared_graph else p.edge_index for p in parts]
             e_max = max(e.shape[2] for e in per)
             edge_index = torch.cat([torch.nn.functional.pad(e, (0, e_max - e.shape[2]), value=-1) for e in per], dim=0)
+        controls = [p.u for p in parts if p.u is not None]
+        if first.u is not None and len(controls) != len(parts):
+            raise DataError("cannot concatenate trajectories with controls `u` and trajectories without.")
         return Trajectories(
             t=first.t,
             x=torch.cat([p.x for p in parts]),
             edge_index=edge_index,
-            u=None if first.u is None else torch.cat([p.u for p in parts]),
+            u=None if first.u is None else torch.cat(controls),
             node_features=first.node_features,
             meta=dict(first.meta),
         )

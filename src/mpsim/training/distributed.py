@@ -18,12 +18,15 @@ import datetime
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 import torch.distributed as torch_dist
 
 from mpsim.errors import ConfigError
+
+if TYPE_CHECKING:
+    from mpsim.models.base import Model
 
 
 def env_world() -> tuple[int, int, int]:
@@ -116,7 +119,7 @@ class DistContext:
         return self.device if self.backend == "nccl" else torch.device("cpu")
 
     # ---- the model -----------------------------------------------------------------------------------
-    def wrap(self, model: torch.nn.Module) -> Callable[..., tuple[torch.Tensor, torch.Tensor]]:
+    def wrap(self, model: Model) -> Callable[..., tuple[torch.Tensor, torch.Tensor]]:
         """`model.training_loss` for this job: the method itself in one process; under several, the same call
         through `DistributedDataParallel`, so that `backward()` all-reduces (averages) the gradients.
 
@@ -133,7 +136,7 @@ class DistContext:
 class _TrainingLoss(torch.nn.Module):
     """`model.training_loss` as a module's forward: what DDP hooks into."""
 
-    def __init__(self, model: torch.nn.Module) -> None:
+    def __init__(self, model: Model) -> None:
         super().__init__()
         self.model = model
 

@@ -195,6 +195,7 @@ class Trainer:
         device, dtype = model.state_mean.device, model.state_mean.dtype
         train_d = train.to(device, dtype)
         loss_fn = LOSSES[self.loss]
+        opt: torch.optim.Optimizer
         if self.optimizer == "lbfgs":  # a few smooth parameters (white-box models): quasi-Newton with line search
             opt = torch.optim.LBFGS(
                 model.parameters(), lr=self.lr, max_iter=10, history_size=20, line_search_fn="strong_wolfe"
@@ -298,6 +299,7 @@ class Trainer:
             batch = data.subset(idx.to(data.x.device))
             bt = t
             if wstart is not None:
+                assert self.window is not None  # windows are only drawn when it is set
                 batch = batch.time_slice(wstart, wstart + self.window + 1)
                 bt = t[wstart : wstart + self.window + 1]
             loss, pred = self._loss_step(batch, bt, loss_fn, self.huber_delta)
