@@ -575,7 +575,7 @@ class EquationField:
     def _add(terms: list[tuple[int, Callable]]) -> tuple[int, Callable]:
         # a − b arrives as a + (−1)·b: subtract instead of negating
         fns = [fn for _, fn in terms if getattr(fn, "negated", None) is None]
-        negs = [fn.negated for _, fn in terms if getattr(fn, "negated", None) is not None]
+        negs = [neg for _, fn in terms if (neg := getattr(fn, "negated", None)) is not None]
         rank = max(r for r, _ in terms)
 
         def add(env: _Env) -> Value:

@@ -31,6 +31,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from itertools import product
+from typing import Any
 
 import torch
 
@@ -181,9 +182,13 @@ class Hierarchy:
         so a particle that has drifted slightly out of its cell (or across the box face) still counts at its
         nearest periodic position.
         """
+        parents = []
+        for c in self.cells[:-1]:
+            assert c.parent is not None  # every level below the top has one
+            parents.append(c.parent)
         feats = cell_features(
             self.particle_cell,
-            [c.parent for c in self.cells[:-1]],
+            parents,
             [c.centre for c in self.cells],
             self.box_size,
             mass.reshape(-1),
@@ -279,14 +284,14 @@ def build_hierarchy(
     particle_cell = dense[key]
     pp_edges = _particle_edges(key, counts, sample, row, col, grid)
 
-    levels: list[dict] = []
+    levels: list[dict[str, Any]] = []
     while True:
         c_sample, c_code = occupied // (grid * grid), occupied % (grid * grid)
         c_row, c_col = morton_decode(c_code)
         centre = torch.stack(
             [(c_col.to(pos3.dtype) + 0.5) * cell_size, -(c_row.to(pos3.dtype) + 0.5) * cell_size], dim=-1
         ) + torch.tensor([-box_size / 2, box_size / 2], dtype=pos3.dtype, device=dev)
-        level = dict(
+        level: dict[str, Any] = dict(
             grid=grid,
             cell_size=cell_size,
             batch=c_sample,

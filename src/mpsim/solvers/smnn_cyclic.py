@@ -317,6 +317,7 @@ def _chunked_solve(ch: Chunked, rhs: torch.Tensor, refine: int) -> torch.Tensor:
         ins = outs = list(work.unbind(0))
     acc = _forward(ch.main, ins[:m], outs[:m]).view(P, L, b, R)
     # separator equations with the interiors eliminated: g_p = b_p − E_rᵀ D⁻¹ z_last(p) − Σ_j h_j z_j(p+1)
+    assert ch.main.k is not None  # the full chunks always have a right separator
     g = ins[m].reshape(P, L, b, R) - (ch.main.k @ outs[m - 1]).view(P, L, b, R)
     pulls = [acc[1:]]
     if ch.tail is not None:
@@ -358,9 +359,10 @@ def cyclic_factor(
         not positive definite (a Cholesky of some reduced block failed). The caller decides how to report it.
     """
     paired = A2 is not None
-    diag, lower = _pair_pentadiagonal(A0, A1, A2) if paired else (A0, A1)
+    diag, lower = (A0, A1) if A2 is None else _pair_pentadiagonal(A0, A1, A2)
     if chunk is None:
         chunk = chunk_length(diag.shape[0], diag.shape[1] * diag.shape[-1] * width * diag.element_size(), diag.device)
+    core: Reduction | Chunked
     if chunk >= 2 and diag.shape[0] >= 2 * (chunk + 1):
         core, bad = _chunked_factor(diag, lower, chunk)
     else:
