@@ -92,9 +92,17 @@ def zero_order_hold(
     return u[:, int(k)]
 
 
+class HeldField(nn.Module):
+    """A vector field of one rollout that reads controls `u` (or None) through a zero-order hold, with `held`
+    the sample an interval-by-interval solve fixes (None: the sample at or before t)."""
+
+    u: torch.Tensor | None
+    held: int | None
+
+
 def integrate_held(
     integrate: Callable[[nn.Module, torch.Tensor, torch.Tensor], torch.Tensor],
-    field: nn.Module,
+    field: HeldField,
     y0: torch.Tensor,  # [B, ...] initial state
     t: torch.Tensor,  # [T] output times (= the control sample times)
 ) -> torch.Tensor:

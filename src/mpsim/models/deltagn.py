@@ -43,6 +43,10 @@ class DeltaGN(ParticleModel):
         pairs_per_trajectory, energy_horizons, energy_flag, solver: see `ParticleModel`.
     """
 
+    # buffers (nn.Module.__getattr__ would type them as Tensor | Module)
+    delta_scale: torch.Tensor
+    delta_scale_fitted: torch.Tensor
+
     def __init__(
         self,
         state_dim: int = 4,

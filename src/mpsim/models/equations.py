@@ -44,6 +44,7 @@ class _Field(nn.Module):
             t = t + self.offset
         dx = self.model.field(t, x, self.values, self.graph)
         if len(self.model.effects):
+            assert self.graph is not None  # `EquationsModel._graph` builds it whenever there are effects
             dx = dx + total(self.model.effects, t, x, EffectContext(self.graph, history))
         return dx
 

@@ -77,6 +77,11 @@ class MLP(nn.Module):
             x = self.act(layer(x))
         return x
 
+    def _first_layer(self) -> nn.Linear:
+        first = self.layers[0]
+        assert isinstance(first, nn.Linear)  # `linear_stack` builds it; ModuleList items are typed as Module
+        return first
+
     def forward_parts(self, parts: Sequence[Part], n_rows: int | None = None) -> torch.Tensor:
         """[R, width] the MLP of the row-wise concatenation of `parts`, without building it.
 
@@ -102,8 +107,7 @@ class MLP(nn.Module):
         """
         projected = self._project(parts)
         n_rows = int(segment.shape[0])
-        first = self.layers[0]
-        out = first.weight.new_zeros(n_segments, self.width)
+        out = self._first_layer().weight.new_zeros(n_segments, self.width)
         tile = _TILE_ROWS_CUDA if segment.is_cuda else _TILE_ROWS
         for r0 in range(0, n_rows, tile):  # a loop over tiles of edges, not over edges
             rows = slice(r0, min(n_rows, r0 + tile))
@@ -114,8 +118,9 @@ class MLP(nn.Module):
         """Per part: (values @ W_k^T [n_k, H], index, None) for indexed parts and broadcast rows (the first layer
         once per node, not once per row), or (values [R, f_k], None, W_k [H, f_k]) for per-row parts, which
         `_rows` projects a tile at a time."""
-        first = self.layers[0]
-        col, out = 0, []
+        first = self._first_layer()
+        col = 0
+        out: list[tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]] = []
         for values, index in parts:
             f = values.shape[-1]
             weight = first.weight[:, col : col + f]
@@ -142,7 +147,8 @@ class MLP(nn.Module):
             else:  # one broadcast row
                 proj = values
             h = proj if h is None else h + proj
-        h = h + self.layers[0].bias
+        assert h is not None  # `_project` checked that the parts give n_in > 0 features
+        h = h + self._first_layer().bias
         if n_rows is not None and h.shape[0] != n_rows:
             h = h.expand(n_rows, -1)
         h = self.act(h)
@@ -265,6 +271,7 @@ class HierarchyPass(nn.Module):
         embed = [torch.cat([cell_feats[0], up], dim=-1)]  # [C_0, d+100]
         for lv in range(n_levels - 1):
             parent = levels[lv].parent  # [C_lv] parent id of each cell
+            assert parent is not None  # every level below the top has one
             vec = minimum_image(cell_pos[lv] - cell_pos[lv + 1][parent], box)  # X_child - X_parent
             up = self.up_cell.segment_sum_parts(
                 [(embed[lv], None), (cell_feats[lv + 1], parent), (vec, None), *extra], parent, levels[lv + 1].n_cells
@@ -288,6 +295,7 @@ class HierarchyPass(nn.Module):
             state = torch.cat([cell_feats[lv], upd], dim=-1)  # [C, d+100]
 
         # lowest cell -> particle: the one edge that carries every long-range interaction
+        assert state is not None  # a hierarchy has at least one level
         vec = minimum_image(cell_pos[0][pc] - particle_pos, box)  # X_c - x_p
         return self.to_particle.forward_parts([(state, pc), (particle_feats, None), (vec, None), *extra], n_p)
 
@@ -327,7 +335,10 @@ class InteractionBlock(nn.Module):
         The edge sum is what a global block aggregates (HOGN): the per-sample sum over particles of the
         per-particle edge sums is the sum over all of the sample's edges, the φc→p edges included.
         """
-        extra: list[tuple[torch.Tensor, None]] = [(dt, None)] if self.dt_feature else []
+        extra: list[tuple[torch.Tensor, None]] = []
+        if self.dt_feature:
+            assert dt is not None, "a block built with dt_feature needs the time step `dt`"
+            extra = [(dt, None)]
         snd, rcv = graph.edge_index
         vec = graph.vectors(pos, box_size)  # [E, 2]
         incoming = self.edge.segment_sum_parts([(feats, snd), (feats, rcv), (vec, None), *extra], rcv, graph.n_nodes)

@@ -30,7 +30,7 @@ from torch import nn
 
 from mpsim.effects import Effect
 from mpsim.graphs.batch import BatchedGraph, batch_graph, segment_sum, sum_aggregate
-from mpsim.models.controls import ControlledModel, ControlNormalisation, integrate_held, zero_order_hold
+from mpsim.models.controls import ControlledModel, ControlNormalisation, HeldField, integrate_held, zero_order_hold
 from mpsim.models.layers import ACTIVATIONS, dense
 from mpsim.solvers.odeint import ODESolver
 
@@ -64,7 +64,7 @@ class _ProcessorStep(nn.Module):
         return self.act(self.update(agg + empty * self.psi)) + h
 
 
-class _GraphField(nn.Module):
+class _GraphField(HeldField):
     """dz/dt of every node of a batch: the graph, controls and their hold fixed for one rollout."""
 
     def __init__(

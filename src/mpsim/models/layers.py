@@ -56,3 +56,10 @@ def mlp(n_in: int, hidden: int, n_out: int, n_hidden_layers: int = 2, activation
     for layer in linears:  # after every layer is built, as Flux (and so the seeded reference weights) does
         glorot_(layer)
     return nn.Sequential(*layers)
+
+
+def output_layer(net: nn.Sequential) -> nn.Linear:
+    """The last Linear of an `mlp` (indexing a Sequential is typed as a plain Module)."""
+    layer = net[-1]
+    assert isinstance(layer, nn.Linear), f"expected an mlp ending in a Linear layer; got {type(layer).__name__}"
+    return layer

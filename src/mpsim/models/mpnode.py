@@ -22,14 +22,14 @@ from torch import nn
 
 from mpsim.effects import Effect, EffectContext, total
 from mpsim.graphs.batch import BatchedGraph, batch_graph, mean_aggregate, sum_aggregate
-from mpsim.models.controls import ControlledModel, ControlNormalisation, integrate_held, zero_order_hold
+from mpsim.models.controls import ControlledModel, ControlNormalisation, HeldField, integrate_held, zero_order_hold
 from mpsim.models.layers import mlp
 from mpsim.solvers.odeint import ODESolver
 
 AGGREGATIONS = {"mean": mean_aggregate, "sum": sum_aggregate}
 
 
-class _MessagePassingField(nn.Module):
+class _MessagePassingField(HeldField):
     """The augmented vector field of one rollout: graph and controls fixed, `net` shared."""
 
     def __init__(
@@ -38,7 +38,7 @@ class _MessagePassingField(nn.Module):
         graph: BatchedGraph,
         state_dim: int,
         zero_messages: bool,
-        t_grid: torch.Tensor | None = None,  # [T] sample times of u
+        t_grid: torch.Tensor,  # [T] sample times of u
         u: torch.Tensor | None = None,  # [B, T, N, C] controls (z-scored by the model)
         model: MPNODE | None = None,  # for its effects and normalisation
         effect_graph: BatchedGraph | None = None,  # the data's coupling graph (no self-loops) for effects
@@ -64,6 +64,7 @@ class _MessagePassingField(nn.Module):
         model = self.model
         if model is None or not len(model.effects):
             return dy
+        assert self.effect_graph is not None  # the model builds it whenever it has effects
         # effects act on raw states; the network works in z-scored ones: dz/dt = (dx/dt) / std
         d = self.state_dim
         raw_history = None if history is None else (lambda s: model.denormalise(history(s)[..., :d]))

@@ -24,12 +24,12 @@ from torch import nn
 
 from mpsim.effects import Effect
 from mpsim.errors import IncompatibleError
-from mpsim.models.controls import ControlledModel, ControlNormalisation, integrate_held, zero_order_hold
+from mpsim.models.controls import ControlledModel, ControlNormalisation, HeldField, integrate_held, zero_order_hold
 from mpsim.models.layers import ACTIVATIONS, dense
 from mpsim.solvers.odeint import ODESolver
 
 
-class _FlatField(nn.Module):
+class _FlatField(HeldField):
     """dZ/dt of the flattened system state of one rollout (controls and their hold fixed)."""
 
     def __init__(
@@ -137,6 +137,7 @@ class NODE(ControlledModel):
         meta: dict[str, Any] | None = None,  # unused
     ) -> torch.Tensor:
         self._require(x0.shape[1])
+        assert self.net is not None  # `_require` built it
         field = _FlatField(self.net, t.to(x0), self.controls(u))
         z = integrate_held(lambda f, y, tt: self.integrate(f, y, tt, self.solver), field, self.normalise(x0), t)
         return self.denormalise(z)

@@ -26,7 +26,7 @@ from mpsim.errors import ConfigError, IncompatibleError
 from mpsim.graphs.batch import batch_graph
 from mpsim.models.base import Model
 from mpsim.models.capabilities import one_step_by_rollouts
-from mpsim.models.layers import mlp
+from mpsim.models.layers import mlp, output_layer
 from mpsim.polynomials import monomials
 from mpsim.solvers.mnn_dense import dense_solve, mnn_dense_solve
 from mpsim.solvers.odeint import ODESolver
@@ -118,7 +118,11 @@ class _PolynomialField(nn.Module):
     def forward(self, t: torch.Tensor, x: torch.Tensor, history=None) -> torch.Tensor:  # t: [], x: [B, N, D]
         dx = self.model.library(x) @ self.xi
         if len(self.model.effects):
-            when = t if self.scale is None else self.start + t * self.scale[..., 0]  # [] or [B, 1]
+            if self.scale is None:
+                when = t  # []
+            else:
+                assert self.start is not None  # given with `scale`
+                when = self.start + t * self.scale[..., 0]  # [B, 1]
             dx = dx + total(self.model.effects, when, x, EffectContext(self.graph, history))
         return dx if self.scale is None else self.scale * dx
 
@@ -241,7 +245,7 @@ class SMNNDiscovery(Model):
         if param_hidden > 0:
             self.register_buffer("param_in", torch.randn(1, 64))
             self.param_net = mlp(64, param_hidden, n_terms * state_dim, 2, "relu")
-            nn.init.zeros_(self.param_net[-1].weight)  # starts at ξ = 0, like the direct parametrisation
+            nn.init.zeros_(output_layer(self.param_net).weight)  # starts at ξ = 0, like the direct parametrisation
             self.theta = None
         else:
             self.param_net = None
@@ -249,7 +253,7 @@ class SMNNDiscovery(Model):
         self.denoiser = None
         if denoiser_hidden > 0:
             self.denoiser = mlp(window * state_dim, denoiser_hidden, window * state_dim, 2, "relu")
-            nn.init.zeros_(self.denoiser[-1].weight)  # var = x at the start
+            nn.init.zeros_(output_layer(self.denoiser).weight)  # var = x at the start
 
     def _resolve_terms(self, strict: bool) -> None:
         """Library terms from `degree` and `extra_terms` under the current state names; the gather index.
@@ -294,9 +298,20 @@ class SMNNDiscovery(Model):
         ext = torch.cat([x, torch.ones_like(x[..., :1])], -1)
         return ext[..., self.term_index].prod(-1)
 
+    def _library_terms(self) -> list[tuple[int, ...]]:
+        """The library's terms, resolved (as in `library`: raises if the extra terms name unknown variables)."""
+        if self.terms is None:
+            self._resolve_terms(strict=True)
+        assert self.terms is not None  # `_resolve_terms(strict=True)` sets them or raises
+        return self.terms
+
     def coefficients(self) -> torch.Tensor:
         """[n_terms, D] ξ in raw units: ξ[j, i] is the coefficient of term j in dx_i/dt."""
-        theta = self.theta if self.param_net is None else self.param_net(self.param_in).reshape(self.mask.shape)
+        if self.param_net is not None:
+            theta = self.param_net(self.param_in).reshape(self.mask.shape)
+        else:
+            assert self.theta is not None  # θ is a parameter exactly when there is no param_net
+            theta = self.theta
         return self.mask * self.deriv_scale * (self.precond @ theta)
 
     @torch.no_grad()
@@ -314,9 +329,11 @@ class SMNNDiscovery(Model):
         zero in ξ is a zero in raw units and the thresholding stays meaningful.
         """
         std = self.state_std.double()
-        phi = self.library(windows.double() / std).reshape(-1, len(self.terms))  # monomials of x / std
+        phi = self.library(windows.double() / std)  # monomials of x / std
+        n_terms = len(self._library_terms())
+        phi = phi.reshape(-1, n_terms)
         gram = phi.mT @ phi / phi.shape[0]
-        eye = torch.eye(len(self.terms), dtype=gram.dtype, device=gram.device)
+        eye = torch.eye(n_terms, dtype=gram.dtype, device=gram.device)
         gram = gram + 1e-12 * gram.diagonal().mean() * eye  # a constant state would make it singular
         whiten = torch.linalg.solve_triangular(torch.linalg.cholesky(gram).mT, eye, upper=True)
         term_scale = self.library(std)  # φ_j(x / std) = φ_j(x) / term_scale_j
@@ -379,6 +396,7 @@ class SMNNDiscovery(Model):
         gen = torch.Generator().manual_seed(self.seed * 1_000_003 + int(self.n_updates))
         win, traj, start = sample_windows(batch.x, self.window_batch, length, gen)
         dt = uniform_step(t)
+        steps: torch.Tensor | float
         if dt is None:  # [M, W-1] each window's own steps
             steps = t.diff()[start[:, None] + torch.arange(length - 1, device=t.device)]
         else:  # one shared step: the layer factorises a single left-hand side for all windows
@@ -437,7 +455,7 @@ class SMNNDiscovery(Model):
         """[n_terms] the threshold of each library term: `threshold` for the degree-`degree` library (raw units,
         as the reference), and for an extra term the coefficient whose typical contribution |ξ|·φ(σ) equals
         threshold·mean(σ), with σ the states' standard deviations."""
-        n_base = len(self.terms) - len(self.extra)
+        n_base = len(self._library_terms()) - len(self.extra)
         std = self.state_std.double()
         size = self.library(std)  # [n_terms] φ_j at the typical state size
         out = torch.full_like(size, self.threshold)
@@ -520,8 +538,9 @@ class SMNNDiscovery(Model):
 
     def sensitivity_names(self) -> list[str]:
         term, eq = self._active()
+        terms = self._library_terms()
         return [
-            f"d{self.state_names[i]}/dt: {self.monomial(self.terms[j])}"
+            f"d{self.state_names[i]}/dt: {self.monomial(terms[j])}"
             for j, i in zip(term.tolist(), eq.tolist(), strict=True)
         ]
 
@@ -542,7 +561,8 @@ class SMNNDiscovery(Model):
         if self.theta is not None:
             self.theta.add_(step.to(self.theta))
         else:  # θ is the reference MLP's output: move its last bias
-            bias = self.param_net[-1].bias
+            assert self.param_net is not None  # θ is the MLP's output exactly when it is not a parameter
+            bias = output_layer(self.param_net).bias
             bias.add_(step.reshape(-1).to(bias))
 
     def monomial(self, term: tuple[int, ...]) -> str:
@@ -553,11 +573,12 @@ class SMNNDiscovery(Model):
         """Readable equations, e.g. {"x": "dx/dt = -10.000 x + 10.000 y"}: active terms that do not round to
         zero at `digits` decimals (`report()["coefficients"]` holds every active term unrounded)."""
         xi, names = self.coefficients().detach().double().cpu(), self.state_names
+        terms = self._library_terms()
         out = {}
         for i, name in enumerate(names):
             parts = [
                 (float(xi[j, i]), monomial_name(term, names))
-                for j, term in enumerate(self.terms)
+                for j, term in enumerate(terms)
                 if self.mask[j, i] > 0 and round(float(xi[j, i]), digits) != 0
             ]
             text = ""
@@ -570,16 +591,15 @@ class SMNNDiscovery(Model):
     def report(self) -> dict[str, Any]:
         """Discovered equations and coefficients (active terms, raw units) for summary.json."""
         xi, names = self.coefficients().detach().double().cpu(), self.state_names
+        terms = self._library_terms()
         coefs = {
-            name: {
-                monomial_name(term, names): float(xi[j, i]) for j, term in enumerate(self.terms) if self.mask[j, i] > 0
-            }
+            name: {monomial_name(term, names): float(xi[j, i]) for j, term in enumerate(terms) if self.mask[j, i] > 0}
             for i, name in enumerate(names)
         }
         return {
             "equations": self.equations(),
             "coefficients": coefs,
-            "library": [monomial_name(term, names) for term in self.terms],
+            "library": [monomial_name(term, names) for term in terms],
             "extra_terms": self.extra_terms,
             "effects": [e.describe() for e in self.effects],
             "n_active_terms": int(self.mask.sum()),

@@ -26,7 +26,7 @@ from torch import nn
 from mpsim.errors import ConfigError
 from mpsim.graphs.batch import batch_graph, mean_aggregate
 from mpsim.models.base import Model
-from mpsim.models.layers import mlp
+from mpsim.models.layers import mlp, output_layer
 from mpsim.models.smnn_discovery import LAYER_METHODS, solve_linear_ode, uniform_step
 from mpsim.solvers.odeint import ODESolver
 
@@ -98,13 +98,13 @@ class SMNNForecaster(Model):
         self.seed = int(seed)
         self.whole_state, self.n_nodes = bool(whole_state), n_nodes
         self.transfers_across_graphs = not self.whole_state
-        width = n_nodes if self.whole_state else 1  # nodes folded into one state
+        width = n_nodes if self.whole_state and n_nodes is not None else 1  # nodes folded into one state
         if self.whole_state:
             self.neighbours = False
         d, k, c = state_dim * width, self.context_steps, control_dim * width
         n_in = k * d * (2 if self.neighbours else 1) + d + (k + self.chunk) * c
         self.encoder = mlp(n_in, hidden, d * d + (self.chunk + 1) * d, n_hidden_layers, activation)
-        nn.init.zeros_(self.encoder[-1].weight)  # A = 0, r = 0: the untrained model is persistence
+        nn.init.zeros_(output_layer(self.encoder).weight)  # A = 0, r = 0: the untrained model is persistence
         self.register_buffer("n_updates", torch.zeros((), dtype=torch.long))
 
     # ---- one chunk ---------------------------------------------------------------------------------------
