@@ -25,13 +25,17 @@ import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 import torch.multiprocessing as mp
 
 from mpsim.bench.common import Suite
 from mpsim.errors import ConfigError
+
+if TYPE_CHECKING:
+    from mpsim.data.trajectories import Trajectories
+    from mpsim.models.base import Model
 
 CASES = ("nbody", "mpnode")
 
@@ -88,7 +92,7 @@ class DDPBench(Suite):
         self.device = device
 
     def run(self) -> list[dict[str, Any]]:
-        rows = []
+        rows: list[dict[str, Any]] = []
         for case in self.cases:
             for p in self.processes:
                 if self.device.startswith("cuda") and p > torch.cuda.device_count():
@@ -159,13 +163,14 @@ class DDPBench(Suite):
         return lines
 
 
-def _build(spec: dict[str, Any], device: torch.device) -> tuple[torch.nn.Module, Any, torch.Tensor, Any]:
+def _build(spec: dict[str, Any], device: torch.device) -> tuple[Model, Trajectories, torch.Tensor, Any]:
     """(model, global batch as Trajectories, its times, loss function) of a case, identical on every rank."""
     from mpsim.data.dataset import fit_normalisation
     from mpsim.data.trajectories import Trajectories
     from mpsim.metrics import LOSSES
 
     torch.manual_seed(0)
+    model: Model
     if spec["case"] == "nbody":
         from mpsim.bench.nbody import uniform_state
         from mpsim.models.deltagn import DeltaGN

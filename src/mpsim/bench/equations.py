@@ -9,6 +9,7 @@ change in machine load falls on both.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -25,7 +26,7 @@ from mpsim.systems.base import System
 from mpsim.systems.lorenz import CoupledLorenz
 from mpsim.systems.pendulum import CoupledPendulums
 
-PENDULUM_SPEC = {
+PENDULUM_SPEC: dict[str, Any] = {
     "states": ["theta", "omega"],
     "equations": {
         "theta": "omega",
@@ -33,7 +34,7 @@ PENDULUM_SPEC = {
     },
     "learnable": ["gravity", "spring"],
 }
-LORENZ_SPEC = {
+LORENZ_SPEC: dict[str, Any] = {
     "states": ["x", "y", "z"],
     "equations": {
         "x": "sigma*(y - x) + coupling*lin(H)",
@@ -47,6 +48,7 @@ LORENZ_SPEC = {
 def twins(case: str, solver: ODESolver) -> tuple[System, Model, Model]:
     """(system, hand-written physics model, spec model) with the same equations and learnable parameters."""
     system: System
+    spec: dict[str, Any]
     if case == "pendulum2":
         system = CoupledPendulums()
         p = system.params()
@@ -126,7 +128,7 @@ class EquationsBench(Suite):
 
             for _ in range(self.repeats):  # alternate, so that load changes fall on both
                 for name, model in models.items():
-                    times[name].append(timeit(lambda model=model: step(model), repeats=1, warmup=1)["min_s"])
+                    times[name].append(timeit(functools.partial(step, model), repeats=1, warmup=1)["min_s"])
             phys, eq = sorted(times["physics"]), sorted(times["equations"])
             med_p, med_e = phys[len(phys) // 2], eq[len(eq) // 2]
             rows.append(

@@ -23,7 +23,7 @@ import functools
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -31,6 +31,9 @@ from mpsim.bench.common import Suite, peak_memory_mb, scaling_exponent, timeit
 from mpsim.graphs.hierarchy import build_hierarchy, hierarchy_depth
 from mpsim.graphs.knn import full_graph, knn_graph
 from mpsim.systems.nbody import NBody
+
+if TYPE_CHECKING:
+    from mpsim.models.nbody_base import ParticleModel
 
 GRAPH_KINDS = ("full", "knn", "hierarchical")
 # The reference simulator on this kind of 2-core box, single thread (spec §1): seconds per base step.
@@ -61,7 +64,7 @@ def build(kind: str, x: torch.Tensor, nf: torch.Tensor, box: float, k: int = 15)
     return counts["particle_particle"] + counts["cell_cell"] + counts["assignment"]
 
 
-def _model(kind: str, name: str) -> torch.nn.Module:
+def _model(kind: str, name: str) -> ParticleModel:
     from mpsim.models.deltagn import DeltaGN
     from mpsim.models.hogn import HOGN
 

@@ -19,13 +19,16 @@ import math
 import re
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
 from mpsim.bench.common import Suite, peak_memory_mb, timeit
 from mpsim.bench.nbody import uniform_state
 from mpsim.errors import ConfigError
+
+if TYPE_CHECKING:
+    from mpsim.models.nbody_base import ParticleModel
 
 NA = math.nan
 # (force, model class, graph, N) -> (RMSE@20, energy@20, RMSE@200, energy@200, source)
@@ -63,7 +66,7 @@ def _particles(system_name: str) -> int | None:
     return int(match.group(1)) if match else None
 
 
-def _build(config: dict[str, Any]) -> torch.nn.Module:
+def _build(config: dict[str, Any]) -> ParticleModel:  # an N-body model's config (DeltaGN or HOGN)
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
 

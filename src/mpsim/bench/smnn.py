@@ -212,11 +212,11 @@ class SMNNBench(Suite):
                 lines.append(f"- {r['method']} ({r['lhs']} LHS) at batch {r['batch']}, T={r['T']}: {r['status']}")
         for length in sorted(n for n in self.lengths if n >= 5000):
             for method in ("banded", "cyclic"):
-                r = self._find(rows, lhs="shared", method=method, batch=b0, T=length)
-                if r:
+                found = self._find(rows, lhs="shared", method=method, batch=b0, T=length)
+                if found:
                     lines.append(
-                        f"- T={length}, batch {b0}, shared LHS: {method} {r['fwd_bwd_ms'] / 1e3:.2f} s "
-                        f"forward + backward, peak {r['peak_mib']:.0f} MiB"
+                        f"- T={length}, batch {b0}, shared LHS: {method} {found['fwd_bwd_ms'] / 1e3:.2f} s "
+                        f"forward + backward, peak {found['peak_mib']:.0f} MiB"
                     )
         return lines
 

@@ -9,6 +9,7 @@ derivatives.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
@@ -154,7 +155,7 @@ class Table3Bench(Suite):
             exact = truth(ode, t)
             for method in self.methods:
                 u = solve(method, ode, self.n_steps, self.step)
-                stats = timeit(lambda m=method, o=ode: solve(m, o, self.n_steps, self.step), repeats=self.repeats)
+                stats = timeit(functools.partial(solve, method, ode, self.n_steps, self.step), repeats=self.repeats)
                 err = relative_mse(u, exact)
                 for k, order in enumerate(ORDERS):
                     rows.append(
