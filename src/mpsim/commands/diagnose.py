@@ -72,6 +72,7 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
     if not cfg.init:
         raise ConfigError("mpsim diagnose needs init=<checkpoint> (the trained model to diagnose).")
     ckpt = load_init(cfg, rt)
+    assert ckpt is not None  # cfg.init is set
     system = None if cfg.data.path and cfg.data.graph != "system" else build_system(cfg)
     model, model_cfg, splits = model_and_data(cfg, rt, system, ckpt, refit=False)
     if isinstance(model, LatentState):
@@ -87,7 +88,7 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
         configured = list(model_cfg.get("effects") or [])
         return {**model_cfg, "effects": configured + [e.config() for e in fixed.effects[len(configured) :]]}
 
-    def finetune(fixed: Model, k: int) -> tuple[Model, str]:
+    def finetune(fixed: Model, tag: str) -> tuple[Model, str]:
         fixed_cfg = fixed_config(fixed)
         built, _ = build_model_for(
             cfg, rt, Shape.of(splits.train), {**ckpt, "model": {**ckpt["model"], "config": fixed_cfg}}
@@ -96,7 +97,7 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
         if isinstance(built, LatentState) and isinstance(model, LatentState):
             built.latent_reset = model.latent_reset
         trainer = build(cfg.trainer, "trainer", lr=cfg.trainer.lr * params.fix_lr_factor)
-        run_dir = rt.output_dir / "fix" / f"round{k}"
+        run_dir = rt.output_dir / "fix" / tag
         base = checkpoint_base(fixed_cfg, built, splits.train.meta, {"mode": "finetune", "init": ckpt["path"]})
         trainer.fit(built, splits.train, splits.val, splits.test, run_dir=run_dir, seed=cfg.seed, checkpoint_base=base)
         if trainer.status_ == "diverged":
@@ -138,7 +139,7 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
 
 def _summary(cfg, ckpt, splits, result: LoopResult, truths) -> dict[str, Any]:
     j, diag = result.judgement, result.diagnosis
-    named = [{**t.as_dict(), "vs_truth": _compare(t.effect, truths)} for t in j.named]
+    named = [{**t.as_dict(), "vs_truth": _compare(t.effect, truths)} for t in result.named]
     fixed = []
     if result.model is not None and result.after is not None:
         fixed = [
@@ -165,6 +166,7 @@ def _summary(cfg, ckpt, splits, result: LoopResult, truths) -> dict[str, Any]:
         "exit_code": result.exit_code,
         "effects_named": named,
         "judgement": j.as_dict(),
+        "finetuned": [f.as_dict() for f in result.finetuned],
         "screen": diag.as_dict(),
         "before": result.before,
         "after": result.after,
@@ -212,6 +214,9 @@ def _markdown(s: dict[str, Any]) -> str:
         "- *nothing missing*: the model (its own parameters refit) predicts held-out data at the null level.",
         "- *unexplained structured residual*: the error is above the null level and no candidate explains it; "
         "nothing is claimed (the best candidate and what it would leave are shown).",
+        "- With `fix=true` and a model that has a network, a candidate is named only if the model finetuned with "
+        "it beats the same finetune without it (the control) on held-out recordings, and removes most of the "
+        "control's error above the null level.",
         "",
         "## Held-out multi-step error (MSE, normalised)",
         "",
@@ -237,6 +242,27 @@ def _markdown(s: dict[str, Any]) -> str:
     if not j["trials"]:
         lines.append("| (none tested) | | | | | | |")
     lines += [f"- {t['label']}: {t['derived']}" for t in j["trials"] if t.get("derived")]
+    for k, f in enumerate(s["finetuned"], start=1):
+        lines += [
+            "",
+            f"## Candidates finetuned with the network (fix, round {k})",
+            "",
+            "The model has trainable parameters beyond its named physical ones, so each screened candidate is added "
+            "and the model finetuned, against the same finetune without a candidate (the control). "
+            f"Held-out MSE over {f['horizon']}-step windows: model as given {f['error_given']:.4g}; control "
+            f"{f['error_control']:.4g}; null level {f['error_null']:.4g}; verdict of this round: {f['verdict']}"
+            + (f" (share of the control's excess removed: {f['explained']:.0%})." if f["named"] else "."),
+            "",
+            "| effect | finetuned value (95 % interval) | held-out MSE control → with it | gain ± se | named | why |",
+            "|---|---|---|---|---|---|",
+        ]
+        for t in f["trials"]:
+            lines.append(
+                f"| {t['label']} | {_values_text(t['values'], t['interval'])} | {t['error_before']:.4g} → "
+                f"{t['error_after']:.4g} | {t['gain']:.3g} ± {t['gain_se']:.2g} | "
+                f"{'yes' if t['accepted'] else 'no'} | {t['reason']} |"
+            )
+        lines += [f"- {n}" for n in f["notes"]]
     lines += [
         "",
         "## One-step screen",

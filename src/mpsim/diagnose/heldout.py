@@ -21,7 +21,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import torch
 
@@ -134,9 +134,12 @@ def judge(
     test: Trajectories,
     params: DiagnoseParams,
     seed: int = 0,
+    test_candidates: bool = True,
 ) -> Judgement:
     """Test the screened candidates (strongest share of their row first) on held-out prediction; name the
-    ones that pass, greedily, and return the verdict with the model that carries them."""
+    ones that pass, greedily, and return the verdict with the model that carries them. With
+    `test_candidates=False` only the levels are measured (given, refit, null) and the verdict is *nothing
+    missing* or *unexplained*: the caller tests the candidates another way (by finetuning a network)."""
     train = train.subset(slice(0, params.fit_trajectories))  # a handful of parameters: a few records suffice
     horizon = params.horizon or horizon_from_data(model, train, params.vpt_threshold)
     noise = torch.tensor(diag.noise_std, dtype=torch.float64)
@@ -164,6 +167,12 @@ def judge(
             base,
             [],
         )
+    if not test_candidates:
+        note = "candidates are tested by finetuning the model with each one against the same finetune without it"
+        return Judgement(
+            UNEXPLAINED, horizon, given, float(e_base.mean()), float(e_null.mean()), float(e_base.mean()), 0.0,
+            [], base, [note],
+        )  # fmt: skip
     # the screen ranks (BIC-selected, screened ones first, then by share of their row); held-out data decide.
     # Each candidate is first tried alone on the refit model; the best passing one (the simplest kind among
     # those as good within their standard errors) is added, and the rest are tried again on top of it.
@@ -335,7 +344,7 @@ def _best_text(trials: list[Trial], refit: float, null: float) -> str:
     )
 
 
-def _log_ratio(before: torch.Tensor, after: torch.Tensor, floor: float) -> tuple[float, float]:
+def log_ratio(before: torch.Tensor, after: torch.Tensor, floor: float) -> tuple[float, float]:
     """(mean, standard error) over recordings of log((before + floor) / (after + floor)); −inf if none finite."""
     ratio = torch.log((before + floor) / (after + floor))
     ratio = ratio[torch.isfinite(ratio)]
@@ -355,7 +364,7 @@ def phased_heldout(current: Model, trial: Model, data: Trajectories, horizon: in
     from mpsim.diagnose.library import PhasedDrive
     from mpsim.diagnose.residual import one_step_residual
 
-    drive = trial.effects[-1]
+    drive = cast(Any, trial.effects[-1])  # the candidate drive (a Module list holds Modules)
     warm = max(2, min(horizon, (data.n_times - 1) // 4))
     head, tail = data.time_slice(0, warm + 1), data.time_slice(warm, data.n_times)
     res = one_step_residual(current, head)
@@ -368,7 +377,7 @@ def phased_heldout(current: Model, trial: Model, data: Trajectories, horizon: in
     test_drive = PhasedDrive(amp, w, phases, target=drive.target, learnable=True)
     test_drive.bind(getattr(drive, "state_names", None) or [str(i) for i in range(data.state_dim)])
     model = with_effect(current, test_drive)
-    shooting_fit(model, head, warm, [model.effects[-1].phases], iters)
+    shooting_fit(model, head, warm, [cast(PhasedDrive, model.effects[-1]).phases], iters)
     return window_error(current, tail, horizon), window_error(model, tail, horizon), model
 
 
@@ -406,7 +415,7 @@ def _trial(
     # the test is on log error ratios per held-out recording: errors differ by orders of magnitude between
     # recordings, a multiplicative improvement does not
     floor = max(float(e_null.mean()), 1e-14)
-    log_gain, log_se = _log_ratio(e_current, e_after, floor)
+    log_gain, log_se = log_ratio(e_current, e_after, floor)
     if current is not base:  # null data of the model the candidate is added to (its integrator included)
         noise = (null_train.x - null_train.x).new_zeros(null_train.state_dim)  # clean: the comparison is paired
         null_train, null_test = null_data(current, null_train, noise, 21), null_data(current, null_test, noise, 22)
@@ -424,11 +433,11 @@ def _trial(
     if phased:
         before, after, _ = phased_heldout(current, null_trial, null_test, horizon, max(5, params.shooting_iters // 3))
         null_gain = float((before - after).mean())
-        null_log, _ = _log_ratio(before, after, floor)
+        null_log, _ = log_ratio(before, after, floor)
     else:
         null_after = window_error(null_trial, null_test, horizon)
         null_gain = float((e_null - null_after).mean())
-        null_log, _ = _log_ratio(e_null, null_after, floor)
+        null_log, _ = log_ratio(e_null, null_after, floor)
     fitted = trial.effects[-1]
     k = len(fit.values) - sum(p.numel() for p in own_parameters(trial))
     values, interval = reported(fitted, fit.values[:k], fit.stderr[:k])

@@ -46,6 +46,13 @@ class Candidate:
     params: dict[str, Any] = field(default_factory=dict)
     features: torch.Tensor | None = None
 
+    @property
+    def basis(self) -> torch.Tensor:
+        """[B, T−1, N, K] the evaluated basis (`build_library` fills `features`)."""
+        if self.features is None:
+            raise ValueError(f"candidate {self.kind} has no evaluated basis: build it with build_library")
+        return self.features
+
     def label(self, state_names: list[str], target: int | None = None) -> str:
         src = "" if self.source is None else state_names[self.source]
         extra = ""

@@ -13,7 +13,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import torch
 
@@ -177,7 +177,7 @@ def _rows(library: list[Candidate], res: Residual, d: int, keep: torch.Tensor, b
     """Residual of state d, the candidates' columns and the model's own sensitivity columns for state d,
     per trajectory (finite trajectories only)."""
     y = res.r[keep, :, :, d]  # [B', T-1, N]
-    groups = [c.features[keep] for c in library]  # each [B', T-1, N, K]
+    groups = [c.basis[keep] for c in library]  # each [B', T-1, N, K]
     return y, groups, None if base is None else base[keep][..., d, :]  # [B', T-1, N, P]
 
 
@@ -217,7 +217,7 @@ def nuisance_columns(model: Model, data: Trajectories, represented: tuple[str, .
         parts.append(own)
     n_shared = sum(p.shape[-1] for p in parts)
     if represented:
-        cols = torch.cat([c.features for c in build_library(data, {}, [], represented)], dim=-1)  # [B, T-1, N, K]
+        cols = torch.cat([c.basis for c in build_library(data, {}, [], represented)], dim=-1)  # [B, T-1, N, K]
         parts.append(cols.unsqueeze(-2).expand(-1, -1, -1, data.state_dim, -1))
     if isinstance(model, ExpressesEffects) and model.represents_polynomials:
         cols = monomial_features(data.x.double(), model.represents_polynomials)  # [B, T, N, K]
@@ -231,6 +231,7 @@ def effect_columns(model: Model, data: Trajectories) -> torch.Tensor | None:
     """[B, T−1, N, D, K] step-averaged basis of each effect the model carries, in its target's rows (or None)."""
     cols = []
     for effect in model.effects:
+        effect = cast(Any, effect)  # an Effect (a Module list holds Modules)
         if type(effect).__name__ == "DelayedFeedback":
             m = int(round(float(effect.delay) / float(data.t[1] - data.t[0])))
             values = delayed(data.x.double(), m)[..., effect.source : effect.source + 1]
@@ -449,7 +450,7 @@ def _joint_refit(
     n = y.shape[0]
     blocks = []
     for f in diag.accepted:  # each effect acts on one state variable: its columns are zero elsewhere
-        cols = library[labels[f.label.split(": ", 1)[1]]].features[keep].reshape(n, -1)
+        cols = library[labels[f.label.split(": ", 1)[1]]].basis[keep].reshape(n, -1)
         block = torch.zeros(n, d_total, cols.shape[1], dtype=torch.float64)
         block[:, f.target] = cols
         blocks.append(block)

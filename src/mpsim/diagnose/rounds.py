@@ -18,7 +18,8 @@ import torch
 
 from mpsim.data.dataset import Splits
 from mpsim.data.trajectories import Trajectories
-from mpsim.diagnose.heldout import EFFECTS_NAMED, EXIT_CODES, Judgement, dynamic_rows, judge
+from mpsim.diagnose.finetuned import FinetuneJudgement, judge_by_finetune
+from mpsim.diagnose.heldout import EFFECTS_NAMED, EXIT_CODES, NOTHING_MISSING, Judgement, Trial, dynamic_rows, judge
 from mpsim.diagnose.library import build_library
 from mpsim.diagnose.loop import Diagnosis, find_effects
 from mpsim.diagnose.params import DiagnoseParams
@@ -29,8 +30,9 @@ from mpsim.metrics import rollout_metrics, valid_prediction_time
 from mpsim.models.base import Model
 from mpsim.training.trainer import predict
 
-#: finetune(model with the named effects, round number) -> (finetuned model, its checkpoint path)
-Finetune = Callable[[Model, int], tuple[Model, str]]
+#: finetune(model with the named effects, tag) -> (finetuned model, its checkpoint path); the tag names the run
+#: ("round1", "round1/control", "round1/<candidate>")
+Finetune = Callable[[Model, str], tuple[Model, str]]
 #: save(model, round number) -> checkpoint path of a model kept without finetuning
 Save = Callable[[Model, int], str]
 
@@ -100,6 +102,8 @@ class LoopResult:
     model: Model | None = None  # the model handed back (the given one when nothing was fixed)
     checkpoint: str | None = None  # its checkpoint (fix=true and something was added)
     rejected: list[dict[str, Any]] = field(default_factory=list)  # fixes that did not help, with their numbers
+    named: list[Trial] = field(default_factory=list)  # what is named: the held-out judgement's, or the finetunes'
+    finetuned: list[FinetuneJudgement] = field(default_factory=list)  # black-box fix: one comparison per round
 
     @property
     def exit_code(self) -> int:
@@ -120,9 +124,14 @@ def run_loop(
     `finetune`/`save` given (fix=true), add what is named, finetune, and diagnose again, up to `params.rounds`."""
     train, test = splits.train, splits.test
     diag, library = screen(model, train, params, seed)
-    judgement = judge(model, diag, library, train, test, params, seed)
+    # a network absorbs part of a missing effect: with a finetune at hand its candidates are tested by finetuning
+    # (diagnose/finetuned.py), and the frozen-network fits, which double-count what it absorbed, are skipped
+    black_box = finetune is not None and not white_box(model)
+    judgement = judge(model, diag, library, train, test, params, seed, test_candidates=not black_box)
     before = holdout_metrics(model, test, horizons, params.vpt_threshold)
-    result = LoopResult(diag, judgement, judgement.verdict, before, model=model)
+    result = LoopResult(diag, judgement, judgement.verdict, before, model=model, named=judgement.named)
+    if black_box and finetune is not None and judgement.verdict != NOTHING_MISSING:
+        return _black_box_fix(model, splits, params, horizons, seed, finetune, log, result, library)
     if finetune is None or save is None or judgement.verdict != EFFECTS_NAMED:
         return result
     if any(t.effect["_target_"].endswith("PhasedDrive") for t in judgement.named):
@@ -147,7 +156,7 @@ def run_loop(
         options: list[tuple[str, Model, str | None]] = [("multiple-shooting fit", fitted, None)]
         if not white_box(fitted):  # a network must relearn what it made up for; a white-box fit is already done
             try:
-                tuned, tuned_path = finetune(copy.deepcopy(fitted), k)
+                tuned, tuned_path = finetune(copy.deepcopy(fitted), f"round{k}")
             except DivergenceError as exc:
                 raise DivergenceError(
                     f"the fix of round {k} ({'; '.join(names)}) diverged while finetuning: {exc}"
@@ -199,4 +208,63 @@ def run_loop(
                 f"the fixed model's held-out rollouts diverged on {result.after['n_diverged']} "
                 "trajectories; it is not handed back."
             )
+    return result
+
+
+def _black_box_fix(
+    model: Model,
+    splits: Splits,
+    params: DiagnoseParams,
+    horizons: list[int],
+    seed: int,
+    finetune: Finetune,
+    log: Callable[[str], None],
+    result: LoopResult,
+    library: list,
+) -> LoopResult:
+    """fix=true on a model with trainable parameters beyond its named physical ones (a network): each round
+    finetunes the model without a candidate (the control) and with each screened candidate, names the best one
+    that beats the control on held-out recordings (`diagnose/finetuned.py`), and screens the finetuned model
+    again. The frozen-network judgement stays in the report; the verdict is the finetunes'."""
+    train, test = splits.train, splits.test
+    j0 = result.judgement
+    current, diag, named = model, result.diagnosis, []
+    for k in range(1, params.rounds + 1):
+        fj = judge_by_finetune(
+            current, diag, library, train, test, j0.horizon, j0.error_null, params, finetune, f"round{k}", log
+        )
+        result.finetuned.append(fj)
+        entry: dict[str, Any] = {
+            "round": k,
+            "added": [t.label for t in fj.named],
+            "added_effects": [t.effect for t in fj.named],
+            "heldout_mse": {"control (finetuned without a candidate)": fj.error_control}
+            | {f"finetuned with {t.label}": t.error_after for t in fj.trials},
+            "heldout_mse_before": fj.error_given,
+            "kept": "finetuned with " + fj.named[0].label if fj.named else "nothing",
+        }
+        result.rounds.append(entry)
+        if fj.verdict != EFFECTS_NAMED:
+            break
+        assert fj.model is not None
+        named += fj.named
+        current, result.checkpoint = fj.model, fj.checkpoint
+        entry["checkpoint"] = fj.checkpoint
+        entry["effects_after"] = [e.describe() for e in current.effects]
+        log(f"round {k}: screening the finetuned model")
+        diag, library = screen(current, train, params, seed)
+        left = [f.label for f in diag.findings if f.accepted]
+        entry["then"] = {"verdict": "screen", "named": left}
+        if not left:
+            break
+    if named:
+        result.verdict, result.named, result.model = EFFECTS_NAMED, named, current
+        result.after = holdout_metrics(current, test, horizons, params.vpt_threshold)
+        if result.after["n_diverged"]:
+            raise DivergenceError(
+                f"the fixed model's held-out rollouts diverged on {result.after['n_diverged']} "
+                "trajectories; it is not handed back."
+            )
+    else:
+        result.verdict, result.named = result.finetuned[0].verdict, []
     return result

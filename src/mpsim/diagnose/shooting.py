@@ -16,6 +16,7 @@ import copy
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any, cast
 
 import torch
 from torch import nn
@@ -167,12 +168,12 @@ def shooting_fit(
             for p, v in zip(free, start, strict=True):
                 p.copy_(v)
     values = torch.cat([p.detach().reshape(-1).double().cpu() for p in free])
-    stderr = _sandwich_stderr(model, data, length, free) if ok and math.isfinite(loss) else [math.nan] * len(values)
+    stderr = sandwich_stderr(model, data, length, free) if ok and math.isfinite(loss) else [math.nan] * len(values)
     return ShootingFit(loss, values.tolist(), stderr, ok and math.isfinite(loss))
 
 
 @torch.no_grad()
-def _sandwich_stderr(model: Model, data: Trajectories, length: int, free: list[nn.Parameter]) -> list[float]:
+def sandwich_stderr(model: Model, data: Trajectories, length: int, free: list[nn.Parameter]) -> list[float]:
     """Standard errors of the free parameters: Gauss–Newton with a sandwich over trajectories (window residuals
     within a trajectory are correlated), the Jacobian by central differences (a handful of parameters)."""
 
@@ -216,7 +217,7 @@ def precise(model: Model) -> Model:
 
     ref = copy.deepcopy(model).double()
     if isinstance(getattr(ref, "solver", None), ODESolver):
-        ref.solver = ODESolver("dopri5", rtol=1e-9, atol=1e-10, max_num_steps=100_000)
+        cast(Any, ref).solver = ODESolver("dopri5", rtol=1e-9, atol=1e-10, max_num_steps=100_000)
     return ref
 
 

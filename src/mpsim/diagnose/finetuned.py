@@ -1,0 +1,270 @@
+"""Acceptance for black-box models: candidate plus finetune against the same finetune without it.
+
+A network with no input for an effect (a drive, to a network without a clock) learns part of it as a function of
+the state. Fitted with the network frozen (the held-out judgement of `heldout.judge`), the effect then double-counts
+what the network already does, and even the true effect can make held-out prediction worse. So with `fix=true`, a
+model with trainable parameters beyond its named physical ones is also judged this way:
+
+- the *control*: the model finetuned without any candidate (same epochs, learning rate and seed as every
+  candidate's finetune), so that an effect never gets the credit for more training;
+- each screened candidate (at most `max_candidates`, strongest share of its row first) added to the model with its
+  screen coefficients and finetuned; a drive with a phase per recording is tried with one shared phase when the
+  recordings' phases agree (mean resultant length ≥ `PHASES_AGREE`), since per-recording phases cannot be carried
+  to new data nor finetuned in shuffled batches; otherwise it is not finetuned, and the report says so;
+- a candidate is named only if, on held-out recordings, its log error ratio against the control exceeds `margin`
+  paired standard errors and it removes at least `min_explained` of the control's error above the null level.
+
+The reported coefficients are those of the finetuned model, with 95 % intervals from the Gauss–Newton sandwich of
+the multiple-shooting residuals at those values (the network held fixed).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import re
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from mpsim.data.trajectories import Trajectories
+from mpsim.diagnose.heldout import EFFECTS_NAMED, UNEXPLAINED, Trial, log_ratio, reported
+from mpsim.diagnose.library import Candidate
+from mpsim.diagnose.loop import Diagnosis, Finding
+from mpsim.diagnose.params import DiagnoseParams
+from mpsim.diagnose.shooting import sandwich_stderr, window_error, with_effect
+from mpsim.errors import DivergenceError
+from mpsim.models.base import Model
+
+#: a phased drive is tried with one shared phase when the mean resultant length of its per-recording phases
+#: (amplitude-weighted) is at least this: the recordings share a clock
+PHASES_AGREE = 0.9
+
+#: finetune(model, tag) -> (finetuned model, its checkpoint path); `tag` names the run ("round1/control", ...)
+TaggedFinetune = Callable[[Model, str], tuple[Model, str]]
+
+
+@dataclass
+class FinetuneJudgement:
+    """The finetune comparison and everything it rests on (held-out multi-step MSE, normalised units)."""
+
+    verdict: str
+    horizon: int
+    error_given: float  # the model as given
+    error_control: float  # finetuned without a candidate
+    error_null: float  # null level (the frozen judgement's)
+    error_final: float  # the named candidate's finetuned model (the control's error when nothing is named)
+    explained: float  # share of (control − null) removed by the named candidate
+    trials: list[Trial] = field(default_factory=list)
+    model: Model | None = None  # the finetuned model with the named effect
+    checkpoint: str | None = None
+    control_checkpoint: str | None = None
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def named(self) -> list[Trial]:
+        return [t for t in self.trials if t.accepted] if self.verdict == EFFECTS_NAMED else []
+
+    def as_dict(self) -> dict[str, Any]:
+        out = {k: v for k, v in self.__dict__.items() if k not in ("model", "trials")}
+        out["trials"] = [t.as_dict() for t in self.trials]
+        out["named"] = [t.label for t in self.named]
+        return out
+
+
+def shared_phase(finding: Finding) -> tuple[list[float], float]:
+    """([a, b] of one shared-phase drive, mean resultant length) from a phased drive's per-recording (a, b) pairs."""
+    pairs = torch.tensor(finding.coef, dtype=torch.float64).reshape(-1, 2)  # [B, 2]
+    mean = pairs.mean(dim=0)
+    agree = float(mean.norm() / pairs.norm(dim=1).mean().clamp(min=1e-300))
+    return mean.tolist(), agree
+
+
+def finetune_candidates(
+    diag: Diagnosis, library: list[Candidate], params: DiagnoseParams
+) -> tuple[list[tuple[Finding, Candidate, list[float], str]], list[str]]:
+    """The screened candidates a finetune can carry, strongest share of their row first: (finding, candidate,
+    starting coefficients, label); and notes on the ones left out."""
+    labels = {c.label(diag.state_names): c for c in library}
+    out: list[tuple[Finding, Candidate, list[float], str]] = []
+    notes: list[str] = []
+    seen: set[str] = set()
+    for f in sorted(diag.findings, key=lambda f: -f.gain):
+        cand = labels.get(f.label.split(": ", 1)[1])
+        if not f.accepted or cand is None or f.kind == "DelayedFeedback":
+            continue
+        coef, label = list(f.coef), f.label
+        if cand.params.get("phased"):
+            coef, agree = shared_phase(f)
+            if agree < PHASES_AGREE:
+                notes.append(
+                    f"{f.label}: the recordings' phases disagree (mean resultant length {agree:.2f} < {PHASES_AGREE}), "
+                    "so the drive cannot be carried by one model and is not finetuned"
+                )
+                continue
+            cand = Candidate("PeriodicForcing", None, {"omega": cand.params["omega"]})
+            label = cand.label(diag.state_names, f.target)
+            notes.append(f"{f.label}: the recordings' phases agree ({agree:.2f}); tried with one shared phase")
+        if label in seen:
+            continue
+        seen.add(label)
+        out.append((f, cand, coef, label))
+        if len(out) >= params.max_candidates:
+            break
+    return out, notes
+
+
+def _slug(label: str) -> str:
+    return re.sub(r"[^A-Za-z0-9]+", "_", label).strip("_")[:60]
+
+
+def judge_by_finetune(
+    model: Model,
+    diag: Diagnosis,
+    library: list[Candidate],
+    train: Trajectories,
+    test: Trajectories,
+    horizon: int,
+    error_null: float,
+    params: DiagnoseParams,
+    finetune: TaggedFinetune,
+    tag: str,
+    log: Callable[[str], None] = lambda _: None,
+) -> FinetuneJudgement:
+    """Finetune `model` without a candidate (the control) and with each screened candidate; name the best one if
+    it beats the control on held-out recordings (see the module docstring)."""
+    candidates, notes = finetune_candidates(diag, library, params)
+    given = float(window_error(model, test, horizon).mean())
+    if not candidates:  # nothing to compare: no control is trained
+        notes.append("no screened candidate could be finetuned")
+        return FinetuneJudgement(UNEXPLAINED, horizon, given, given, error_null, given, 0.0, [], notes=notes)
+    log(f"{tag}: finetuning the control (no candidate)")
+    control, control_path = _finetune(finetune, copy.deepcopy(model), f"{tag}/control", "the control")
+    e_control = window_error(control, test, horizon)
+    err_control = float(e_control.mean())
+    excess = max(err_control - error_null, 1e-300)
+    floor = max(error_null, 1e-14)
+    trials: list[Trial] = []
+    models: dict[int, tuple[Model, str]] = {}
+    for f, cand, coef, label in candidates:
+        log(f"{tag}: finetuning with {label}")
+        effect = cand.make_effect(coef, f.target, diag.state_names)
+        try:
+            tuned, path = finetune(with_effect(model, effect), f"{tag}/{_slug(label)}")
+        except DivergenceError as exc:  # a wrong candidate can derail training: it is rejected, not an error
+            trials.append(_diverged(label, cand.kind, effect, err_control, str(exc)))
+            continue
+        e_after = window_error(tuned, test, horizon)
+        log_gain, log_se = log_ratio(e_control, e_after, floor)
+        diff = (e_control - e_after)[torch.isfinite(e_control - e_after)]
+        gain = float(diff.mean()) if diff.numel() else -math.inf
+        gain_se = float(diff.std() / math.sqrt(diff.numel())) if diff.numel() > 1 else math.inf
+        share = gain / excess
+        fitted = tuned.effects[-1]
+        free = [p for p in fitted.parameters() if p.requires_grad]
+        values_now = torch.cat([p.detach().reshape(-1).double().cpu() for p in free]).tolist()
+        stderr = sandwich_stderr(tuned, train.subset(slice(0, params.fit_trajectories)), params.fit_window, free)
+        values, interval = reported(fitted, values_now, stderr)
+        checks = [
+            (math.isfinite(gain), "the finetuned model's held-out rollouts diverged"),
+            (
+                log_gain > params.margin * log_se,
+                f"held-out error ratio against the control e^{log_gain:.3g} (± {log_se:.2g} in log) is not above "
+                f"{params.margin:g} standard errors",
+            ),
+            (
+                share >= params.min_gain,
+                f"removes {share:.1%} of the control's held-out error above the null level, below {params.min_gain:.0%}",
+            ),
+        ]
+        failed = [why for ok, why in checks if not ok]
+        reason = "; ".join(failed) or (
+            f"finetuned with it, held-out MSE {err_control:.3g} (control, finetuned without it) → "
+            f"{float(e_after.mean()):.3g}"
+        )
+        trials.append(
+            Trial(
+                label=label,
+                kind=cand.kind,
+                screened=True,
+                effect=fitted.config(),
+                values=values,
+                interval=interval,
+                error_before=err_control,
+                error_after=float(e_after.mean()),
+                gain=gain,
+                gain_se=gain_se,
+                null_gain=0.0,
+                accepted=not failed,
+                reason=reason,
+                derived="finetuned with the network; compared with the same finetune without it (the control)",
+            )
+        )
+        models[len(trials) - 1] = (tuned, path)
+    passing = [i for i, t in enumerate(trials) if t.accepted]
+    best = min(passing, key=lambda i: trials[i].error_after) if passing else None
+    for i in passing:  # one effect per round: the best; the others are reported, not named
+        if i != best:
+            trials[i].accepted = False
+            trials[i].reason = f"helps, but less than {trials[best].label} (named this round)"  # type: ignore[index]
+    if best is None:
+        return FinetuneJudgement(
+            UNEXPLAINED,
+            horizon,
+            given,
+            err_control,
+            error_null,
+            err_control,
+            0.0,
+            trials,
+            None,
+            None,
+            control_path,
+            notes,
+        )
+    chosen = trials[best]
+    explained = (err_control - chosen.error_after) / excess
+    if explained < params.min_explained or not chosen.error_after < given:
+        chosen.accepted = False
+        chosen.reason = (
+            f"helps against the control but leaves {1 - explained:.0%} of its error above the null level "
+            f"unexplained (needs ≥ {params.min_explained:.0%}): a partial fit, not a finding"
+            if explained < params.min_explained
+            else f"beats the control but not the model as given ({given:.3g} → {chosen.error_after:.3g})"
+        )
+        return FinetuneJudgement(
+            UNEXPLAINED, horizon, given, err_control, error_null, err_control, explained, trials, None, None,
+            control_path, notes,
+        )  # fmt: skip
+    tuned, path = models[best]
+    return FinetuneJudgement(
+        EFFECTS_NAMED, horizon, given, err_control, error_null, chosen.error_after, explained, trials, tuned, path,
+        control_path, notes,
+    )  # fmt: skip
+
+
+def _diverged(label: str, kind: str, effect: Any, before: float, why: str) -> Trial:
+    return Trial(
+        label=label,
+        kind=kind,
+        screened=True,
+        effect=effect.config(),
+        values={},
+        interval={},
+        error_before=before,
+        error_after=math.inf,
+        gain=-math.inf,
+        gain_se=math.inf,
+        null_gain=0.0,
+        accepted=False,
+        reason=f"the finetune with it diverged ({why})",
+    )
+
+
+def _finetune(finetune: TaggedFinetune, model: Model, tag: str, what: str) -> tuple[Model, str]:
+    try:
+        return finetune(model, tag)
+    except DivergenceError as exc:
+        raise DivergenceError(f"the finetune of {what} diverged: {exc}") from None

@@ -1,0 +1,113 @@
+"""Acceptance by finetuning (the black-box path of fix=true): candidate + finetune against the same finetune
+without it. The finetune here is a multiple-shooting fit of every trainable parameter (a stand-in for the
+trainer that keeps the test fast); the data come from the pendulum generator, not Lorenz (case 2)."""
+
+import math
+
+import pytest
+import torch
+
+from mpsim.diagnose.finetuned import PHASES_AGREE, finetune_candidates, judge_by_finetune, shared_phase
+from mpsim.diagnose.heldout import EFFECTS_NAMED, UNEXPLAINED
+from mpsim.diagnose.library import Candidate
+from mpsim.diagnose.loop import Diagnosis, Finding
+from mpsim.diagnose.params import DiagnoseParams
+from mpsim.diagnose.rounds import screen
+from mpsim.diagnose.shooting import shooting_fit, window_error
+from mpsim.effects import LinearDamping
+from mpsim.models.physics import PhysicsModel
+from mpsim.solvers import ODESolver
+from mpsim.systems import CoupledPendulums
+
+
+def _model(train):
+    model = PhysicsModel(
+        2, system=CoupledPendulums(), learnable=["gravity", "spring"], solver=ODESolver("dopri5", rtol=1e-7, atol=1e-7)
+    ).double()
+    model.set_normalisation(train.x.reshape(-1, 2).mean(0), train.x.reshape(-1, 2).std(0))
+    return model
+
+
+def _finetune(train, tags):
+    def finetune(model, tag):  # every trainable parameter refit: what a finetune of a white-box model reaches
+        tags.append(tag)
+        free = [p for p in model.parameters() if p.requires_grad]
+        shooting_fit(model, train.subset(slice(0, 8)), 20, free, 30)
+        return model, f"{tag}/best.ckpt"
+
+    return finetune
+
+
+def _setup(effects, seed):
+    data = CoupledPendulums(effects=effects).generate(32, seed=seed)
+    train, test = data.subset(slice(0, 24)), data.subset(slice(24, 32))
+    return train, test, _model(train)
+
+
+def test_names_what_the_control_finetune_cannot_learn():
+    train, test, model = _setup([LinearDamping(0.2, target="omega")], seed=0)
+    params = DiagnoseParams(n_boot=20)
+    diag, library = screen(model, train, params, 0)
+    tags: list[str] = []
+    fj = judge_by_finetune(model, diag, library, train, test, 20, 1e-10, params, _finetune(train, tags), "round1")
+    assert tags[0] == "round1/control" and len(tags) == 1 + len(fj.trials)  # the control first, then each candidate
+    assert fj.verdict == EFFECTS_NAMED
+    (named,) = fj.named
+    assert named.label == "domega/dt: LinearDamping(omega)"
+    assert named.values["coef"] == pytest.approx(0.2, rel=0.05)
+    lo, hi = named.interval["coef"]
+    assert lo < named.values["coef"] < hi  # the interval is that of the value reported
+    assert fj.error_final < 0.1 * fj.error_control  # the control (g, k refit) cannot learn damping
+    assert fj.checkpoint == tags[1 + fj.trials.index(named)] + "/best.ckpt" != "round1/control/best.ckpt"
+    assert float(window_error(fj.model, test, 20).mean()) == pytest.approx(fj.error_final)
+
+
+def test_a_candidate_that_the_control_matches_is_not_named():
+    # the screen of damped data proposes damping; on clean data the finetune drives it to ~0 and the model with
+    # it predicts no better than the control
+    damped, _, damped_model = _setup([LinearDamping(0.2, target="omega")], seed=0)
+    params = DiagnoseParams(n_boot=20)
+    diag, library = screen(damped_model, damped, params, 0)
+    train, test, model = _setup([], seed=1)
+    fj = judge_by_finetune(model, diag, library, train, test, 20, 1e-10, params, _finetune(train, []), "round1")
+    assert fj.verdict == UNEXPLAINED and fj.named == [] and fj.model is None
+    (trial,) = [t for t in fj.trials if t.kind == "LinearDamping"]
+    assert not trial.accepted and abs(trial.values["coef"]) < 0.01
+
+
+def _phased_finding(phases):
+    amp = 1.5
+    coef = [v for p in phases for v in (amp * math.cos(p), amp * math.sin(p))]
+    return Finding(
+        target=1,
+        label="dv/dt: PeriodicForcing(ω=3.1, a phase per recording)",
+        kind="PeriodicForcing",
+        coef=coef,
+        interval=[],
+        gain=0.5,
+        explained_rms=1.0,
+        alone=0.5,
+        inclusion=1.0,
+        threshold=0.1,
+        accepted=True,
+        reason="",
+        effect={},
+    )
+
+
+def test_a_drive_with_agreeing_phases_is_tried_with_one_shared_phase():
+    agree = _phased_finding([0.30 + 0.01 * k for k in range(10)])
+    scattered = _phased_finding(torch.linspace(0, 2 * math.pi, 11)[:-1].tolist())
+    (a, b), r = shared_phase(agree)
+    assert (
+        r > 0.99
+        and math.atan2(b, a) == pytest.approx(0.345, abs=1e-3)
+        and math.hypot(a, b) == pytest.approx(1.5, rel=0.01)
+    )
+    assert shared_phase(scattered)[1] < 0.01 < PHASES_AGREE
+    library = [Candidate("PeriodicForcing", None, {"omega": 3.1, "phased": True})]
+    for finding, expected in ((agree, ["dv/dt: PeriodicForcing(ω=3.1)"]), (scattered, [])):
+        diag = Diagnosis([finding], ["x", "v"], [], [], [], {}, {}, [])
+        found, notes = finetune_candidates(diag, library, DiagnoseParams())
+        assert [label for *_, label in found] == expected
+        assert len(notes) == 1 and ("agree" in notes[0] if expected else "disagree" in notes[0])

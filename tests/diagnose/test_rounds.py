@@ -1,0 +1,51 @@
+"""The loop's rounds: which path a model takes with fix=true, and what the result records."""
+
+import torch
+from torch import nn
+
+from mpsim.data.dataset import Splits
+from mpsim.diagnose.heldout import EFFECTS_NAMED
+from mpsim.diagnose.params import DiagnoseParams
+from mpsim.diagnose.rounds import run_loop, white_box
+from mpsim.diagnose.shooting import shooting_fit
+from mpsim.effects import LinearDamping
+from mpsim.models.physics import PhysicsModel
+from mpsim.solvers import ODESolver
+from mpsim.systems import CoupledPendulums
+
+
+def _model(train, extra: bool):
+    model = PhysicsModel(
+        2, system=CoupledPendulums(), learnable=["gravity", "spring"], solver=ODESolver("dopri5", rtol=1e-7, atol=1e-7)
+    ).double()
+    model.set_normalisation(train.x.reshape(-1, 2).mean(0), train.x.reshape(-1, 2).std(0))
+    if extra:  # a trainable parameter that is neither a named physical one nor an effect's: a network's part
+        model.register_parameter("unnamed", nn.Parameter(torch.zeros((), dtype=torch.float64)))
+    return model
+
+
+def test_a_model_with_unnamed_parameters_is_fixed_by_finetuning_against_a_control():
+    data = CoupledPendulums(effects=[LinearDamping(0.2, target="omega")]).generate(40, seed=3)
+    splits = Splits(data.subset(slice(0, 24)), data.subset(slice(24, 32)), data.subset(slice(32, 40)))
+    model = _model(splits.train, extra=True)
+    assert not white_box(model) and white_box(_model(splits.train, extra=False))
+    tags: list[str] = []
+
+    def finetune(m, tag):
+        tags.append(tag)
+        shooting_fit(m, splits.train.subset(slice(0, 8)), 20, [p for p in m.parameters() if p.requires_grad], 30)
+        return m, f"{tag}/best.ckpt"
+
+    def save(m, k):  # the finetune path hands back the finetune's own checkpoint: nothing is saved separately
+        raise AssertionError("save is not used when the fix was finetuned")
+
+    result = run_loop(model, splits, DiagnoseParams(n_boot=20), [1, 10], finetune=finetune, save=save)
+    assert result.judgement.trials == []  # no frozen-network fits for a black-box model with a finetune at hand
+    assert result.verdict == EFFECTS_NAMED and result.exit_code == 0
+    assert [t.label for t in result.named] == ["domega/dt: LinearDamping(omega)"]
+    assert abs(result.named[0].values["coef"] - 0.2) < 0.01
+    assert tags[0] == "round1/control" and result.checkpoint in [f"{t}/best.ckpt" for t in tags[1:]]
+    first = result.rounds[0]
+    assert first["added"] == ["domega/dt: LinearDamping(omega)"] and first["then"]["named"] == []
+    assert result.after is not None and result.after["rollout_rmse"] < 0.1 * result.before["rollout_rmse"]
+    assert result.finetuned[0].error_final < 0.1 * result.finetuned[0].error_control
