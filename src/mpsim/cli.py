@@ -106,9 +106,9 @@ def _guard(command: str, func: Callable[[Any], dict], cfg: Any) -> dict | float 
     """Run a command; turn user errors into one message and an exit code."""
     from hydra.core.hydra_config import HydraConfig
 
-    from mpsim.commands.runtime import hydra_overrides
+    from mpsim.commands.runtime import hydra_overrides, is_multirun
 
-    multirun = HydraConfig.initialized() and HydraConfig.get().mode.name == "MULTIRUN"
+    multirun = is_multirun()
     run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else None
     fresh = not cfg.get("resume")
     try:

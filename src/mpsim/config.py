@@ -25,7 +25,7 @@ import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
@@ -173,6 +173,13 @@ def register_schemas() -> None:
 
 
 # ---- _target_ nodes ----------------------------------------------------------------------------------------
+def plain_dict(node: DictConfig) -> dict[str, Any]:
+    """A config section as plain, resolved Python data (`OmegaConf.to_container` is typed for any node)."""
+    out = OmegaConf.to_container(node, resolve=True)
+    assert isinstance(out, dict)  # a DictConfig converts to a dict
+    return cast(dict[str, Any], out)  # OmegaConf types the keys as any primitive; mpsim's sections use names
+
+
 def _import(path: str, where: str) -> Any:
     module, _, name = path.rpartition(".")
     try:

@@ -14,6 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 from mpsim.commands.checkpoints import check_checkpoint_system, load_weights
 from mpsim.commands.runtime import Runtime
 from mpsim.commands.splits import load_splits
+from mpsim.config import plain_dict
 from mpsim.data.dataset import Splits, fit_normalisation
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError, IncompatibleError, MpsimError
@@ -59,9 +60,9 @@ def model_config(cfg: DictConfig, ckpt: dict[str, Any] | None, overrides: list[s
 
     Without a checkpoint it is simply `cfg.model`.
     """
-    current = OmegaConf.to_container(cfg.model, resolve=True)
+    current = plain_dict(cfg.model)
     if ckpt is None:
-        return current  # type: ignore[return-value]
+        return current
     saved = dict(ckpt["model"]["config"])
     keys, group_chosen = explicit_model_keys(overrides)
     if group_chosen and current.get("_target_") != saved.get("_target_"):
@@ -125,7 +126,10 @@ def model_and_data(
     """Model and splits, checked in the order that writes nothing before a bad input is found: the model
     (and checkpoint) is checked against the system before any data is simulated into the cache."""
     splits = load_splits(cfg, rt, system) if cfg.data.path else None
-    model, model_cfg = build_model_for(cfg, rt, Shape.of(splits.train if splits else system), ckpt)
+    source = splits.train if splits else system
+    if source is None:
+        raise ConfigError("no data: pass system=<name> or data.path=<file>.")
+    model, model_cfg = build_model_for(cfg, rt, Shape.of(source), ckpt)
     if splits is None:
         splits = load_splits(cfg, rt, system)
     if ckpt is None or refit:

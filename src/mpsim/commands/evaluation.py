@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import torch
 from omegaconf import DictConfig
 
 from mpsim import plotting
@@ -46,7 +47,13 @@ def evaluate_model(
     features = test.node_features  # [N, F] or [B, N, F]
     probe = None if features is None else (features[:1] if features.dim() == 3 else features)
     if system is not None and system.energy(test.x[:1, :1], probe) is not None:
-        metrics.update(relative_energy_error(lambda x: system.energy(x, features), pred, true))
+
+        def energy(x: torch.Tensor) -> torch.Tensor:  # x: [B, T, N, D] states
+            e = system.energy(x, features)
+            assert e is not None  # the probe above found that the system has one
+            return e
+
+        metrics.update(relative_energy_error(energy, pred, true))
     if plots:
         plot_dir = output_dir / "plots"
         plotting.trajectories(
@@ -76,6 +83,7 @@ def evaluate_checkpoint(cfg: DictConfig, rt: Runtime, task: str) -> dict:
     """Shared by `mpsim eval` and `mpsim train mode=zeroshot`."""
     t0 = time.perf_counter()
     ckpt = load_init(cfg, rt)
+    assert ckpt is not None  # both callers require init= (`mpsim eval`, `resolve_mode` for zeroshot)
     system = None if cfg.data.path and cfg.data.graph != "system" else build_system(cfg)
     model, model_cfg, splits = model_and_data(cfg, rt, system, ckpt, refit=False)
     test = splits.test

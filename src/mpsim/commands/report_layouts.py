@@ -32,7 +32,7 @@ import pandas as pd
 from mpsim.plotting import save_figure, subplots
 
 #: the paper's Table 2 (epochs to the minimum test error × that error; N/A where the paper has none)
-PAPER_TABLE2 = {
+PAPER_TABLE2: dict[str, dict[str, float]] = {
     "MP-NODE finetuned": {
         "Lorenz10 ds=50": 632.70,
         "Lorenz10 ds=100": 833.91,
@@ -80,10 +80,8 @@ class LayoutResult:
 # ---- the runs ----------------------------------------------------------------------------------------------
 def run_facts(run: Path, summary: dict[str, Any]) -> dict[str, Any]:
     """The facts a layout sorts a run by, read from its summary.json."""
-    model = summary.get("model") if isinstance(summary.get("model"), dict) else {}
-    data = summary.get("data") if isinstance(summary.get("data"), dict) else {}
-    config = model.get("config") if isinstance(model.get("config"), dict) else {}
-    test = summary.get("test") if isinstance(summary.get("test"), dict) else {}
+    model, data, test = _section(summary, "model"), _section(summary, "data"), _section(summary, "test")
+    config = _section(model, "config")
     return {
         "model_class": model.get("model"),
         "message_size": config.get("message_size"),
@@ -94,6 +92,12 @@ def run_facts(run: Path, summary: dict[str, Any]) -> dict[str, Any]:
         "trained_on": summary.get("trained_on"),
         "seed_": summary.get("seed"),
     }
+
+
+def _section(parent: dict[str, Any], key: str) -> dict[str, Any]:
+    """`parent[key]` if it is a JSON object, else an empty one."""
+    value = parent.get(key)
+    return value if isinstance(value, dict) else {}
 
 
 def row_label(model_class: Any, mode: Any) -> str:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import torch
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig, open_dict
 
 from mpsim.config import check_targets, validate_values
@@ -39,7 +40,7 @@ def hydra_overrides() -> list[str]:
 
 def is_multirun() -> bool:
     """Whether this process runs a job of a Hydra sweep (`-m`)."""
-    return HydraConfig.initialized() and HydraConfig.get().mode.name == "MULTIRUN"
+    return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
 
 
 def locate(output_dir: str | Path | None = None) -> tuple[Path, Path]:

@@ -8,9 +8,10 @@ import logging
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from mpsim.commands.runtime import Runtime, resolve_path
+from mpsim.config import plain_dict
 from mpsim.data.dataset import DatasetSpec, Splits, add_noise, simulate_splits, split_trajectories
 from mpsim.data.io import check_representable, load_trajectories
 from mpsim.data.trajectories import Trajectories
@@ -24,7 +25,7 @@ log = logging.getLogger(__name__)
 
 def system_spec(cfg: DictConfig) -> dict[str, Any]:
     """The system's config as plain data (part of the dataset cache key)."""
-    return OmegaConf.to_container(cfg.system, resolve=True)  # type: ignore[return-value]
+    return plain_dict(cfg.system)
 
 
 def load_splits(cfg: DictConfig, rt: Runtime, system: System | None) -> Splits:

@@ -21,7 +21,7 @@ from mpsim.commands.console import duration, fmt, print_summary
 from mpsim.commands.evaluation import evaluate_checkpoint, evaluate_model, horizon_rows
 from mpsim.commands.runtime import Runtime, is_multirun, resolve_path, setup_runtime
 from mpsim.commands.splits import check_training_memory, noisy_train
-from mpsim.config import check_target_node
+from mpsim.config import check_target_node, plain_dict
 from mpsim.errors import CheckpointError, ConfigError, OutputError
 from mpsim.files import atomic_write, child_path, keep_previous, safe_name, write_json
 from mpsim.metrics import epochs_x_min_error
@@ -113,7 +113,7 @@ def _run(cfg: DictConfig, rt: Runtime, ctx: DistContext) -> dict:
     loggers = build_loggers(cfg) if ctx.is_main else LoggerGroup()
     loggers.start(
         rt.output_dir,
-        flatten(OmegaConf.to_container(cfg, resolve=True)),
+        flatten(plain_dict(cfg)),
         [] if last is None else last["trainer"]["history"],
     )
     trainer.fit(
