@@ -1,6 +1,6 @@
 import torch
 
-from mpsim.diagnose.select import bootstrap, explained_alone, stepwise_bic
+from mpsim.diagnose.select import bootstrap, explained_alone, project_out, stepwise_bic
 
 
 def _data(n=2000, seed=0):
@@ -49,3 +49,41 @@ def test_bootstrap_intervals_cover_the_truth():
     assert freq[1] == 1.0 and freq[5] == 1.0 and freq[0] < 0.5
     ((lo, hi),) = ci[1]
     assert lo < 0.8 < hi
+
+
+def test_a_recordings_own_columns_are_estimated_only_by_resamples_that_draw_it():
+    # a drive with its own phase in every recording: two columns per recording, zero in the others until the
+    # nuisance projection leaks a trace of them everywhere; a resample that does not draw recording b says
+    # nothing about b's coefficients (before: the solver's zero or a wild value entered the interval)
+    gen = torch.Generator().manual_seed(0)
+    b, n_t = 40, 99
+    t = torch.linspace(0, 5, n_t, dtype=torch.float64)
+    cols = torch.zeros(b, n_t, 2 * b, dtype=torch.float64)
+    idx = torch.arange(b)
+    cols[idx, :, 2 * idx] = torch.sin(20 * t)
+    cols[idx, :, 2 * idx + 1] = torch.cos(20 * t)
+    phase = torch.rand(b, generator=gen, dtype=torch.float64) * 6.28
+    y = 12 * torch.sin(20 * t[None] + phase[:, None]) + torch.randn(b, n_t, generator=gen, dtype=torch.float64)
+    base = torch.randn(b * n_t, 5, generator=gen, dtype=torch.float64)
+    y_p, cols_p = project_out(base, y.reshape(-1), cols.reshape(b * n_t, -1))
+    freq, intervals = bootstrap(y_p.reshape(b, n_t), [cols_p.reshape(b, n_t, -1)], [0], n_boot=60)
+    assert freq[0] == 1.0
+    truth = torch.stack([12 * torch.cos(phase), 12 * torch.sin(phase)], dim=1).reshape(-1)  # [2B] (a, b) pairs
+    width = torch.tensor([hi - lo for lo, hi in intervals[0]])
+    lo = torch.tensor([lo for lo, _ in intervals[0]])
+    assert bool((width < 1.0).all())  # each from the resamples that drew its recording: ± a few noise units
+    assert bool(((truth - lo).abs() < 1.0).all())
+
+
+def test_one_effect_written_two_ways_counts_once_in_the_inclusion_frequency():
+    # two versions of one term (say a drive with a phase per recording and with one shared phase): resamples
+    # pick one or the other, so each alone is selected in only part of them; labelled as one effect, either counts
+    gen = torch.Generator().manual_seed(1)
+    b, m = 30, 50
+    term = torch.randn(b, m, 1, generator=gen, dtype=torch.float64)
+    twin = term + 0.05 * torch.randn(b, m, 1, generator=gen, dtype=torch.float64)
+    y = (term + twin)[..., 0] + torch.randn(b, m, generator=gen, dtype=torch.float64)
+    apart, _ = bootstrap(y, [term, twin], [0], n_boot=60)
+    together, _ = bootstrap(y, [term, twin], [0], n_boot=60, same=[0, 0])
+    assert min(apart.values()) < 0.8  # each alone looks unstable
+    assert together == {0: 1.0, 1: 1.0}

@@ -31,6 +31,8 @@ from mpsim.diagnose.library import (
 from mpsim.diagnose.noise import noise_level
 from mpsim.diagnose.residual import Residual, one_step_residual
 from mpsim.diagnose.select import bootstrap, explained_alone, lstsq, project_out, stepwise_bic
+from mpsim.diagnose.shooting import window_predictions
+from mpsim.errors import DivergenceError
 from mpsim.models.base import Model
 from mpsim.models.capabilities import ExpressesEffects, Interpretable
 from mpsim.polynomials import monomial_features
@@ -147,7 +149,14 @@ def _project(y: torch.Tensor, groups: list[torch.Tensor], base: torch.Tensor | N
 BOOT_GROUPS = 8
 
 
-def _fit_target(y: torch.Tensor, groups: list[torch.Tensor], base: torch.Tensor | None, n_boot: int, seed: int):
+def _fit_target(
+    y: torch.Tensor,
+    groups: list[torch.Tensor],
+    base: torch.Tensor | None,
+    n_boot: int,
+    seed: int,
+    same: list[int] | None = None,
+):
     """Selection, explained shares and bootstrap on the residual left after the nuisance fit (the bootstrap
     resamples trajectories of the projected data: the nuisance fit itself is not redone per resample)."""
     y, groups = _project(y, groups, base)
@@ -167,6 +176,7 @@ def _fit_target(y: torch.Tensor, groups: list[torch.Tensor], base: torch.Tensor 
         [keep.index(g) for g in sel.groups],
         n_boot,
         seed,
+        same=None if same is None else [same[g] for g in keep],
     )
     freq = {g: 0.0 for g in range(len(groups))} | {keep[i]: v for i, v in sub_freq.items()}
     intervals = {keep[i]: v for i, v in sub_int.items()}
@@ -255,6 +265,7 @@ def find_effects(
     min_inclusion: float = 0.8,
     seed: int = 0,
     targets: list[int] | None = None,
+    null_segment: int | None = None,
 ) -> Diagnosis:
     """Trace the residual of `model` on `data` (held-in trajectories) to named effects.
 
@@ -270,6 +281,8 @@ def find_effects(
         min_inclusion: smallest bootstrap inclusion frequency.
         seed: seed of the bootstrap and of the null data's noise.
         targets: state rows searched for effects (default: all; `dynamic_rows` leaves out kinematic ones).
+        null_segment: steps the model tracks the data (a chaotic system): the null data are then simulated window
+            by window from observed states, as the held-out judgement's are (None: whole records).
     """
     dt = float(data.t[1] - data.t[0])
     delays = [m * dt for m in (1, 2, 4, 8)] if delays is None else delays
@@ -286,7 +299,9 @@ def find_effects(
     library = build_library(data, omegas, delays, kinds, phased)
     base, n_shared = nuisance_columns(model, data, represented)
     noise = noise_level(data.x, res.r * res.dt[None, :, None, None])
-    null_rms, null_level = _null_check(model, data, omegas, delays, kinds, represented, noise, seed, phased)
+    null_rms, null_level = _null_check(
+        model, data, omegas, delays, kinds, represented, noise, seed, phased, null_segment
+    )
     names = data.state_names
     findings: list[Finding] = []
     explained: dict[str, list[float]] = {c.label(names): [0.0] * data.state_dim for c in library}
@@ -298,7 +313,7 @@ def find_effects(
             flat = _project(y, groups, base_d)[0].reshape(-1)
             residual_rms.append(math.sqrt(float(flat.pow(2).sum()) / max(flat.numel(), 1)))
             continue
-        sel, alone, freq, intervals = _fit_target(y, groups, base_d, n_boot, seed)
+        sel, alone, freq, intervals = _fit_target(y, groups, base_d, n_boot, seed, _drive_twins(library))
         residual_rms.append(math.sqrt(sel.total / max(y.numel(), 1)))
         for g, c in enumerate(library):
             explained[c.label(names)][d] = alone[g]
@@ -502,13 +517,18 @@ def _joint_refit(
     return True
 
 
-def _null_check(model, data, omegas, delays, kinds, represented, sigma, seed, phased=None):
+def _null_check(model, data, omegas, delays, kinds, represented, sigma, seed, phased=None, segment=None):
     """Run the pipeline on data simulated from the model itself plus the estimated measurement noise.
+
+    With `segment` shorter than the records (a chaotic system) the simulation restarts from the observed state
+    every `segment` steps, so that it stays on the data's attractor (a whole-record simulation of a chaotic
+    model leaves it, and its residual there says nothing about the data); the steps that end on a restart are a
+    jump, not the model's step, and are left out of every fit.
 
     Returns:
         ([D] residual RMS on the null data (after the base fit), [D] the largest RMS any candidate explains there).
     """
-    pred, _ = predict(model, data)
+    pred, jumps = _null_simulation(model, data, segment)
     gen = torch.Generator().manual_seed(seed + 1)
     noise = torch.randn(pred.shape, generator=gen, dtype=torch.float64) * sigma
     null = Trajectories(
@@ -523,13 +543,51 @@ def _null_check(model, data, omegas, delays, kinds, represented, sigma, seed, ph
     keep = torch.isfinite(res.r).flatten(1).all(dim=1)
     library = build_library(null, omegas, delays, kinds, phased)
     base, _ = nuisance_columns(model, null, represented)
+    if jumps:  # a zero row (residual and columns) drops out of every least-squares fit
+        res.r[:, jumps] = 0.0
+        for c in library:
+            c.basis[:, jumps] = 0.0
+        if base is not None:
+            base[:, jumps] = 0.0
+    used = 1.0 - len(jumps) / max(res.r.shape[1], 1)  # share of the rows that are the model's steps
     rms, level = [], []
     for d in range(data.state_dim):
         y, groups, base_d = _rows(library, res, d, keep, base)
         y, groups = _project(y, groups, base_d)
         flat = y.reshape(-1)
-        left = math.sqrt(float(flat.pow(2).sum()) / max(flat.numel(), 1))
+        left = math.sqrt(float(flat.pow(2).sum()) / max(flat.numel() * used, 1))
         rms.append(left)
         alone = explained_alone(flat, [g.reshape(flat.numel(), -1) for g in groups])
         level.append(left * math.sqrt(max(max(alone, default=0.0), 0.0)))
     return rms, level
+
+
+def _null_simulation(model: Model, data: Trajectories, segment: int | None) -> tuple[torch.Tensor, list[int]]:
+    """([B, T, N, D] the model's own simulation of `data`, [steps that end on a restart from an observed state])."""
+    if segment is not None and segment < data.n_times - 1:
+        try:
+            with torch.no_grad():
+                windows = window_predictions(model, data, segment)
+        except DivergenceError:
+            windows = []
+        if windows:
+            pred = data.x.double().clone()
+            for s, p in windows:  # in time order: a window's first sample (observed) overwrites the previous end
+                pred[:, s : s + p.shape[1]] = p.detach().double().cpu()
+            return pred, [s - 1 for s, _ in windows[1:]]
+    pred, _ = predict(model, data)
+    return pred, []
+
+
+def _drive_twins(library: list[Candidate]) -> list[int]:
+    """Per candidate, a label shared by a drive with a phase per recording and the shared-phase drive at nearly
+    the same frequency (within 2 %): one effect written two ways, for the bootstrap's inclusion count."""
+    labels = list(range(len(library)))
+    for i, c in enumerate(library):
+        if c.kind != "PeriodicForcing" or not c.params.get("phased"):
+            continue
+        for j, other in enumerate(library):
+            if other.kind == "PeriodicForcing" and not other.params.get("phased"):
+                if abs(other.params["omega"] - c.params["omega"]) <= 0.02 * c.params["omega"]:
+                    labels[i] = labels[j]
+    return labels

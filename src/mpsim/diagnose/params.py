@@ -37,6 +37,9 @@ class DiagnoseParams:
         n_boot, min_gain, null_factor, min_inclusion: a screened candidate must be selected by BIC, explain
             ≥ min_gain of its row's residual and ≥ null_factor × what any candidate explains on null data, and
             be selected in ≥ min_inclusion of bootstrap resamples over trajectories.
+        screen_trajectories: held-in trajectories the screen uses (the first this many): a few coefficients need
+            few, and the bootstrap's cost grows with them — as their cube for a drive with a phase per recording,
+            whose two columns per recording enter every fit (200 recordings: minutes; 64: seconds).
     Acceptance (held-out prediction):
         max_candidates: screened candidates tested on held-out data, strongest share of their row first.
         margin: a candidate is named only if its held-out multi-step error gain exceeds the gain the same fit
@@ -63,6 +66,7 @@ class DiagnoseParams:
     delays: list[float] | None = None
     targets: list[str] | None = None
     n_boot: int = 100
+    screen_trajectories: int = 64
     min_gain: float = 0.05
     null_factor: float = 3.0
     min_inclusion: float = 0.8

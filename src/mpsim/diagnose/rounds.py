@@ -24,7 +24,7 @@ from mpsim.diagnose.library import build_library
 from mpsim.diagnose.loop import Diagnosis, find_effects
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.diagnose.residual import one_step_residual
-from mpsim.diagnose.shooting import own_parameters, window_error
+from mpsim.diagnose.shooting import horizon_from_data, own_parameters, window_error
 from mpsim.errors import DivergenceError
 from mpsim.metrics import rollout_metrics, valid_prediction_time
 from mpsim.models.base import Model
@@ -56,7 +56,9 @@ def holdout_metrics(model: Model, test: Trajectories, horizons: list[int], vpt_t
 
 
 def screen(model: Model, data: Trajectories, params: DiagnoseParams, seed: int) -> tuple[Diagnosis, list]:
-    """The one-step screen on held-in data, over the dynamic rows, and the candidate library it used."""
+    """The one-step screen on held-in data (its first `screen_trajectories` records), over the dynamic rows, and
+    the candidate library it used."""
+    data = data.subset(slice(0, params.screen_trajectories))
     rows = dynamic_rows(model, data, params.targets)
     delays = list(params.delays) if params.delays else None
     diag = find_effects(
@@ -70,6 +72,7 @@ def screen(model: Model, data: Trajectories, params: DiagnoseParams, seed: int) 
         params.min_inclusion,
         seed,
         rows,
+        null_segment=params.horizon or horizon_from_data(model, data, params.vpt_threshold),
     )
     dt = float(data.t[1] - data.t[0])
     library = build_library(

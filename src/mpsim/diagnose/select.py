@@ -157,6 +157,11 @@ def explained_alone(y: torch.Tensor, groups: list[torch.Tensor], base: torch.Ten
     return [1 - lstsq(torch.cat([base, x], dim=1), y)[1] / total if total > 0 else 0.0 for x in groups]
 
 
+#: a column is estimated by a bootstrap resample only if the drawn trajectories hold more than this share of its
+#: sum of squares (relative to the full data; a shared column holds about all of it in every resample)
+ABSENT_SHARE = 0.1
+
+
 def bootstrap(
     y: torch.Tensor,  # [B, m] residual samples grouped by trajectory
     groups: list[torch.Tensor],  # each [B, m, k_g]
@@ -165,8 +170,13 @@ def bootstrap(
     seed: int = 0,
     max_terms: int = 6,
     base: torch.Tensor | None = None,  # [B, m, q] columns always in the fit
+    same: list[int] | None = None,  # per group, a label: groups with one label are one effect written two ways
 ) -> tuple[dict[int, float], dict[int, list[tuple[float, float]]]]:
     """Resample trajectories with replacement; rerun the selection and refit the selected groups.
+
+    A group's inclusion frequency counts the resamples that select it or a group with the same label in `same`
+    (a drive with one phase per recording and the same drive with one shared phase: when the recordings' phases
+    nearly agree, resamples choose between them, and either says the drive is there).
 
     Returns:
         ({group: inclusion frequency}, {selected group: [(2.5 %, 97.5 %) interval per coefficient]}).
@@ -174,19 +184,27 @@ def bootstrap(
     b, m = y.shape[0], y.shape[1]
     gen = torch.Generator().manual_seed(seed)
     counts = [0] * len(groups)
+    labels = list(range(len(groups))) if same is None else list(same)
     draws: dict[int, list[list[float]]] = {g: [] for g in selected}
     x, spans, base_cols = _design(list(groups), base)  # [B, m, P]
     grams = torch.einsum("bmp,bmq->bpq", x, x)  # per-trajectory normal equations: a resample is a weighted sum
     xtys = torch.einsum("bmp,bm->bp", x, y)
     ytys = y.pow(2).sum(dim=1)
+    energy = grams.diagonal(dim1=1, dim2=2)  # [B, P] each column's sum of squares per trajectory
+    total_energy = energy.mean(dim=0)  # [P] per trajectory on average
     chosen_cols = base_cols + [c for g in selected for c in spans[g]]
     for _ in range(n_boot):  # resamples, not a loop over data elements
         w = torch.bincount(torch.randint(0, b, (b,), generator=gen), minlength=b).to(x.dtype)  # multiplicities
         gram, xty, yty = torch.einsum("b,bpq->pq", w, grams), w @ xtys, float(w @ ytys)
-        for g in _stepwise_gram(gram, xty, yty, b * m, spans, base_cols, max_terms).groups:
-            counts[g] += 1
+        picked = {labels[g] for g in _stepwise_gram(gram, xty, yty, b * m, spans, base_cols, max_terms).groups}
+        for g in range(len(groups)):
+            counts[g] += labels[g] in picked
         if selected:
             sol, _ = _gram_fit(gram, xty, yty, chosen_cols)
+            # a column whose data lie in recordings this resample did not draw (a recording's own drive phase;
+            # after the nuisance projection a trace leaks into the others) is not estimated by it: NaN
+            share = (w @ energy)[chosen_cols] / (b * total_energy[chosen_cols]).clamp(min=1e-300)
+            sol = torch.where(share > ABSENT_SHARE, sol, torch.full_like(sol, math.nan))
             at = len(base_cols)
             for g in selected:
                 k = len(spans[g])
@@ -196,7 +214,7 @@ def bootstrap(
     intervals = {}
     for g, rows in draws.items():
         values = torch.tensor(rows, dtype=torch.float64)
-        lo = torch.quantile(values, 0.025, dim=0)
-        hi = torch.quantile(values, 0.975, dim=0)
+        lo = torch.nanquantile(values, 0.025, dim=0)
+        hi = torch.nanquantile(values, 0.975, dim=0)
         intervals[g] = [(float(a), float(c)) for a, c in zip(lo, hi, strict=True)]
     return freq, intervals
