@@ -111,3 +111,25 @@ def test_a_drive_with_agreeing_phases_is_tried_with_one_shared_phase():
         found, notes = finetune_candidates(diag, library, DiagnoseParams())
         assert [label for *_, label in found] == expected
         assert len(notes) == 1 and ("agree" in notes[0] if expected else "disagree" in notes[0])
+
+
+def test_what_a_named_candidate_leaves_must_have_no_structure_the_screen_sees():
+    # a network's approximation error is invisible in null data (its own simulation), so a true effect can leave
+    # more than 1 − min_explained of the control's excess; it is named only if the screen of its finetuned model
+    # finds nothing structured left. Here min_explained > 1 makes every candidate "partial".
+    train, test, model = _setup([LinearDamping(0.2, target="omega")], seed=0)
+    params = DiagnoseParams(n_boot=20, min_explained=1.5)
+    diag, library = screen(model, train, params, 0)
+    calls: list[int] = []
+
+    def clean(m):  # the screen of the finetuned model, as the loop runs it
+        calls.append(1)
+        return screen(m, train, params, 0)
+
+    args = (model, diag, library, train, test, 20, 1e-10, params, _finetune(train, []), "round1")
+    named = judge_by_finetune(*args, rescreen=clean)
+    assert named.verdict == EFFECTS_NAMED and calls == [1] and named.rest is not None
+    assert "finds no structure" in named.named[0].reason
+    still = judge_by_finetune(*args, rescreen=lambda m: (diag, library))  # as if the damping were still there
+    assert still.verdict == UNEXPLAINED and "still finds domega/dt: LinearDamping(omega)" in still.trials[0].reason
+    assert judge_by_finetune(*args).verdict == UNEXPLAINED  # without a screen to ask, a partial fit is not named

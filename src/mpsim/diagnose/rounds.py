@@ -234,7 +234,18 @@ def _black_box_fix(
     current, diag, named = model, result.diagnosis, []
     for k in range(1, params.rounds + 1):
         fj = judge_by_finetune(
-            current, diag, library, train, test, j0.horizon, j0.error_null, params, finetune, f"round{k}", log
+            current,
+            diag,
+            library,
+            train,
+            test,
+            j0.horizon,
+            j0.error_null,
+            params,
+            finetune,
+            f"round{k}",
+            log,
+            rescreen=lambda m: screen(m, train, params, seed),
         )
         result.finetuned.append(fj)
         entry: dict[str, Any] = {
@@ -254,8 +265,11 @@ def _black_box_fix(
         current, result.checkpoint = fj.model, fj.checkpoint
         entry["checkpoint"] = fj.checkpoint
         entry["effects_after"] = [e.describe() for e in current.effects]
-        log(f"round {k}: screening the finetuned model")
-        diag, library = screen(current, train, params, seed)
+        if fj.rest is not None:  # screened already, when the judgement asked what its finetune left
+            diag, library = fj.rest
+        else:
+            log(f"round {k}: screening the finetuned model")
+            diag, library = screen(current, train, params, seed)
         left = [f.label for f in diag.findings if f.accepted]
         entry["then"] = {"verdict": "screen", "named": left}
         if not left:
