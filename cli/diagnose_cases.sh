@@ -48,12 +48,12 @@ fi
 
 if has case2; then  # case 2 (docs/residual_loop.md): Lorenz3 with a hidden drive dx/dt += 20 sin(20 t); black-box MP-NODE
   run=$OUT/case2; mkdir -p "$run"; start=$SECONDS
-  # fix=true judges a network's candidates by finetuning: each candidate + 30 epochs against the same 30 epochs
+  # fix=true judges a network's candidates by finetuning: each candidate + 80 epochs against the same 80 epochs
   # without it (the control, under diagnose/fix/round1/control), at the full learning rate (the network must
   # unlearn what it made up for once the drive is explicit)
   { mpsim train experiment=lorenz3_forced hydra.run.dir=$run/train "${common[@]}" &&
     mpsim diagnose experiment=lorenz3_forced init=lorenz3_forced.ckpt fix=true diagnose.fix_lr_factor=1.0 \
-      trainer.max_epochs=30 hydra.run.dir=$run/diagnose "${common[@]}"; } > "$run.log" 2>&1
+      trainer.max_epochs=80 hydra.run.dir=$run/diagnose "${common[@]}"; } > "$run.log" 2>&1
   echo "$(( SECONDS - start ))" > "$run/wall_s"
 fi
 

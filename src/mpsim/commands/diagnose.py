@@ -334,16 +334,27 @@ def _print(s: dict[str, Any], out: Path) -> None:
         rows.append(("effect", f"{t['label']}: {_values_text(t['values'], t['interval'])}{truth}"))
         if t.get("derived"):
             rows.append(("", t["derived"]))
-    rows.append(
-        (
-            "held-out MSE",
-            f"given {j['error_given']:.3g}, own parameters refit {j['error_refit']:.3g}, null "
-            f"level {j['error_null']:.3g}"
-            + (f", with the effects {j['error_final']:.3g}" if s["verdict"] == EFFECTS_NAMED else ""),
+    if s["finetuned"]:  # a network's candidates were judged by finetuning: its numbers, round by round
+        for k, f in enumerate(s["finetuned"], start=1):
+            rows.append(
+                (
+                    f"held-out MSE ({k})",
+                    f"given {f['error_given']:.3g}, control (finetuned without a candidate) {f['error_control']:.3g}, "
+                    f"null level {f['error_null']:.3g}"
+                    + (f", finetuned with the effect {f['error_final']:.3g}" if f["named"] else ""),
+                )
+            )
+            rows += [("", note) for note in f["notes"]]
+    else:
+        rows.append(
+            (
+                "held-out MSE",
+                f"given {j['error_given']:.3g}, own parameters refit {j['error_refit']:.3g}, null "
+                f"level {j['error_null']:.3g}"
+                + (f", with the effects {j['error_final']:.3g}" if s["verdict"] == EFFECTS_NAMED else ""),
+            )
         )
-    )
-    for note in j["notes"]:
-        rows.append(("", note))
+        rows += [("", note) for note in j["notes"]]
     if s["verdict"] != EFFECTS_NAMED and s["verdict"] != NOTHING_MISSING:
         rows.append(("claim", "none: no candidate explains the structured residual"))
     for r in s["rounds"]:
