@@ -15,6 +15,7 @@ import pytest
 import torch
 
 from mpsim.data.dataset import fit_normalisation
+from mpsim.data.trajectories import Inputs
 from mpsim.diagnose.loop import find_effects
 from mpsim.diagnose.residual import one_step_residual
 from mpsim.effects import CubicStiffness
@@ -67,7 +68,7 @@ def test_model_declares_what_it_can_express_and_steps_from_one_state(cubic_data)
     # one batched solve over every step equals stepping each observed state with the rollout
     x, t = cubic_data.x[:2, :6], cubic_data.t[:6]
     steps = model.one_step(x, t, cubic_data.edge_index)
-    ref = torch.stack([model.rollout(x[:, k], t[k : k + 2], cubic_data.edge_index)[:, 1] for k in range(5)], 1)
+    ref = torch.stack([model.rollout(x[:, k], t[k : k + 2], Inputs(cubic_data.edge_index))[:, 1] for k in range(5)], 1)
     assert steps.shape == (2, 5, 1, 3) and torch.allclose(steps, ref, atol=1e-6)
 
 

@@ -3,6 +3,7 @@
 
 import torch
 
+from mpsim.data.trajectories import Inputs
 from mpsim.graphs.topology import chain
 from mpsim.models.base import Model
 from mpsim.models.capabilities import (
@@ -50,7 +51,7 @@ def test_one_step_falls_back_to_one_rollout_per_step():
     t = torch.linspace(0.0, 0.3, 4, dtype=torch.float64)
     steps = one_step(model, x, t, chain(3))
     assert steps.shape == (2, 3, 3, 2)
-    first = model.rollout(x[:, 1], t[1:3], chain(3))[:, 1]
+    first = model.rollout(x[:, 1], t[1:3], Inputs(chain(3)))[:, 1]
     torch.testing.assert_close(steps[:, 1], first)
 
 

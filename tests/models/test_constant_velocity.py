@@ -18,7 +18,7 @@ def test_exact_on_free_particles() -> None:
     data = NBody(n_particles=30, G=0.0, n_steps=300, box_size=4.0).generate(3, seed=0)
     model = ConstantVelocity()
     with torch.no_grad():
-        pred = model.rollout(data.x[:, 0], data.t, data.edge_index, node_features=data.node_features, meta=data.meta)
+        pred = model.rollout(data.x[:, 0], data.t, data.inputs())
     d = pred - data.x
     d[..., :2] -= 4.0 * torch.round(d[..., :2] / 4.0)
     assert d.abs().max() < 1e-10
@@ -63,7 +63,7 @@ def test_flags_ill_conditioned_coulomb_energies() -> None:
     for flag in (0.0, 1e9):
         model = ConstantVelocity(energy_flag=flag)
         with torch.no_grad():
-            model.rollout(data.x[:, 0], data.t, data.edge_index, node_features=data.node_features, meta=data.meta)
+            model.rollout(data.x[:, 0], data.t, data.inputs())
         energies[flag] = model.report()["nbody"]
         lines[flag] = " ".join(label for label, _ in model.report_lines())
     assert energies[0.0]["n_ill_conditioned"] == 0 and energies[1e9]["n_ill_conditioned"] == 4

@@ -2,7 +2,7 @@
 
 import torch
 
-from mpsim.data.trajectories import Trajectories
+from mpsim.data.trajectories import Inputs, Trajectories
 from mpsim.graphs.topology import complete
 from mpsim.metrics import huber_loss
 from mpsim.models import MPNODE
@@ -57,7 +57,7 @@ def test_mpnode_prediction_at_a_sample_time_ignores_that_samples_input():
     u = torch.zeros(1, 5, 3, 1, dtype=torch.float64)
     late = u.clone()
     late[:, 3:] = 1.0
-    base, changed = model.rollout(x0, t, complete(3), u=u), model.rollout(x0, t, complete(3), u=late)
+    base, changed = model.rollout(x0, t, Inputs(complete(3), u=u)), model.rollout(x0, t, Inputs(complete(3), u=late))
     assert torch.equal(base[:, :4], changed[:, :4]) and not torch.allclose(base[:, 4], changed[:, 4])
 
 

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from mpsim.data.trajectories import Trajectories
+from mpsim.data.trajectories import Inputs, Trajectories
 from mpsim.errors import IncompatibleError
 from mpsim.models.deltagn import DeltaGN
 from mpsim.systems.nbody import NBody
@@ -134,7 +134,7 @@ def test_trained_at_one_n_runs_at_another() -> None:
     big = NBody(n_particles=70, n_steps=3).generate(2, seed=1).to(dtype=torch.float32)
     model.eval()
     with torch.no_grad():
-        pred = model.rollout(big.x[:, 0], big.t.float(), big.edge_index, node_features=big.node_features, meta=big.meta)
+        pred = model.rollout(big.x[:, 0], big.t.float(), big.inputs())
     assert pred.shape == (2, 4, 70, 4) and torch.isfinite(pred).all()
     assert (pred[..., :2].abs() <= big.meta["box_size"] / 2).all()
     report = model.report()["nbody"]
@@ -146,14 +146,14 @@ def test_refuses_other_dt_charges_and_missing_box(data: Trajectories) -> None:
     model = _model("knn")
     model.trained_dt.fill_(0.02)
     with pytest.raises(IncompatibleError, match="dt = 0.02"), torch.no_grad():
-        model.rollout(data.x[:, 0], data.t, data.edge_index, node_features=data.node_features, meta=data.meta)
+        model.rollout(data.x[:, 0], data.t, data.inputs())
     model.trained_dt.zero_()
     charged = data.node_features.clone()
     charged[..., 1] = 1.0
     with pytest.raises(IncompatibleError, match="model.charge=true"), torch.no_grad():
-        model.rollout(data.x[:, 0], data.t, data.edge_index, node_features=charged, meta=data.meta)
+        model.rollout(data.x[:, 0], data.t, Inputs(data.edge_index, node_features=charged, meta=data.meta))
     with pytest.raises(IncompatibleError, match="box_size"), torch.no_grad():
-        model.rollout(data.x[:, 0], data.t, data.edge_index, node_features=data.node_features, meta={})
+        model.rollout(data.x[:, 0], data.t, Inputs(data.edge_index, node_features=data.node_features, meta={}))
     with pytest.raises(IncompatibleError, match=r"state \(x, y, vx, vy\)"):
         DeltaGN(state_dim=3).check_compatible(3, 0, 20)
 
@@ -170,7 +170,7 @@ def test_divergence_is_reported_per_trajectory(data: Trajectories) -> None:
 
     model.advance = poisoned
     with torch.no_grad():
-        pred = model.rollout(data.x[:, 0], data.t, data.edge_index, node_features=data.node_features, meta=data.meta)
+        pred = model.rollout(data.x[:, 0], data.t, data.inputs())
     assert torch.isnan(pred[1, 1:]).all() and torch.isfinite(pred[[0, 2, 3]]).all()
     report = model.report()["nbody"]
     assert math.isfinite(report["energy_error"]["12"])  # the finite trajectories still count

@@ -11,6 +11,7 @@ import torch
 from mpsim.commands.eval import run_eval
 from mpsim.commands.train import run_train
 from mpsim.data.dataset import fit_normalisation
+from mpsim.data.trajectories import Inputs
 from mpsim.effects import LinearDamping
 from mpsim.equations import load_spec_file
 from mpsim.errors import ConfigError, IncompatibleError
@@ -84,9 +85,9 @@ def test_each_trajectory_runs_on_its_own_graph():
     padded[0, :, :2], padded[1] = graphs[0], graphs[1]
     x0 = torch.randn(2, 3, 2, dtype=torch.float64)
     t = torch.linspace(0, 1, 11, dtype=torch.float64)
-    together = model.rollout(x0, t, padded)
+    together = model.rollout(x0, t, Inputs(padded))
     for b, g in enumerate(graphs):
-        assert torch.allclose(together[b], model.rollout(x0[b : b + 1], t, g)[0], atol=1e-12)
+        assert torch.allclose(together[b], model.rollout(x0[b : b + 1], t, Inputs(g))[0], atol=1e-12)
     assert not torch.allclose(together[0], together[1])
 
 

@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from mpsim.data.trajectories import Inputs
 from mpsim.models.hogn import HOGN
 from mpsim.systems.nbody import NBody
 
@@ -54,7 +55,7 @@ def test_conserves_its_own_energy_to_rk4_accuracy() -> None:
     def drift(dt: float, steps: int) -> float:
         t = torch.arange(steps + 1, dtype=torch.float64) * dt
         with torch.no_grad():
-            pred = model.rollout(x0, t, torch.zeros(2, 0, dtype=torch.long), node_features=nf, meta=meta)
+            pred = model.rollout(x0, t, Inputs(torch.zeros(2, 0, dtype=torch.long), node_features=nf, meta=meta))
         h = model.energy_of(pred[0], nf.expand(steps + 1, n, 2), box).detach()
         return float((h - h[0]).abs().max() / h[0].abs())
 
@@ -69,7 +70,7 @@ def test_any_time_step_and_translation_invariance() -> None:
     box = data.meta["box_size"]
     model.trained_dt.fill_(0.01)  # trained at another step: an ODE model integrates any dt
     with torch.no_grad():
-        pred = model.rollout(data.x[:, 0], data.t, data.edge_index, node_features=data.node_features, meta=data.meta)
+        pred = model.rollout(data.x[:, 0], data.t, data.inputs())
     assert torch.isfinite(pred).all() and pred.shape == (1, 4, 16, 4)
     x, nf = data.x[:, 0], data.node_features
     shift = torch.tensor([0.3 * box, -2.7], dtype=torch.float64)

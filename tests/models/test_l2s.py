@@ -2,6 +2,7 @@
 
 import torch
 
+from mpsim.data.trajectories import Inputs
 from mpsim.graphs.topology import chain, complete
 from mpsim.models.l2s import L2S
 from mpsim.solvers import ODESolver
@@ -21,7 +22,7 @@ def test_rollout_shape_and_start():
     model = _model()
     x0 = torch.randn(3, 4, 2, dtype=torch.float64)
     t = torch.linspace(0, 1, 6, dtype=torch.float64)
-    out = model.rollout(x0, t, chain(4))
+    out = model.rollout(x0, t, Inputs(chain(4)))
     assert out.shape == (3, 6, 4, 2) and torch.allclose(out[:, 0], x0)
 
 
@@ -33,8 +34,8 @@ def test_permutation_equivariance():
     t = torch.linspace(0, 1, 5, dtype=torch.float64)
     perm = torch.randperm(n, generator=torch.Generator().manual_seed(3))
     inverse = torch.argsort(perm)
-    out = model.rollout(x0, t, ei)
-    out_perm = model.rollout(x0[:, perm], t, inverse[ei])
+    out = model.rollout(x0, t, Inputs(ei))
+    out_perm = model.rollout(x0[:, perm], t, Inputs(inverse[ei]))
     assert torch.allclose(out_perm, out[:, :, perm], atol=1e-6)
 
 
@@ -45,7 +46,9 @@ def test_sum_aggregation_depends_on_the_number_of_neighbours():
     t = torch.tensor([0.0, 0.5], dtype=torch.float64)
     star = torch.tensor([[1, 2, 3], [0, 0, 0]])  # node 0 hears three nodes
     single = torch.tensor([[1], [0]])  # node 0 hears one
-    assert not torch.allclose(model.rollout(x0, t, star)[:, 1, 0], model.rollout(x0, t, single)[:, 1, 0])
+    assert not torch.allclose(
+        model.rollout(x0, t, Inputs(star))[:, 1, 0], model.rollout(x0, t, Inputs(single))[:, 1, 0]
+    )
 
 
 def test_empty_neighbourhood_uses_the_trainable_psi():
@@ -53,12 +56,12 @@ def test_empty_neighbourhood_uses_the_trainable_psi():
     x0 = torch.randn(2, 3, 2, dtype=torch.float64)
     t = torch.tensor([0.0, 0.3], dtype=torch.float64)
     lonely = torch.zeros(2, 0, dtype=torch.long)
-    model.rollout(x0, t, lonely).sum().backward()
+    model.rollout(x0, t, Inputs(lonely)).sum().backward()
     assert model.processor[0].psi.grad is not None and model.processor[0].psi.grad.abs().sum() > 0
     with torch.no_grad():
-        before = model.rollout(x0, t, lonely)
+        before = model.rollout(x0, t, Inputs(lonely))
         model.processor[0].psi.fill_(1.0)
-        assert not torch.allclose(model.rollout(x0, t, lonely), before)
+        assert not torch.allclose(model.rollout(x0, t, Inputs(lonely)), before)
 
 
 def test_per_trajectory_graphs_equal_separate_runs():
@@ -68,9 +71,9 @@ def test_per_trajectory_graphs_equal_separate_runs():
     a, b = chain(4), complete(4)
     padded = torch.full((2, 2, b.shape[1]), -1)
     padded[0, :, : a.shape[1]], padded[1] = a, b
-    both = model.rollout(x0, t, padded)
-    assert torch.allclose(both[0], model.rollout(x0[:1], t, a)[0], atol=1e-7)
-    assert torch.allclose(both[1], model.rollout(x0[1:], t, b)[0], atol=1e-7)
+    both = model.rollout(x0, t, Inputs(padded))
+    assert torch.allclose(both[0], model.rollout(x0[:1], t, Inputs(a))[0], atol=1e-7)
+    assert torch.allclose(both[1], model.rollout(x0[1:], t, Inputs(b))[0], atol=1e-7)
 
 
 def test_controls_enter_with_zero_order_hold():
@@ -78,10 +81,10 @@ def test_controls_enter_with_zero_order_hold():
     x0 = torch.randn(1, 3, 2, dtype=torch.float64)
     t = torch.linspace(0, 1, 5, dtype=torch.float64)
     u = torch.zeros(1, 5, 3, 1, dtype=torch.float64)
-    base = model.rollout(x0, t, chain(3), u=u)
+    base = model.rollout(x0, t, Inputs(chain(3), u=u))
     u_late = u.clone()
     u_late[:, 3:] = 1.0  # changes from t[3] on: the first three steps are unaffected
-    late = model.rollout(x0, t, chain(3), u=u_late)
+    late = model.rollout(x0, t, Inputs(chain(3), u=u_late))
     assert torch.equal(base[:, :4], late[:, :4]) and not torch.allclose(base[:, 4], late[:, 4])
 
 
@@ -94,6 +97,6 @@ def test_dense_and_edge_list_aggregation_agree():
     padded = torch.full((2, 2, b.shape[1]), -1)
     padded[0, :, : a.shape[1]], padded[1] = a, b
     for graph in (a, padded):
-        assert torch.allclose(dense.rollout(x0, t, graph), sparse.rollout(x0, t, graph), atol=1e-10)
+        assert torch.allclose(dense.rollout(x0, t, Inputs(graph)), sparse.rollout(x0, t, Inputs(graph)), atol=1e-10)
     loops_dense, loops_sparse = _model(self_loops=True), _model(self_loops=True, dense_max_nodes=0)
-    assert torch.allclose(loops_dense.rollout(x0, t, a), loops_sparse.rollout(x0, t, a), atol=1e-10)
+    assert torch.allclose(loops_dense.rollout(x0, t, Inputs(a)), loops_sparse.rollout(x0, t, Inputs(a)), atol=1e-10)

@@ -1,6 +1,7 @@
 import pytest
 import torch
 
+from mpsim.data.trajectories import Inputs
 from mpsim.graphs.topology import chain, complete
 from mpsim.models import MPNODE
 from mpsim.solvers import ODESolver
@@ -20,7 +21,7 @@ def test_rollout_starts_at_x0_and_has_batch_first_shape():
     model = _model()
     x0 = torch.randn(3, 4, 2, dtype=torch.float64)
     t = torch.linspace(0, 1, 6, dtype=torch.float64)
-    pred, aux = model.rollout_aux(x0, t, chain(4))
+    pred, aux = model.rollout_aux(x0, t, Inputs(chain(4)))
     assert pred.shape == (3, 6, 4, 2) and aux["messages"].shape == (3, 6, 4, 3)
     assert torch.allclose(pred[:, 0], x0)
     assert torch.all(aux["messages"][:, 0] == 0)  # messages start at zero
@@ -35,11 +36,11 @@ def test_permutation_equivariance():
     t = torch.linspace(0, 2, 9, dtype=torch.float64)
     perm = torch.randperm(n, generator=torch.Generator().manual_seed(3))
     inverse = torch.argsort(perm)
-    out = model.rollout(x0, t, ei)
-    out_perm = model.rollout(x0[:, perm], t, inverse[ei])
+    out = model.rollout(x0, t, Inputs(ei))
+    out_perm = model.rollout(x0[:, perm], t, Inputs(inverse[ei]))
     assert torch.allclose(out_perm, out[:, :, perm], atol=1e-6)
     # sanity: with the graph NOT relabelled the outputs differ, so the check can fail
-    assert not torch.allclose(model.rollout(x0[:, perm], t, ei), out[:, :, perm], atol=1e-4)
+    assert not torch.allclose(model.rollout(x0[:, perm], t, Inputs(ei)), out[:, :, perm], atol=1e-4)
 
 
 def test_messages_couple_nodes_and_zero_messages_decouple_them():
@@ -49,10 +50,10 @@ def test_messages_couple_nodes_and_zero_messages_decouple_them():
     x0b = x0.clone()
     x0b[0, 2] += 0.5  # change only node 2
     ei = complete(3)
-    a, b = model.rollout(x0, t, ei), model.rollout(x0b, t, ei)
+    a, b = model.rollout(x0, t, Inputs(ei)), model.rollout(x0b, t, Inputs(ei))
     assert (a[0, -1, 0] - b[0, -1, 0]).abs().max() > 1e-6  # node 0 feels node 2 through messages
     model.zero_messages = True
-    a, b = model.rollout(x0, t, ei), model.rollout(x0b, t, ei)
+    a, b = model.rollout(x0, t, Inputs(ei)), model.rollout(x0b, t, Inputs(ei))
     assert torch.allclose(a[0, :, :2], b[0, :, :2])  # without messages nodes evolve independently
 
 
@@ -60,7 +61,7 @@ def test_same_weights_run_on_any_graph_size():
     model = _model(d=3)
     t = torch.linspace(0, 1, 4, dtype=torch.float64)
     for n in (1, 3, 10):
-        assert model.rollout(torch.randn(2, n, 3, dtype=torch.float64), t, complete(n)).shape == (2, 4, n, 3)
+        assert model.rollout(torch.randn(2, n, 3, dtype=torch.float64), t, Inputs(complete(n))).shape == (2, 4, n, 3)
 
 
 def test_per_trajectory_graphs_equal_separate_rollouts():
@@ -70,9 +71,9 @@ def test_per_trajectory_graphs_equal_separate_rollouts():
     g0, g1 = chain(3), complete(3)
     padded = torch.full((2, 2, g1.shape[1]), -1, dtype=torch.long)
     padded[0, :, : g0.shape[1]], padded[1] = g0, g1
-    both = model.rollout(x0, t, padded)
-    assert torch.allclose(both[:1], model.rollout(x0[:1], t, g0), atol=1e-6)
-    assert torch.allclose(both[1:], model.rollout(x0[1:], t, g1), atol=1e-6)
+    both = model.rollout(x0, t, Inputs(padded))
+    assert torch.allclose(both[:1], model.rollout(x0[:1], t, Inputs(g0)), atol=1e-6)
+    assert torch.allclose(both[1:], model.rollout(x0[1:], t, Inputs(g1)), atol=1e-6)
 
 
 def test_normalisation_round_trip():
@@ -93,8 +94,8 @@ def test_sum_aggregation_sees_the_degree_and_mean_does_not():
     total.load_state_dict(mean.state_dict())
     x0 = torch.randn(2, 4, 2, dtype=torch.float64)
     pairs = torch.tensor([[0, 1, 2, 3], [1, 0, 3, 2]])  # every node has one neighbour: sum = mean
-    assert torch.allclose(mean.rollout(x0, t, pairs), total.rollout(x0, t, pairs), atol=1e-10)
+    assert torch.allclose(mean.rollout(x0, t, Inputs(pairs)), total.rollout(x0, t, Inputs(pairs)), atol=1e-10)
     ring = complete(4)  # three neighbours each: the sum is three times the mean
-    assert not torch.allclose(mean.rollout(x0, t, ring), total.rollout(x0, t, ring), atol=1e-4)
+    assert not torch.allclose(mean.rollout(x0, t, Inputs(ring)), total.rollout(x0, t, Inputs(ring)), atol=1e-4)
     with pytest.raises(ValueError, match="aggregation"):
         MPNODE(2, aggregation="max")

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from mpsim.data.dataset import fit_normalisation
-from mpsim.data.trajectories import Trajectories
+from mpsim.data.trajectories import Inputs, Trajectories
 from mpsim.errors import ConfigError, IncompatibleError
 from mpsim.metrics import mse_loss
 from mpsim.models.smnn_discovery import SMNNDiscovery, monomial_name
@@ -122,7 +122,7 @@ def test_rollout_integrates_the_discovered_ode():
     with torch.no_grad():
         model.theta[1:3] = A_TRUE.T
     with torch.no_grad():
-        pred = model.rollout(data.x[:, 0], data.t, data.edge_index)
+        pred = model.rollout(data.x[:, 0], data.t, Inputs(data.edge_index))
     assert pred.shape == data.x.shape
     assert float((pred - data.x).abs().max()) < 1e-3  # dopri5 at rtol = atol = 1e-4
 

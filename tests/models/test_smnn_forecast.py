@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from mpsim.data.dataset import fit_normalisation
+from mpsim.data.trajectories import Inputs
 from mpsim.errors import ConfigError
 from mpsim.graphs.topology import chain, complete
 from mpsim.metrics import huber_loss
@@ -38,7 +39,7 @@ def test_untrained_model_is_persistence_and_keeps_the_context(pendulums):
     model = SMNNForecaster(state_dim=2, context_steps=5, chunk=4).double()
     model.set_normalisation(*fit_normalisation(pendulums))
     x = pendulums.x
-    pred = model.rollout(x[:, :5], pendulums.t, pendulums.edge_index)
+    pred = model.rollout(x[:, :5], pendulums.t, Inputs(pendulums.edge_index))
     assert pred.shape == x.shape
     assert torch.equal(pred[:, :5], x[:, :5])  # the context is returned as given
     assert torch.allclose(pred[:, 5:], x[:, 4:5].expand_as(pred[:, 5:]), atol=1e-10)  # A = 0, r = 0
@@ -46,11 +47,11 @@ def test_untrained_model_is_persistence_and_keeps_the_context(pendulums):
 
 def test_context_of_one_state_and_wrong_context_length(pendulums):
     model = SMNNForecaster(state_dim=2, context_steps=1, chunk=7).double()
-    pred = model.rollout(pendulums.x[:, 0], pendulums.t, pendulums.edge_index)  # x0: [B, N, D]
+    pred = model.rollout(pendulums.x[:, 0], pendulums.t, Inputs(pendulums.edge_index))  # x0: [B, N, D]
     assert pred.shape == pendulums.x.shape
     with pytest.raises(ConfigError, match="context"):
         SMNNForecaster(state_dim=2, context_steps=3).rollout(
-            pendulums.x[:, :2].float(), pendulums.t.float(), pendulums.edge_index
+            pendulums.x[:, :2].float(), pendulums.t.float(), Inputs(pendulums.edge_index)
         )
 
 
@@ -63,10 +64,10 @@ def test_runs_on_any_graph_and_with_controls():
     for n, edges in ((2, complete(2)), (7, chain(7))):
         x = torch.randn(3, 4, n, 3)
         u = torch.randn(3, 12, n, 2)
-        pred = model.rollout(x, t, edges, u=u)
+        pred = model.rollout(x, t, Inputs(edges, u=u))
         assert pred.shape == (3, 12, n, 3) and torch.isfinite(pred).all()
     # the controls of the predicted chunk reach the prediction
-    other = model.rollout(x, t, edges, u=u + 1.0)
+    other = model.rollout(x, t, Inputs(edges, u=u + 1.0))
     assert not torch.allclose(other[:, 4:], pred[:, 4:])
 
 
@@ -87,7 +88,7 @@ def test_training_beats_persistence_and_random_starts(pendulums):
     assert float(loss.detach()) < 0.3 * first
     # full-horizon error below the persistence forecast the model started from
     with torch.no_grad():
-        pred = model.rollout(pendulums.x[:, :5], pendulums.t, pendulums.edge_index)
+        pred = model.rollout(pendulums.x[:, :5], pendulums.t, Inputs(pendulums.edge_index))
     err = (pred[:, 5:] - pendulums.x[:, 5:]).pow(2).mean()
     persistence = (pendulums.x[:, 4:5] - pendulums.x[:, 5:]).pow(2).mean()
     assert float(err) < 0.5 * float(persistence)
@@ -99,17 +100,19 @@ def test_whole_state_couples_every_node_and_keeps_its_graph_size(pendulums):
     assert model.encoder[0].in_features == 3 * 4 + 4 and not model.transfers_across_graphs
     x = pendulums.x
     assert torch.allclose(
-        model.rollout(x[:, :3], pendulums.t, pendulums.edge_index)[:, 3:], x[:, 2:3].expand_as(x[:, 3:]), atol=1e-10
+        model.rollout(x[:, :3], pendulums.t, Inputs(pendulums.edge_index))[:, 3:],
+        x[:, 2:3].expand_as(x[:, 3:]),
+        atol=1e-10,
     )  # untrained: persistence
     with torch.no_grad():
         model.encoder[-1].weight.normal_(0, 0.1)
-    pred = model.rollout(x[:, :3], pendulums.t, pendulums.edge_index)
+    pred = model.rollout(x[:, :3], pendulums.t, Inputs(pendulums.edge_index))
     moved = x[:, :3].clone()
     moved[:, :, 1] += 0.5  # node 1's past changes node 0's forecast: one ODE for the whole state
-    other = model.rollout(moved, pendulums.t, pendulums.edge_index)
+    other = model.rollout(moved, pendulums.t, Inputs(pendulums.edge_index))
     assert not torch.allclose(other[:, 3:, 0], pred[:, 3:, 0])
     with pytest.raises(ConfigError, match="built for 2 nodes"):
-        model.rollout(torch.zeros(1, 3, 3, 2, dtype=F64), pendulums.t, complete(3))
+        model.rollout(torch.zeros(1, 3, 3, 2, dtype=F64), pendulums.t, Inputs(complete(3)))
     with pytest.raises(ConfigError, match="n_nodes"):
         SMNNForecaster(state_dim=2, whole_state=True)
 

@@ -68,7 +68,7 @@ class _Exploding(Model):
         super().__init__(2)
         self.w = nn.Parameter(torch.tensor(3.0))
 
-    def rollout(self, x0, t, edge_index, *, u=None, node_features=None, meta=None):
+    def rollout(self, x0, t, inputs):
         return x0[:, None] * torch.exp(torch.exp(self.w) * 30 * t)[None, :, None, None]
 
 

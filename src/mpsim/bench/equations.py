@@ -17,6 +17,7 @@ from typing import Any
 import torch
 
 from mpsim.bench.common import Suite, timeit
+from mpsim.data.trajectories import Inputs
 from mpsim.metrics import LOSSES
 from mpsim.models.base import Model
 from mpsim.models.equations import EquationsModel
@@ -114,16 +115,13 @@ class EquationsBench(Suite):
             models = {"physics": physics, "equations": equations}
             for model in models.values():
                 model.set_normalisation(x.reshape(-1, x.shape[-1]).mean(0), x.reshape(-1, x.shape[-1]).std(0))
+            inputs = Inputs(data.edge_index)
             with torch.no_grad():  # the same equations: the same prediction
-                gap = float(
-                    (physics.rollout(x[:, 0], t, data.edge_index) - equations.rollout(x[:, 0], t, data.edge_index))
-                    .abs()
-                    .max()
-                )
+                gap = float((physics.rollout(x[:, 0], t, inputs) - equations.rollout(x[:, 0], t, inputs)).abs().max())
 
-            def step(model: Model, x=x, t=t, ei=data.edge_index) -> None:  # x: [B, T, N, D]
+            def step(model: Model, x=x, t=t, inputs=inputs) -> None:  # x: [B, T, N, D]
                 model.zero_grad()
-                pred = model.rollout(x[:, 0], t, ei)
+                pred = model.rollout(x[:, 0], t, inputs)
                 loss_fn(model.normalise(pred), model.normalise(x), 1.0).backward()
 
             for _ in range(self.repeats):  # alternate, so that load changes fall on both

@@ -13,6 +13,7 @@ from typing import Any
 import torch
 
 from mpsim.bench.common import Suite, scaling_exponent, timeit
+from mpsim.data.trajectories import Inputs
 from mpsim.graphs.topology import chain, complete
 from mpsim.models.mpnode import MPNODE
 from mpsim.solvers.odeint import ODESolver
@@ -52,24 +53,24 @@ class MPNODEBench(Suite):
         t = torch.linspace(0, 0.05 * self.steps, self.steps + 1)
         rows = []
         for n in self.nodes:
-            edges = complete(n) if self.graph == "complete" else chain(n)
+            inputs = Inputs(complete(n) if self.graph == "complete" else chain(n))
             for b in self.batches:
                 x0 = torch.randn(b, n, 3)
 
-                def forward(x0=x0, edges=edges):
+                def forward(x0=x0, inputs=inputs):
                     with torch.no_grad():
-                        model.rollout(x0, t, edges)
+                        model.rollout(x0, t, inputs)
 
-                def backward(x0=x0, edges=edges):
+                def backward(x0=x0, inputs=inputs):
                     model.zero_grad()
-                    model.rollout(x0, t, edges).pow(2).mean().backward()
+                    model.rollout(x0, t, inputs).pow(2).mean().backward()
 
                 fwd, bwd = timeit(forward, self.repeats), timeit(backward, self.repeats)
                 rows.append(
                     {
                         "graph": self.graph,
                         "N": n,
-                        "E": int(edges.shape[1]),
+                        "E": int(inputs.edge_index.shape[1]),
                         "B": b,
                         "steps": self.steps,
                         "forward_s": fwd["median_s"],

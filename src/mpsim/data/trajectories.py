@@ -1,4 +1,4 @@
-"""`Trajectories`: the one container for simulated and measured data.
+"""`Trajectories`: the one container for simulated and measured data; `Inputs`: the rest of a rollout's input.
 
 Axis letters: B trajectories, T time points, N nodes, D state per node, C control per node, E edges,
 F static node features. mpsim is batch-first everywhere; the torchdiffeq boundary (time-first) converts.
@@ -12,6 +12,37 @@ from typing import Any, overload
 import torch
 
 from mpsim.errors import DataError
+
+
+@dataclass(frozen=True, eq=False)
+class Inputs:
+    """What a model's rollout needs beside the states: the graph, controls, node features and metadata.
+
+    Made by `Trajectories.inputs` (or directly, e.g. ``Inputs(chain(3))`` for a graph alone). Immutable; the
+    tensors are shared, not copied, and `meta` is the data's own dict (models that merge evaluation passes key on
+    its identity).
+
+    Attributes:
+        edge_index: [2, E] (sender, receiver) shared by all trajectories, or [B, 2, E] one graph per trajectory,
+            padded with -1.
+        u: [B, T, N, C] controls on the rollout's time grid (zero-order hold between samples), or None.
+        node_features: [N, F] or [B, N, F] static node features (mass, charge, ...), or None.
+        meta: the data's metadata (e.g. ``box_size`` of a periodic domain, ``params`` for an energy metric).
+    """
+
+    edge_index: torch.Tensor  # [2, E] shared or [B, 2, E] per-trajectory graph (padded with -1)
+    u: torch.Tensor | None = None  # [B, T, N, C] controls
+    node_features: torch.Tensor | None = None  # [N, F] or [B, N, F] static node features (mass, charge)
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Inputs:
+        """Move tensors to `device`; cast floating tensors to `dtype` (as `Trajectories.to`); `meta` is kept."""
+        return replace(
+            self,
+            edge_index=self.edge_index.to(device),
+            u=_cast(self.u, device, dtype),
+            node_features=_cast(self.node_features, device, dtype),
+        )
 
 
 @dataclass
@@ -160,25 +191,25 @@ class Trajectories:
             self, t=self.t[start:stop], x=self.x[:, start:stop], u=None if self.u is None else self.u[:, start:stop]
         )
 
+    def inputs(self, start: int = 0, stop: int | None = None) -> Inputs:
+        """What a rollout over the time points start..stop−1 reads beside the states: `u` over those times; the
+        graph, node features and meta (the same dict) as they are."""
+        return Inputs(
+            edge_index=self.edge_index,
+            u=None if self.u is None else self.u[:, start:stop],
+            node_features=self.node_features,
+            meta=self.meta,
+        )
+
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Trajectories:
         """Move tensors to `device`; cast floating tensors to `dtype` (time stays float64 on CPU)."""
-
-        @overload
-        def cast(a: torch.Tensor) -> torch.Tensor: ...
-        @overload
-        def cast(a: None) -> None: ...
-        def cast(a: torch.Tensor | None) -> torch.Tensor | None:
-            if a is None:
-                return None
-            return a.to(device=device, dtype=dtype if a.is_floating_point() and dtype else a.dtype)
-
         return replace(
             self,
-            t=cast(self.t),
-            x=cast(self.x),
-            u=cast(self.u),
+            t=_cast(self.t, device, dtype),
+            x=_cast(self.x, device, dtype),
+            u=_cast(self.u, device, dtype),
             edge_index=self.edge_index.to(device),
-            node_features=cast(self.node_features),
+            node_features=_cast(self.node_features, device, dtype),
         )
 
     @staticmethod
@@ -208,6 +239,17 @@ class Trajectories:
             node_features=first.node_features,
             meta=dict(first.meta),
         )
+
+
+@overload
+def _cast(a: torch.Tensor, device: torch.device | str | None, dtype: torch.dtype | None) -> torch.Tensor: ...
+@overload
+def _cast(a: None, device: torch.device | str | None, dtype: torch.dtype | None) -> None: ...
+def _cast(a: torch.Tensor | None, device: torch.device | str | None, dtype: torch.dtype | None) -> torch.Tensor | None:
+    """`a` on `device`, cast to `dtype` if it is floating (integer tensors keep their dtype)."""
+    if a is None:
+        return None
+    return a.to(device=device, dtype=dtype if a.is_floating_point() and dtype else a.dtype)
 
 
 def _check_finite(a: torch.Tensor, name: str, source: str) -> None:

@@ -49,14 +49,10 @@ def window_predictions(model: Model, data: Trajectories, length: int) -> list[tu
     device, dtype = model.state_mean.device, model.state_mean.dtype
     x = data.x.to(device=device, dtype=dtype)
     t = data.t.to(device=device, dtype=dtype)
-    ei = data.edge_index.to(device)
     out = []
     for s in _starts(data.n_times, length):  # sequential in time only; each rollout batches every trajectory
         end = min(s + length, data.n_times - 1)
-        u = None if data.u is None else data.u[:, s : end + 1].to(x)
-        out.append(
-            (s, model.rollout(x[:, s], t[s : end + 1], ei, u=u, node_features=data.node_features, meta=data.meta))
-        )
+        out.append((s, model.rollout(x[:, s], t[s : end + 1], data.inputs(s, end + 1).to(device, dtype))))
     return out
 
 

@@ -1,6 +1,7 @@
 """`Model`: the interface every learned or white-box simulator implements.
 
-A model maps initial node states to a predicted trajectory on a given graph: `rollout(x0, t, edge_index, *, u)`.
+A model maps initial node states to a predicted trajectory on a given graph: `rollout(x0, t, inputs)`, where
+`inputs` (`mpsim.data.trajectories.Inputs`) holds the graph, controls, node features and metadata.
 It holds the normalisation statistics of the data it was trained on (`state_mean`, `state_std`, buffers
 saved with its weights) and takes and returns states in raw units, so a checkpoint can be used on new data
 without any outside bookkeeping. Training losses are computed in normalised units (see `normalise`).
@@ -19,7 +20,7 @@ from mpsim.errors import IncompatibleError
 from mpsim.solvers.dde import rk4_delay
 
 if TYPE_CHECKING:
-    from mpsim.data.trajectories import Trajectories
+    from mpsim.data.trajectories import Inputs, Trajectories
 
 
 class EffectList(nn.ModuleList):
@@ -131,13 +132,13 @@ class Model(nn.Module):
         self,
         x0: torch.Tensor,  # [B, N, D] initial states (raw units)
         t: torch.Tensor,  # [T] times, t[0] is the time of x0
-        edge_index: torch.Tensor,  # [2, E] shared or [B, 2, E] per-trajectory graph (padded with -1)
-        *,
-        u: torch.Tensor | None = None,  # [B, T, N, C] controls
-        node_features: torch.Tensor | None = None,  # [N, F] or [B, N, F] static node features (mass, charge)
-        meta: dict[str, Any] | None = None,  # the data's metadata (e.g. box_size of a periodic domain)
+        inputs: Inputs,  # graph [2, E] or [B, 2, E], controls [B, T, N, C], node features, meta
     ) -> torch.Tensor:
-        """[B, T, N, D] predicted states (raw units), the first equal to x0."""
+        """[B, T, N, D] predicted states (raw units), the first equal to x0.
+
+        `inputs` holds the rest: `edge_index` (shared or per-trajectory graph, padded with -1), controls `u` on
+        the grid `t`, static `node_features` (mass, charge) and the data's `meta` (e.g. box_size of a periodic
+        domain); `Trajectories.inputs(start, stop)` makes it for a window of the data."""
         raise NotImplementedError
 
     def training_loss(
@@ -150,9 +151,7 @@ class Model(nn.Module):
         """(loss, [B, T, N, D] prediction) for one batch. Default: MPNODE.jl's single shooting — a free
         rollout of the whole trajectory from its first state, loss on the normalised states. Models trained
         differently (one-step targets, windows) override this."""
-        pred = self.rollout(
-            self.initial(batch.x), t, batch.edge_index, u=batch.u, node_features=batch.node_features, meta=batch.meta
-        )
+        pred = self.rollout(self.initial(batch.x), t, batch.inputs())
         return loss_fn(self.normalise(pred), self.normalise(batch.x), delta), pred
 
     def initial(self, x: torch.Tensor) -> torch.Tensor:  # x: [B, T, N, D] observed trajectories
@@ -174,14 +173,10 @@ class Model(nn.Module):
         self,
         x0: torch.Tensor,  # [B, N, D] initial states
         t: torch.Tensor,  # [T] times
-        edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
-        *,
-        u: torch.Tensor | None = None,  # [B, T, N, C] controls
-        node_features: torch.Tensor | None = None,  # [N, F] or [B, N, F]
-        meta: dict[str, Any] | None = None,
+        inputs: Inputs,  # graph, controls [B, T, N, C], node features, meta (as `rollout`)
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """Prediction plus internal signals worth plotting (e.g. MP-NODE messages); default: none."""
-        return self.rollout(x0, t, edge_index, u=u, node_features=node_features, meta=meta), {}
+        return self.rollout(x0, t, inputs), {}
 
     def describe(self) -> dict[str, Any]:
         """Plain facts for summaries: class, parameter count."""

@@ -13,6 +13,8 @@ from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import torch
 
+from mpsim.data.trajectories import Inputs
+
 if TYPE_CHECKING:
     from mpsim.models.base import Model
 
@@ -112,7 +114,6 @@ def one_step_by_rollouts(
     steps = []
     for k in range(x.shape[1] - 1):  # sequential in time only; each step batches every trajectory
         uk = None if u is None else u[:, k : k + 2]
-        steps.append(
-            model.rollout(x[:, k], t[k : k + 2], edge_index, u=uk, node_features=node_features, meta=meta)[:, 1]
-        )
+        inputs = Inputs(edge_index, uk, node_features, {} if meta is None else meta)
+        steps.append(model.rollout(x[:, k], t[k : k + 2], inputs)[:, 1])
     return torch.stack(steps, dim=1)

@@ -24,7 +24,7 @@ from mpsim.periodic import wrap_positions
 if TYPE_CHECKING:
     from collections.abc import Callable
 
-    from mpsim.data.trajectories import Trajectories
+    from mpsim.data.trajectories import Inputs, Trajectories
 
 
 class ConstantVelocity(Model):
@@ -61,13 +61,10 @@ class ConstantVelocity(Model):
         self,
         x0: torch.Tensor,  # [B, N, 4] initial states
         t: torch.Tensor,  # [T] times
-        edge_index: torch.Tensor,  # unused
-        *,
-        u: torch.Tensor | None = None,  # unused
-        node_features: torch.Tensor | None = None,  # [B, N, 2] or [N, 2] (mass, charge), for the energy
-        meta: dict[str, Any] | None = None,  # box_size (positions wrap when given), params (energy)
+        inputs: Inputs,  # node features [B, N, 2] or [N, 2] (mass, charge, for the energy), meta: box_size, params
     ) -> torch.Tensor:
         """[B, T, N, 4] ballistic trajectories (positions wrapped into the box when the data has one)."""
+        meta = inputs.meta
         elapsed = (t - t[0]).to(x0)[None, :, None, None]  # [1, T, 1, 1]
         pos = x0[:, None, :, :2] + self.gain * x0[:, None, :, 2:] * elapsed  # [B, T, N, 2]
         box = (meta or {}).get("box_size")
@@ -76,7 +73,7 @@ class ConstantVelocity(Model):
         pred = torch.cat([pos, x0[:, None, :, 2:].expand_as(pos)], dim=-1)
         if not torch.is_grad_enabled():
             b, n, _ = x0.shape
-            self.energy.record(pred, particle_features(node_features, b, n, x0), meta)
+            self.energy.record(pred, particle_features(inputs.node_features, b, n, x0), meta)
         return pred
 
     def training_loss(

@@ -17,6 +17,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from mpsim.data.trajectories import Inputs
 from mpsim.effects import Effect, EffectContext, min_delay, total
 from mpsim.equations import SYSTEM_KEYS, EquationField, Spec, check_nodes, check_states, merge_spec, parse_spec
 from mpsim.errors import ConfigError, IncompatibleError
@@ -144,15 +145,11 @@ class EquationsModel(Model):
         self,
         x0: torch.Tensor,  # [B, N, D] initial states (raw units)
         t: torch.Tensor,  # [T] times
-        edge_index: torch.Tensor,  # [2, E] or [B, 2, E] the data's graph (neighbour terms run over it)
-        *,
-        u: torch.Tensor | None = None,  # [B, T, N, C] unused (no controls)
-        node_features: torch.Tensor | None = None,  # unused
-        meta: dict[str, Any] | None = None,  # unused
+        inputs: Inputs,  # only the data's graph [2, E] or [B, 2, E] (neighbour terms run over it; no controls)
     ) -> torch.Tensor:
         check_nodes(self.spec, x0.shape[1], "model.spec")
         values = {k: v.to(x0) for k, v in self.parameters_now().items()}
-        return self.integrate(_Field(self, values, self._graph(edge_index, x0)), x0, t, self.solver)
+        return self.integrate(_Field(self, values, self._graph(inputs.edge_index, x0)), x0, t, self.solver)
 
     def one_step(
         self,

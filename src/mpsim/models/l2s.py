@@ -23,11 +23,11 @@ the paper's benchmarks (gene 8×8: BA(64, 32), half of all pairs connected) a ba
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
 
 import torch
 from torch import nn
 
+from mpsim.data.trajectories import Inputs
 from mpsim.effects import Effect
 from mpsim.graphs.batch import BatchedGraph, batch_graph, segment_sum, sum_aggregate
 from mpsim.models.controls import ControlledModel, ControlNormalisation, HeldField, integrate_held, zero_order_hold
@@ -141,14 +141,10 @@ class L2S(ControlledModel):
         self,
         x0: torch.Tensor,  # [B, N, D] initial states (raw units)
         t: torch.Tensor,  # [T] times
-        edge_index: torch.Tensor,  # [2, E] shared or [B, 2, E] per-trajectory graph (padded with −1)
-        *,
-        u: torch.Tensor | None = None,  # [B, T, N, C] controls (zero-order hold)
-        node_features: torch.Tensor | None = None,  # unused: nodes are identical
-        meta: dict[str, Any] | None = None,  # unused
+        inputs: Inputs,  # graph (padded with −1), controls [B, T, N, C] (zero-order hold); nodes are identical
     ) -> torch.Tensor:
         b, n, _ = x0.shape
-        graph = batch_graph(edge_index.to(x0.device), b, n, self_loops=self.self_loops, dtype=x0.dtype)
-        field = _GraphField(self, graph, t.to(x0), self.controls(u), self.dense_max_nodes)
+        graph = batch_graph(inputs.edge_index.to(x0.device), b, n, self_loops=self.self_loops, dtype=x0.dtype)
+        field = _GraphField(self, graph, t.to(x0), self.controls(inputs.u), self.dense_max_nodes)
         z = integrate_held(lambda f, y, tt: self.integrate(f, y, tt, self.solver), field, self.normalise(x0), t)
         return self.denormalise(z)

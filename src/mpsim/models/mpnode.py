@@ -20,6 +20,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from mpsim.data.trajectories import Inputs
 from mpsim.effects import Effect, EffectContext, total
 from mpsim.graphs.batch import BatchedGraph, batch_graph, mean_aggregate, sum_aggregate
 from mpsim.models.controls import ControlledModel, ControlNormalisation, HeldField, integrate_held, zero_order_hold
@@ -144,18 +145,16 @@ class MPNODE(ControlledModel):
         self,
         x0: torch.Tensor,  # [B, N, D] initial states (raw units)
         t: torch.Tensor,  # [T] times
-        edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
-        *,
-        u: torch.Tensor | None = None,  # [B, T, N, C] controls
-        node_features: torch.Tensor | None = None,  # unused: nodes are identical
-        meta: dict[str, Any] | None = None,  # unused
+        inputs: Inputs,  # graph [2, E] or [B, 2, E], controls [B, T, N, C]; nodes are identical
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         b, n, d = x0.shape
-        graph = batch_graph(edge_index.to(x0.device), b, n, self_loops=self.self_loops, dtype=x0.dtype)
+        edge_index = inputs.edge_index.to(x0.device)
+        graph = batch_graph(edge_index, b, n, self_loops=self.self_loops, dtype=x0.dtype)
         y0 = torch.cat([self.normalise(x0), x0.new_zeros(b, n, self.message_size)], dim=-1)
-        effect_graph = batch_graph(edge_index.to(x0.device), b, n, dtype=x0.dtype) if len(self.effects) else None
+        effect_graph = batch_graph(edge_index, b, n, dtype=x0.dtype) if len(self.effects) else None
+        u = self.controls(inputs.u)
         field = _MessagePassingField(
-            self.net, graph, d, self.zero_messages, t.to(x0), self.controls(u), self, effect_graph, self.aggregation
+            self.net, graph, d, self.zero_messages, t.to(x0), u, self, effect_graph, self.aggregation
         )
         # with controls, one solve per sample interval with the input held (see mpsim.models.controls)
         ys = integrate_held(lambda f, y, tt: self.integrate(f, y, tt, self.solver), field, y0, t)  # [B, T, N, D+M]
@@ -196,10 +195,6 @@ class MPNODE(ControlledModel):
         self,
         x0: torch.Tensor,  # [B, N, D] initial states (raw units)
         t: torch.Tensor,  # [T] times
-        edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
-        *,
-        u: torch.Tensor | None = None,  # [B, T, N, C] controls
-        node_features: torch.Tensor | None = None,  # unused: nodes are identical
-        meta: dict[str, Any] | None = None,  # unused
+        inputs: Inputs,  # graph [2, E] or [B, 2, E], controls [B, T, N, C]; nodes are identical
     ) -> torch.Tensor:
-        return self.rollout_aux(x0, t, edge_index, u=u)[0]
+        return self.rollout_aux(x0, t, inputs)[0]

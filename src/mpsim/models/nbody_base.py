@@ -38,7 +38,7 @@ from mpsim.periodic import state_difference, wrap_positions
 if TYPE_CHECKING:
     from collections.abc import Callable
 
-    from mpsim.data.trajectories import Trajectories
+    from mpsim.data.trajectories import Inputs, Trajectories
 
 GRAPHS = ("full", "knn", "hierarchical")
 
@@ -239,17 +239,15 @@ class ParticleModel(Model):
         self,
         x0: torch.Tensor,  # [B, N, 4] initial states (raw units)
         t: torch.Tensor,  # [T] times
-        edge_index: torch.Tensor,  # unused: graphs are rebuilt from the state at every step
-        *,
-        u: torch.Tensor | None = None,  # unused: no controls
-        node_features: torch.Tensor | None = None,  # [B, N, 2] or [N, 2] (mass, charge)
-        meta: dict[str, Any] | None = None,  # data metadata: box_size, params (for the energy metric)
+        inputs: Inputs,  # node features [B, N, 2] or [N, 2] (mass, charge), meta: box_size, params (energy)
     ) -> torch.Tensor:
-        """[B, T, N, 4] free rollout from x0; the graph is rebuilt from the prediction before every step."""
+        """[B, T, N, 4] free rollout from x0; the graph is rebuilt from the prediction before every step (the
+        graph of `inputs` is not read; there are no controls)."""
         record = not torch.is_grad_enabled()  # an evaluation (no_grad), not a training rollout
+        meta = inputs.meta
         box = box_size_of(meta)
         b, n, _ = x0.shape
-        nf = particle_features(node_features, b, n, x0)
+        nf = particle_features(inputs.node_features, b, n, x0)
         self._check_charges(nf)
         steps = (t[1:] - t[:-1]).tolist()
         for dt in set(round(s, 12) for s in steps):

@@ -22,6 +22,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from mpsim.data.trajectories import Inputs
 from mpsim.effects import Effect
 from mpsim.errors import IncompatibleError
 from mpsim.models.controls import ControlledModel, ControlNormalisation, HeldField, integrate_held, zero_order_hold
@@ -130,15 +131,11 @@ class NODE(ControlledModel):
         self,
         x0: torch.Tensor,  # [B, N, D] initial states (raw units)
         t: torch.Tensor,  # [T] times
-        edge_index: torch.Tensor,  # [2, E] or [B, 2, E]: unused, the network sees every node
-        *,
-        u: torch.Tensor | None = None,  # [B, T, N, C] controls (zero-order hold)
-        node_features: torch.Tensor | None = None,  # unused
-        meta: dict[str, Any] | None = None,  # unused
+        inputs: Inputs,  # only controls [B, T, N, C] (zero-order hold); no graph: the network sees every node
     ) -> torch.Tensor:
         self._require(x0.shape[1])
         assert self.net is not None  # `_require` built it
-        field = _FlatField(self.net, t.to(x0), self.controls(u))
+        field = _FlatField(self.net, t.to(x0), self.controls(inputs.u))
         z = integrate_held(lambda f, y, tt: self.integrate(f, y, tt, self.solver), field, self.normalise(x0), t)
         return self.denormalise(z)
 

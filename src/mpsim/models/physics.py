@@ -16,6 +16,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from mpsim.data.trajectories import Inputs
 from mpsim.effects import Effect, EffectContext, total
 from mpsim.errors import ConfigError
 from mpsim.graphs.batch import batch_graph
@@ -114,11 +115,7 @@ class PhysicsModel(Model):
         self,
         x0: torch.Tensor,  # [B, N, D] initial states (raw units)
         t: torch.Tensor,  # [T] times
-        edge_index: torch.Tensor,  # [2, E] or [B, 2, E]; the system's own graph is used for its equations
-        *,
-        u: torch.Tensor | None = None,  # [B, T, N, C] unused
-        node_features: torch.Tensor | None = None,  # unused
-        meta: dict[str, Any] | None = None,  # unused
+        inputs: Inputs,  # only the graph, read by effects; the system's own graph is used for its equations
     ) -> torch.Tensor:
         if x0.shape[1] != self.system.n_nodes:
             raise ConfigError(
@@ -128,7 +125,7 @@ class PhysicsModel(Model):
         for name, value in self.parameters_now().items():
             setattr(self.system, name, value.to(x0))  # the equations read plain attributes
         b, n, _ = x0.shape
-        graph = batch_graph(edge_index.to(x0.device), b, n, dtype=x0.dtype) if len(self.effects) else None
+        graph = batch_graph(inputs.edge_index.to(x0.device), b, n, dtype=x0.dtype) if len(self.effects) else None
         try:
             return self.integrate(_PhysicsField(self, graph), x0, t, self.solver)
         finally:

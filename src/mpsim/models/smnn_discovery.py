@@ -33,7 +33,7 @@ from mpsim.solvers.odeint import ODESolver
 from mpsim.solvers.smnn import METHODS, smnn_solve
 
 if TYPE_CHECKING:
-    from mpsim.data.trajectories import Trajectories
+    from mpsim.data.trajectories import Inputs, Trajectories
 
 LAYER_METHODS = (*METHODS, "dense", "mnn")
 
@@ -467,14 +467,10 @@ class SMNNDiscovery(Model):
         self,
         x0: torch.Tensor,  # [B, N, D] initial states (raw units)
         t: torch.Tensor,  # [T] times
-        edge_index: torch.Tensor,  # [2, E] or [B, 2, E] graph, read only by effects that couple neighbours
-        *,
-        u: torch.Tensor | None = None,  # unused: no controls
-        node_features: torch.Tensor | None = None,  # unused
-        meta: dict[str, Any] | None = None,  # unused
+        inputs: Inputs,  # only the graph, read by effects that couple neighbours (no controls)
     ) -> torch.Tensor:
         """[B, T, N, D] the discovered ODE (plus any effects) integrated from x0 with the model's ODE solver."""
-        field = _PolynomialField(self, self.coefficients().to(x0), self._graph(edge_index, x0))
+        field = _PolynomialField(self, self.coefficients().to(x0), self._graph(inputs.edge_index, x0))
         return self.integrate(field, x0, t.to(x0), self.solver)
 
     def one_step(

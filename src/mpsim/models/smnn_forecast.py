@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import nn
 
+from mpsim.data.trajectories import Inputs
 from mpsim.errors import ConfigError
 from mpsim.graphs.batch import batch_graph, mean_aggregate
 from mpsim.models.base import Model
@@ -153,13 +154,10 @@ class SMNNForecaster(Model):
         self,
         x0: torch.Tensor,  # [B, K, N, D] first K observed states (raw units), or [B, N, D] when K = 1
         t: torch.Tensor,  # [T] times
-        edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
-        *,
-        u: torch.Tensor | None = None,  # [B, T, N, C] controls
-        node_features: torch.Tensor | None = None,  # unused
-        meta: dict[str, Any] | None = None,  # unused
+        inputs: Inputs,  # graph [2, E] or [B, 2, E], controls [B, T, N, C]
     ) -> torch.Tensor:
         """[B, T, N, D]: the K given states, then chunk after chunk of S-MNN continuation."""
+        u = inputs.u
         context = x0[:, None] if x0.dim() == 3 else x0
         b, k, n, d = context.shape
         if k != self.context_steps:
@@ -177,7 +175,7 @@ class SMNNForecaster(Model):
             pred = self._rollout_flat(self.normalise(context).reshape(b, k, 1, n * d), t, no_edges, flat_u)
             pred = pred.reshape(b, -1, n, d)
         else:
-            pred = self._rollout_flat(self.normalise(context), t, edge_index, u)
+            pred = self._rollout_flat(self.normalise(context), t, inputs.edge_index, u)
         return torch.cat([context, self.denormalise(pred)], 1)  # the context as given
 
     def _rollout_flat(
@@ -230,7 +228,7 @@ class SMNNForecaster(Model):
         else:
             x = x[:, :length]
             sub_u = None if sub_u is None else sub_u[:, :length]
-        pred = self.rollout(x[:, :k], t[:length], batch.edge_index, u=sub_u)
+        pred = self.rollout(x[:, :k], t[:length], Inputs(batch.edge_index, sub_u))
         # the first K − 1 steps are given; loss over the last context state and everything predicted
         return loss_fn(self.normalise(pred[:, k - 1 :]), self.normalise(x[:, k - 1 :]), delta), pred
 

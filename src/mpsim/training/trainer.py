@@ -55,9 +55,8 @@ def predict(
         for start in range(0, len(data), batch_size):
             part = data.subset(slice(start, start + batch_size)).to(device, model.state_mean.dtype)
             try:
-                x0, tt, ei = model.initial(part.x), t.to(part.x.dtype), part.edge_index
-                inputs: dict[str, Any] = {"u": part.u, "node_features": part.node_features, "meta": part.meta}
-                p, a = model.rollout_aux(x0, tt, ei, **inputs) if aux else (model.rollout(x0, tt, ei, **inputs), {})
+                x0, tt, inputs = model.initial(part.x), t.to(part.x.dtype), part.inputs()
+                p, a = model.rollout_aux(x0, tt, inputs) if aux else (model.rollout(x0, tt, inputs), {})
             except DivergenceError:
                 p, a = torch.full_like(part.x, math.nan), {}
             preds.append(p.cpu())
