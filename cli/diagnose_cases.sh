@@ -2,14 +2,14 @@
 # Residual-loop scorecard (issue 11): every case is simulated by a generator in the repo, the nominal model is a
 # `model=equations` spec (examples/diagnose_cases/) or a built-in, and `mpsim diagnose fix=true` runs on it.
 # Prints one table: case, truth, verdict, effect named, coefficient error, held-out error before → after, wall time.
-#   CASES="a_damped a_undamped b_vdp c_kuramoto_lag d_chain_friction e_pendulum_sin2 case1 case2 clean" (default: all)
+#   CASES="a_damped a_undamped b_vdp c_kuramoto_lag d_chain_friction e_pendulum_sin2 case1 case2 case2_clean clean" (default: all)
 #   SEEDS / NOISES: data seeds × measurement-noise levels of the clean runs (false-positive rate)
 set -uo pipefail
 OUT=${OUT:-outputs/diagnose_cases}
 C=examples/diagnose_cases
 SEEDS=${SEEDS:-"0 1 2 3 4"}
 NOISES=${NOISES:-"0 0.01"}
-CASES=${CASES:-"a_damped a_undamped b_vdp c_kuramoto_lag d_chain_friction e_pendulum_sin2 case1 case2 clean"}
+CASES=${CASES:-"a_damped a_undamped b_vdp c_kuramoto_lag d_chain_friction e_pendulum_sin2 case1 case2 case2_clean clean"}
 common=(paths.ckpt_dir=$OUT/checkpoints trainer.progress=false)
 mkdir -p "$OUT"
 has() { [[ " $CASES " == *" $1 "* ]]; }
@@ -53,6 +53,15 @@ if has case2; then  # case 2 (docs/residual_loop.md): Lorenz3 with a hidden driv
   # unlearn what it made up for once the drive is explicit)
   { mpsim train experiment=lorenz3_forced hydra.run.dir=$run/train "${common[@]}" &&
     mpsim diagnose experiment=lorenz3_forced init=lorenz3_forced.ckpt fix=true diagnose.fix_lr_factor=1.0 \
+      trainer.max_epochs=80 hydra.run.dir=$run/diagnose "${common[@]}"; } > "$run.log" 2>&1
+  echo "$(( SECONDS - start ))" > "$run/wall_s"
+fi
+
+if has case2_clean; then  # case 2's black-box twin without the drive: nothing may be named (a false-positive check)
+  run=$OUT/clean/case2_clean; mkdir -p "$run"; start=$SECONDS
+  clean2=(experiment=lorenz3_forced "system.effects=[]" system.name=lorenz3_clean)
+  { mpsim train "${clean2[@]}" hydra.run.dir=$run/train "${common[@]}" &&
+    mpsim diagnose "${clean2[@]}" init=lorenz3_clean.ckpt fix=true diagnose.fix_lr_factor=1.0 \
       trainer.max_epochs=80 hydra.run.dir=$run/diagnose "${common[@]}"; } > "$run.log" 2>&1
   echo "$(( SECONDS - start ))" > "$run/wall_s"
 fi

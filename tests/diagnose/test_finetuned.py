@@ -32,24 +32,32 @@ def _finetune(train, tags):
     def finetune(model, tag):  # every trainable parameter refit: what a finetune of a white-box model reaches
         tags.append(tag)
         free = [p for p in model.parameters() if p.requires_grad]
-        shooting_fit(model, train.subset(slice(0, 8)), 20, free, 30)
+        shooting_fit(model, train.subset(slice(0, 6)), 20, free, 15)
         return model, f"{tag}/best.ckpt"
 
     return finetune
 
 
 def _setup(effects, seed):
-    data = CoupledPendulums(effects=effects).generate(32, seed=seed)
-    train, test = data.subset(slice(0, 24)), data.subset(slice(24, 32))
+    data = CoupledPendulums(effects=effects).generate(24, seed=seed, horizon=80)
+    train, test = data.subset(slice(0, 16)), data.subset(slice(16, 24))
     return train, test, _model(train)
 
 
-def test_names_what_the_control_finetune_cannot_learn():
+PARAMS = DiagnoseParams(n_boot=20)
+
+
+@pytest.fixture(scope="module")
+def damped():
+    """(held-in, held-out, the declared undamped model, its screen) on data with hidden damping 0.2."""
     train, test, model = _setup([LinearDamping(0.2, target="omega")], seed=0)
-    params = DiagnoseParams(n_boot=20)
-    diag, library = screen(model, train, params, 0)
+    return train, test, model, screen(model, train, PARAMS, 0)
+
+
+def test_names_what_the_control_finetune_cannot_learn(damped):
+    train, test, model, (diag, library) = damped
     tags: list[str] = []
-    fj = judge_by_finetune(model, diag, library, train, test, 20, 1e-10, params, _finetune(train, tags), "round1")
+    fj = judge_by_finetune(model, diag, library, train, test, 20, 1e-10, PARAMS, _finetune(train, tags), "round1")
     assert tags[0] == "round1/control" and len(tags) == 1 + len(fj.trials)  # the control first, then each candidate
     assert fj.verdict == EFFECTS_NAMED
     (named,) = fj.named
@@ -62,14 +70,12 @@ def test_names_what_the_control_finetune_cannot_learn():
     assert float(window_error(fj.model, test, 20).mean()) == pytest.approx(fj.error_final)
 
 
-def test_a_candidate_that_the_control_matches_is_not_named():
+def test_a_candidate_that_the_control_matches_is_not_named(damped):
     # the screen of damped data proposes damping; on clean data the finetune drives it to ~0 and the model with
     # it predicts no better than the control
-    damped, _, damped_model = _setup([LinearDamping(0.2, target="omega")], seed=0)
-    params = DiagnoseParams(n_boot=20)
-    diag, library = screen(damped_model, damped, params, 0)
+    *_, (diag, library) = damped
     train, test, model = _setup([], seed=1)
-    fj = judge_by_finetune(model, diag, library, train, test, 20, 1e-10, params, _finetune(train, []), "round1")
+    fj = judge_by_finetune(model, diag, library, train, test, 20, 1e-10, PARAMS, _finetune(train, []), "round1")
     assert fj.verdict == UNEXPLAINED and fj.named == [] and fj.model is None
     (trial,) = [t for t in fj.trials if t.kind == "LinearDamping"]
     assert not trial.accepted and abs(trial.values["coef"]) < 0.01
@@ -113,13 +119,12 @@ def test_a_drive_with_agreeing_phases_is_tried_with_one_shared_phase():
         assert len(notes) == 1 and ("agree" in notes[0] if expected else "disagree" in notes[0])
 
 
-def test_what_a_named_candidate_leaves_must_have_no_structure_the_screen_sees():
+def test_what_a_named_candidate_leaves_must_have_no_structure_the_screen_sees(damped):
     # a network's approximation error is invisible in null data (its own simulation), so a true effect can leave
     # more than 1 − min_explained of the control's excess; it is named only if the screen of its finetuned model
     # finds nothing structured left. Here min_explained > 1 makes every candidate "partial".
-    train, test, model = _setup([LinearDamping(0.2, target="omega")], seed=0)
+    train, test, model, (diag, library) = damped
     params = DiagnoseParams(n_boot=20, min_explained=1.5)
-    diag, library = screen(model, train, params, 0)
     calls: list[int] = []
 
     def clean(m):  # the screen of the finetuned model, as the loop runs it

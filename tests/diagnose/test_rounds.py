@@ -25,21 +25,23 @@ def _model(train, extra: bool):
 
 
 def test_a_model_with_unnamed_parameters_is_fixed_by_finetuning_against_a_control():
-    data = CoupledPendulums(effects=[LinearDamping(0.2, target="omega")]).generate(40, seed=3)
-    splits = Splits(data.subset(slice(0, 24)), data.subset(slice(24, 32)), data.subset(slice(32, 40)))
+    data = CoupledPendulums(effects=[LinearDamping(0.2, target="omega")]).generate(32, seed=3, horizon=80)
+    splits = Splits(data.subset(slice(0, 16)), data.subset(slice(16, 24)), data.subset(slice(24, 32)))
     model = _model(splits.train, extra=True)
     assert not white_box(model) and white_box(_model(splits.train, extra=False))
     tags: list[str] = []
 
     def finetune(m, tag):
         tags.append(tag)
-        shooting_fit(m, splits.train.subset(slice(0, 8)), 20, [p for p in m.parameters() if p.requires_grad], 30)
+        shooting_fit(m, splits.train.subset(slice(0, 6)), 20, [p for p in m.parameters() if p.requires_grad], 15)
         return m, f"{tag}/best.ckpt"
 
     def save(m, k):  # the finetune path hands back the finetune's own checkpoint: nothing is saved separately
         raise AssertionError("save is not used when the fix was finetuned")
 
-    result = run_loop(model, splits, DiagnoseParams(n_boot=20), [1, 10], finetune=finetune, save=save)
+    result = run_loop(
+        model, splits, DiagnoseParams(n_boot=20, fit_trajectories=6), [1, 10], finetune=finetune, save=save
+    )
     assert result.judgement.trials == []  # no frozen-network fits for a black-box model with a finetune at hand
     assert result.verdict == EFFECTS_NAMED and result.exit_code == 0
     assert [t.label for t in result.named] == ["domega/dt: LinearDamping(omega)"]
