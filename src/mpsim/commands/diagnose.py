@@ -249,8 +249,9 @@ def _markdown(s: dict[str, Any]) -> str:
             "",
             "The model has trainable parameters beyond its named physical ones, so each screened candidate is added "
             "and the model finetuned, against the same finetune without a candidate (the control). "
-            f"Held-out MSE over {f['horizon']}-step windows: model as given {f['error_given']:.4g}; control "
-            f"{f['error_control']:.4g}; null level {f['error_null']:.4g}; verdict of this round: {f['verdict']}"
+            f"Held-out MSE over {f['horizon']}-step windows: model as given {f['error_given']:.4g}; "
+            + (f"control {f['error_control']:.4g}; " if f["trials"] else "no control (nothing to compare); ")
+            + f"null level {f['error_null']:.4g}; verdict of this round: {f['verdict']}"
             + (f" (share of the control's excess removed: {f['explained']:.0%})." if f["named"] else "."),
             "",
             "| effect | finetuned value (95 % interval) | held-out MSE control → with it | gain ± se | named | why |",
@@ -339,8 +340,9 @@ def _print(s: dict[str, Any], out: Path) -> None:
             rows.append(
                 (
                     f"held-out MSE ({k})",
-                    f"given {f['error_given']:.3g}, control (finetuned without a candidate) {f['error_control']:.3g}, "
-                    f"null level {f['error_null']:.3g}"
+                    f"given {f['error_given']:.3g}, "
+                    + (f"control (finetuned without a candidate) {f['error_control']:.3g}, " if f["trials"] else "")
+                    + f"null level {f['error_null']:.3g}"
                     + (f", finetuned with the effect {f['error_final']:.3g}" if f["named"] else ""),
                 )
             )

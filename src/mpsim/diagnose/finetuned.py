@@ -142,7 +142,11 @@ def judge_by_finetune(
     candidates, notes = finetune_candidates(diag, library, params)
     given = float(window_error(model, test, horizon).mean())
     if not candidates:  # nothing to compare: no control is trained
-        notes.append("no screened candidate could be finetuned")
+        notes.append(
+            "no screened candidate to finetune (no control was trained): the error above the null level (the "
+            "model's own simulation, which cannot show a network's approximation error) has no structure the "
+            "screen recognises — the network's own error or an effect outside the library; nothing is claimed"
+        )
         return FinetuneJudgement(UNEXPLAINED, horizon, given, given, error_null, given, 0.0, [], notes=notes)
     log(f"{tag}: finetuning the control (no candidate)")
     control, control_path = _finetune(finetune, copy.deepcopy(model), f"{tag}/control", "the control")
