@@ -67,7 +67,7 @@ def test_model_declares_what_it_can_express_and_steps_from_one_state(cubic_data)
     assert SMNNDiscovery(3, degree=3).represents_polynomials == 3
     # one batched solve over every step equals stepping each observed state with the rollout
     x, t = cubic_data.x[:2, :6], cubic_data.t[:6]
-    steps = model.one_step(x, t, cubic_data.edge_index)
+    steps = model.one_step(x, t, Inputs(cubic_data.edge_index))
     ref = torch.stack([model.rollout(x[:, k], t[k : k + 2], Inputs(cubic_data.edge_index))[:, 1] for k in range(5)], 1)
     assert steps.shape == (2, 5, 1, 3) and torch.allclose(steps, ref, atol=1e-6)
 

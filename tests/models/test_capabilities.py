@@ -49,7 +49,7 @@ def test_one_step_falls_back_to_one_rollout_per_step():
     model = L2S(2).double()
     x = torch.randn(2, 4, 3, 2, dtype=torch.float64)  # [B, T, N, D]
     t = torch.linspace(0.0, 0.3, 4, dtype=torch.float64)
-    steps = one_step(model, x, t, chain(3))
+    steps = one_step(model, x, t, Inputs(chain(3)))
     assert steps.shape == (2, 3, 3, 2)
     first = model.rollout(x[:, 1], t[1:3], Inputs(chain(3)))[:, 1]
     torch.testing.assert_close(steps[:, 1], first)
@@ -61,4 +61,5 @@ def test_mpnode_one_step_is_its_own():
     x = torch.randn(2, 4, 3, 2, dtype=torch.float64)
     t = torch.linspace(0.0, 0.3, 4, dtype=torch.float64)
     # without messages there is no latent state to carry: its own one_step equals one rollout per step
-    torch.testing.assert_close(one_step(model, x, t, chain(3)), one_step_by_rollouts(model, x, t, chain(3)))
+    inputs = Inputs(chain(3))
+    torch.testing.assert_close(one_step(model, x, t, inputs), one_step_by_rollouts(model, x, t, inputs))

@@ -220,6 +220,6 @@ def test_batched_one_step_equals_step_by_step_with_time_and_effects():
     x = torch.randn(3, 12, 4, 2, dtype=torch.float64)
     t = torch.arange(12, dtype=torch.float64) * 0.1 + 0.7  # absolute times: the drive's phase must follow them
     ei = torch.tensor([[0, 1, 2, 3, 1, 2], [1, 2, 3, 0, 0, 1]])
-    batched, stepwise = model.one_step(x, t, ei), one_step_by_rollouts(model, x, t, ei)
+    batched, stepwise = model.one_step(x, t, Inputs(ei)), one_step_by_rollouts(model, x, t, Inputs(ei))
     assert batched.shape == (3, 11, 4, 2)
     assert torch.allclose(batched, stepwise, atol=1e-8)

@@ -186,7 +186,7 @@ def test_effects_join_the_field_the_windows_and_the_gradient():
     model.bind_effects(["x", "y"])
     model.set_normalisation(*fit_normalisation(data))
     x = data.x[:2, :3]
-    step = model.one_step(x, data.t[:3], data.edge_index)  # ξ = 0: only the effect moves the state
+    step = model.one_step(x, data.t[:3], data.inputs(0, 3))  # ξ = 0: only the effect moves the state
     drift = -0.3 * x[:, :2, :, 0] ** 3
     assert torch.allclose((step[..., 0] - x[:, :2, :, 0]) / 0.01, drift, rtol=0.03)
     assert torch.allclose(step[..., 1], x[:, :2, :, 1])

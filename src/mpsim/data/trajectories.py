@@ -202,7 +202,8 @@ class Trajectories:
         )
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Trajectories:
-        """Move tensors to `device`; cast floating tensors to `dtype` (time stays float64 on CPU)."""
+        """Move every tensor, time `t` included, to `device`, and cast the floating ones (`t`, `x`, `u`,
+        `node_features`) to `dtype`; the integer `edge_index` keeps its dtype, and `dtype=None` casts nothing."""
         return replace(
             self,
             t=_cast(self.t, device, dtype),

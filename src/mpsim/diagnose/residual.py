@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import torch
 
-from mpsim.data.trajectories import Trajectories
+from mpsim.data.trajectories import Inputs, Trajectories
 from mpsim.errors import ConfigError, DivergenceError
 from mpsim.models.base import Model
 from mpsim.models.capabilities import one_step
@@ -59,7 +59,7 @@ def one_step_residual(model: Model, data: Trajectories, batch_size: int = 1024) 
             if nf is not None and nf.dim() == 3:
                 nf = nf[sl]
             try:
-                parts.append(one_step(model, x[sl], t, ei.to(device), u=u, node_features=nf, meta=data.meta))
+                parts.append(one_step(model, x[sl], t, Inputs(ei.to(device), u, nf, data.meta)))
             except DivergenceError:
                 parts.append(torch.full_like(x[sl, 1:], float("nan")))
     pred = torch.cat(parts).double().cpu()  # [B, T-1, N, D]

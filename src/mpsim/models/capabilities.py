@@ -9,7 +9,8 @@ is stepped along the data by one rollout per step (`one_step_by_rollouts`).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from dataclasses import replace
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import torch
 
@@ -50,11 +51,7 @@ class OneStepPredictor(Protocol):
         self,
         x: torch.Tensor,  # [B, T, N, D] observed states (raw units)
         t: torch.Tensor,  # [T] times
-        edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
-        *,
-        u: torch.Tensor | None = None,  # [B, T, N, C] controls
-        node_features: torch.Tensor | None = None,  # [N, F] or [B, N, F]
-        meta: dict[str, Any] | None = None,  # the data's metadata
+        inputs: Inputs,  # graph [2, E] or [B, 2, E], controls [B, T, N, C] on the grid t, node features, meta
     ) -> torch.Tensor: ...
 
 
@@ -86,34 +83,26 @@ def one_step(
     model: Model,
     x: torch.Tensor,  # [B, T, N, D] observed states (raw units)
     t: torch.Tensor,  # [T] times
-    edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
-    *,
-    u: torch.Tensor | None = None,  # [B, T, N, C] controls
-    node_features: torch.Tensor | None = None,  # [N, F] or [B, N, F]
-    meta: dict[str, Any] | None = None,  # the data's metadata
+    inputs: Inputs,  # graph [2, E] or [B, 2, E], controls [B, T, N, C] on the grid t, node features, meta
 ) -> torch.Tensor:
     """[B, T−1, N, D] `model`'s prediction of each x_{k+1} from the observed x_k: its own `one_step` when it is a
     `OneStepPredictor`, else `one_step_by_rollouts`."""
-    inputs: dict[str, Any] = {"u": u, "node_features": node_features, "meta": meta}
     if isinstance(model, OneStepPredictor):
-        return model.one_step(x, t, edge_index, **inputs)
-    return one_step_by_rollouts(model, x, t, edge_index, **inputs)
+        return model.one_step(x, t, inputs)
+    return one_step_by_rollouts(model, x, t, inputs)
 
 
 def one_step_by_rollouts(
     model: Model,
     x: torch.Tensor,  # [B, T, N, D] observed states (raw units)
     t: torch.Tensor,  # [T] times
-    edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
-    *,
-    u: torch.Tensor | None = None,  # [B, T, N, C] controls
-    node_features: torch.Tensor | None = None,  # [N, F] or [B, N, F]
-    meta: dict[str, Any] | None = None,  # the data's metadata
+    inputs: Inputs,  # graph [2, E] or [B, 2, E], controls [B, T, N, C] on the grid t, node features, meta
 ) -> torch.Tensor:
-    """[B, T−1, N, D] each x_{k+1} predicted from the observed x_k by a one-step rollout at its absolute time."""
+    """[B, T−1, N, D] each x_{k+1} predicted from the observed x_k by a one-step rollout at its absolute time
+    (the controls `inputs.u` cut to that step's two samples; the graph, node features and meta as they are)."""
+    u = inputs.u
     steps = []
     for k in range(x.shape[1] - 1):  # sequential in time only; each step batches every trajectory
-        uk = None if u is None else u[:, k : k + 2]
-        inputs = Inputs(edge_index, uk, node_features, {} if meta is None else meta)
-        steps.append(model.rollout(x[:, k], t[k : k + 2], inputs)[:, 1])
+        step_inputs = replace(inputs, u=None if u is None else u[:, k : k + 2])
+        steps.append(model.rollout(x[:, k], t[k : k + 2], step_inputs)[:, 1])
     return torch.stack(steps, dim=1)

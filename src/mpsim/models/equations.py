@@ -155,11 +155,7 @@ class EquationsModel(Model):
         self,
         x: torch.Tensor,  # [B, T, N, D] observed states (raw units)
         t: torch.Tensor,  # [T] times
-        edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
-        *,
-        u: torch.Tensor | None = None,  # [B, T, N, C] unused
-        node_features: torch.Tensor | None = None,  # unused
-        meta: dict[str, Any] | None = None,  # unused
+        inputs: Inputs,  # only the data's graph [2, E] or [B, 2, E] (neighbour terms run over it; no controls)
     ) -> torch.Tensor:
         """[B, T−1, N, D] one step from every observed state, all steps in one batched integration (the
         equations have no latent state; each sample keeps its absolute start time). Falls back to one step at a
@@ -169,9 +165,10 @@ class EquationsModel(Model):
         uniform = n_t > 1 and bool((dts - dts[0]).abs().max() <= 1e-9 * dts[0].abs().clamp(min=1e-300))
         special = min_delay(self.effects) > 0 or any(type(e).__name__ == "PhasedDrive" for e in self.effects)
         if not uniform or special:
-            return one_step_by_rollouts(self, x, t, edge_index, u=u, node_features=node_features, meta=meta)
+            return one_step_by_rollouts(self, x, t, inputs)
         x0 = x[:, :-1].reshape(b * (n_t - 1), n, d)
         offset = t[:-1].to(x).repeat(b)[:, None]  # [B·(T−1), 1]
+        edge_index = inputs.edge_index
         ei = edge_index if edge_index.dim() == 2 else edge_index.repeat_interleave(n_t - 1, dim=0)
         check_nodes(self.spec, n, "model.spec")
         values = {k: v.to(x) for k, v in self.parameters_now().items()}

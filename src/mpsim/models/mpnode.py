@@ -15,7 +15,6 @@ not depend on the number of nodes, a checkpoint trained on one graph runs on any
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
 
 import torch
 from torch import nn
@@ -164,16 +163,13 @@ class MPNODE(ControlledModel):
         self,
         x: torch.Tensor,  # [B, T, N, D] observed states (raw units)
         t: torch.Tensor,  # [T] times
-        edge_index: torch.Tensor,  # [2, E] or [B, 2, E]
-        *,
-        u: torch.Tensor | None = None,  # [B, T, N, C] controls
-        node_features: torch.Tensor | None = None,  # unused: nodes are identical
-        meta: dict[str, Any] | None = None,  # unused
+        inputs: Inputs,  # graph [2, E] or [B, 2, E], controls [B, T, N, C] on the grid t; nodes are identical
     ) -> torch.Tensor:
         """One-step predictions along an observed trajectory with the messages carried from step to step
         (starting at zero at t0, as in a rollout, and again every `latent_reset` steps if set), so each step
         sees the latent state a rollout would."""
         b, n_t, n, d = x.shape
+        edge_index, u = inputs.edge_index, inputs.u
         graph = batch_graph(edge_index.to(x.device), b, n, self_loops=self.self_loops, dtype=x.dtype)
         effect_graph = batch_graph(edge_index.to(x.device), b, n, dtype=x.dtype) if len(self.effects) else None
         field = _MessagePassingField(

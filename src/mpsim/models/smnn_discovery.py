@@ -477,11 +477,7 @@ class SMNNDiscovery(Model):
         self,
         x: torch.Tensor,  # [B, T, N, D] observed states (raw units)
         t: torch.Tensor,  # [T] times
-        edge_index: torch.Tensor,  # [2, E] or [B, 2, E] graph, read only by effects that couple neighbours
-        *,
-        u: torch.Tensor | None = None,  # unused: no controls
-        node_features: torch.Tensor | None = None,  # unused
-        meta: dict[str, Any] | None = None,  # unused
+        inputs: Inputs,  # only the graph [2, E] or [B, 2, E], read by effects that couple neighbours (no controls)
     ) -> torch.Tensor:
         """[B, T−1, N, D] each x_{k+1} predicted from the observed x_k by the discovered ODE.
 
@@ -492,12 +488,13 @@ class SMNNDiscovery(Model):
         if n_t < 2:
             return x[:, :0]
         if min_delay(self.effects) > 0:  # a delayed term needs each step's history: step by step
-            return one_step_by_rollouts(self, x, t, edge_index, u=u, node_features=node_features, meta=meta)
+            return one_step_by_rollouts(self, x, t, inputs)
         t = t.to(x)
         dt = t[1:] - t[:-1]  # [T-1]
         starts = x[:, :-1].reshape(b * (n_t - 1), n, d)
         scale = dt.expand(b, n_t - 1).reshape(-1, 1, 1)  # [B·(T−1), 1, 1] each start's step length
         start = t[:-1].expand(b, n_t - 1).reshape(-1, 1)  # [B·(T−1), 1] each start's time
+        edge_index = inputs.edge_index
         if edge_index.dim() == 3:  # one graph per trajectory: repeat it for each of its steps
             edge_index = edge_index.repeat_interleave(n_t - 1, dim=0)
         field = _PolynomialField(self, self.coefficients().to(x), self._graph(edge_index, starts), scale, start)
