@@ -14,8 +14,12 @@ import math
 import os
 import re
 import shutil
+import signal
 import tempfile
+import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -75,11 +79,12 @@ def atomic_write(path: str | Path, write: Any, mode: str = "wb") -> Path:
             os.fchmod(fd, file_mode)
         except OSError:
             pass
-        with os.fdopen(fd, mode) as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        with _sigint_deferred():  # Ctrl-C mid-write would leave torch.save's zip writer broken: it waits for the file
+            with os.fdopen(fd, mode) as f:
+                write(f)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
     except BaseException as err:
         if tmp is not None and os.path.exists(tmp):
             os.unlink(tmp)
@@ -89,6 +94,25 @@ def atomic_write(path: str | Path, write: Any, mode: str = "wb") -> Path:
             raise OutputError(f"cannot write {path}: {str(err).splitlines()[0]} (full disk?).") from None
         raise
     return path
+
+
+@contextmanager
+def _sigint_deferred() -> Iterator[None]:
+    """Hold a SIGINT (Ctrl-C) that arrives inside the block and deliver it, to the handler in force before, once the
+    block is done. An interrupt inside `torch.save` raised in its zip writer, whose clean-up then failed with a
+    RuntimeError that hid the interrupt (exit 1 and a traceback instead of 130 and the resume hint). Outside the
+    main thread signals cannot be handled, and the block runs as is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous if previous is not None else signal.SIG_DFL)
+        if held:
+            signal.raise_signal(signal.SIGINT)
 
 
 def safe_name(name: Any, fallback: str = "model") -> str:
