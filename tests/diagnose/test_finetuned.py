@@ -2,6 +2,7 @@
 without it. The finetune here is a multiple-shooting fit of every trainable parameter (a stand-in for the
 trainer that keeps the test fast); the data come from the pendulum generator, not Lorenz (case 2)."""
 
+import copy
 import math
 
 import pytest
@@ -131,7 +132,15 @@ def test_what_a_named_candidate_leaves_must_have_no_structure_the_screen_sees(da
         calls.append(1)
         return screen(m, train, params, 0)
 
-    args = (model, diag, library, train, test, 20, 1e-10, params, _finetune(train, []), "round1")
+    done: dict[str, tuple] = {}
+    fresh = _finetune(train, [])
+
+    def finetune(m, tag):  # the three judgements below finetune the same models: each is finetuned once
+        if tag not in done:
+            done[tag] = fresh(m, tag)
+        return copy.deepcopy(done[tag][0]), done[tag][1]
+
+    args = (model, diag, library, train, test, 20, 1e-10, params, finetune, "round1")
     named = judge_by_finetune(*args, rescreen=clean)
     assert named.verdict == EFFECTS_NAMED and calls == [1] and named.rest is not None
     assert "finds no structure" in named.named[0].reason
