@@ -150,3 +150,17 @@ def run_cli(args: list[str], cwd: Path, timeout: float = 300, check: bool = Fals
     if check and proc.returncode != 0:
         raise AssertionError(f"mpsim {' '.join(args)} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
     return proc
+
+
+def declared_pendulums(train):
+    """The scientist's model of the pendulum pair: the declared (undamped) equations, g and k learnable, float64,
+    normalised on `train` (the residual loop's white-box test model)."""
+    from mpsim.models.physics import PhysicsModel
+    from mpsim.solvers import ODESolver
+    from mpsim.systems import CoupledPendulums
+
+    model = PhysicsModel(
+        2, system=CoupledPendulums(), learnable=["gravity", "spring"], solver=ODESolver("dopri5", rtol=1e-7, atol=1e-7)
+    ).double()
+    model.set_normalisation(train.x.reshape(-1, 2).mean(0), train.x.reshape(-1, 2).std(0))
+    return model

@@ -16,17 +16,8 @@ from mpsim.diagnose.params import DiagnoseParams
 from mpsim.diagnose.rounds import screen
 from mpsim.diagnose.shooting import shooting_fit, window_error
 from mpsim.effects import LinearDamping
-from mpsim.models.physics import PhysicsModel
-from mpsim.solvers import ODESolver
 from mpsim.systems import CoupledPendulums
-
-
-def _model(train):
-    model = PhysicsModel(
-        2, system=CoupledPendulums(), learnable=["gravity", "spring"], solver=ODESolver("dopri5", rtol=1e-7, atol=1e-7)
-    ).double()
-    model.set_normalisation(train.x.reshape(-1, 2).mean(0), train.x.reshape(-1, 2).std(0))
-    return model
+from tests.helpers import declared_pendulums
 
 
 def _finetune(train, tags):
@@ -42,7 +33,7 @@ def _finetune(train, tags):
 def _setup(effects, seed):
     data = CoupledPendulums(effects=effects).generate(24, seed=seed, horizon=80)
     train, test = data.subset(slice(0, 16)), data.subset(slice(16, 24))
-    return train, test, _model(train)
+    return train, test, declared_pendulums(train)
 
 
 PARAMS = DiagnoseParams(n_boot=20)

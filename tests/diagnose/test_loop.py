@@ -10,20 +10,12 @@ from mpsim.metrics import valid_prediction_time
 from mpsim.models.physics import PhysicsModel
 from mpsim.solvers import ODESolver
 from mpsim.systems import CoupledPendulums
-
-
-def _declared_model(train):
-    # the scientist's model: the declared (undamped) pendulum equations, g and k learnable
-    model = PhysicsModel(
-        2, system=CoupledPendulums(), learnable=["gravity", "spring"], solver=ODESolver("dopri5", rtol=1e-7, atol=1e-7)
-    ).double()
-    model.set_normalisation(train.x.reshape(-1, 2).mean(0), train.x.reshape(-1, 2).std(0))
-    return model
+from tests.helpers import declared_pendulums
 
 
 def test_names_hidden_damping_with_its_coefficient():
     data = CoupledPendulums(effects=[LinearDamping(0.2, target="omega")]).generate(24, seed=0)
-    diag = find_effects(_declared_model(data), data, n_boot=30)
+    diag = find_effects(declared_pendulums(data), data, n_boot=30)
     (found,) = diag.accepted
     assert found.kind == "LinearDamping" and found.label == "domega/dt: LinearDamping(omega)"
     assert found.coef[0] == pytest.approx(0.2, rel=0.1)
@@ -37,7 +29,7 @@ def test_names_hidden_damping_with_its_coefficient():
 
 def test_no_effect_in_clean_data():
     data = CoupledPendulums().generate(24, seed=1)
-    diag = find_effects(_declared_model(data), data, n_boot=30)
+    diag = find_effects(declared_pendulums(data), data, n_boot=30)
     assert diag.accepted == []
 
 
@@ -61,7 +53,7 @@ def test_works_from_a_hand_written_csv(tmp_path):
     pd.DataFrame({"src": [0, 1], "dst": [1, 0]}).to_csv(tmp_path / "lab_edges.csv", index=False)
     loaded = load_trajectories(tmp_path / "lab.csv")
     assert loaded.meta.get("effects") is None and loaded.state_names == ["angle", "rate"]
-    diag = find_effects(_declared_model(loaded), loaded, n_boot=30)
+    diag = find_effects(declared_pendulums(loaded), loaded, n_boot=30)
     (found,) = diag.accepted
     assert found.label == "drate/dt: LinearDamping(rate)" and found.coef[0] == pytest.approx(0.2, rel=0.1)
 

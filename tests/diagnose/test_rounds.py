@@ -9,16 +9,12 @@ from mpsim.diagnose.params import DiagnoseParams
 from mpsim.diagnose.rounds import run_loop, white_box
 from mpsim.diagnose.shooting import shooting_fit
 from mpsim.effects import LinearDamping
-from mpsim.models.physics import PhysicsModel
-from mpsim.solvers import ODESolver
 from mpsim.systems import CoupledPendulums
+from tests.helpers import declared_pendulums
 
 
 def _model(train, extra: bool):
-    model = PhysicsModel(
-        2, system=CoupledPendulums(), learnable=["gravity", "spring"], solver=ODESolver("dopri5", rtol=1e-7, atol=1e-7)
-    ).double()
-    model.set_normalisation(train.x.reshape(-1, 2).mean(0), train.x.reshape(-1, 2).std(0))
+    model = declared_pendulums(train)
     if extra:  # a trainable parameter that is neither a named physical one nor an effect's: a network's part
         model.register_parameter("unnamed", nn.Parameter(torch.zeros((), dtype=torch.float64)))
     return model

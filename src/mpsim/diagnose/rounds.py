@@ -20,7 +20,7 @@ from mpsim.data.dataset import Splits
 from mpsim.data.trajectories import Trajectories
 from mpsim.diagnose.finetuned import FinetuneJudgement, judge_by_finetune
 from mpsim.diagnose.heldout import EFFECTS_NAMED, EXIT_CODES, NOTHING_MISSING, Judgement, Trial, dynamic_rows, judge
-from mpsim.diagnose.library import build_library
+from mpsim.diagnose.library import Candidate, build_library
 from mpsim.diagnose.loop import Diagnosis, find_effects
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.diagnose.residual import one_step_residual
@@ -223,7 +223,7 @@ def _black_box_fix(
     finetune: Finetune,
     log: Callable[[str], None],
     result: LoopResult,
-    library: list,
+    library: list[Candidate],
 ) -> LoopResult:
     """fix=true on a model with trainable parameters beyond its named physical ones (a network): each round
     finetunes the model without a candidate (the control) and with each screened candidate, names the best one
