@@ -87,3 +87,33 @@ def test_bad_diagnose_settings(tmp_path, tiny_ckpt, bad, match):
     (line,) = proc.error_lines()
     assert match in line
     assert not [p for p in tmp_path.rglob("*") if p.is_file()]
+
+
+@pytest.mark.scaling  # ~25 s of spawned processes: run by .ci/run's `-m scaling` step, outside the default suite
+def test_a_networks_finetunes_run_in_parallel_processes_with_the_serial_results(tmp_path):
+    """fix=true on an MP-NODE finetunes a control and each candidate; diagnose.jobs=2 runs them in two spawned
+    processes, and must give what one process gives (same seed, epochs and data; one thread each)."""
+    # a drive: a network without a clock cannot absorb it, so the screen has a candidate even after a short training
+    drive = "+system.effects=[{_target_: mpsim.effects.PeriodicForcing, amplitude: 2.0, omega: 5.0, target: omega}]"
+    small = ["data.n_train=16", "data.n_val=4", "data.n_test=8", "trainer.progress=false"]
+    net = ["system=pendulum2", drive, "system.name=pd", "model=mpnode", "model.hidden=16", *small]
+    run_mpsim_ok(["train", *net, "trainer.max_epochs=3"], tmp_path)
+    results = {}
+    for jobs in (1, 2):
+        args = ["diagnose", *net, "diagnose.n_boot=10", "diagnose.rounds=1", "init=pd.ckpt", "fix=true"]
+        run_mpsim(
+            [*args, "trainer.max_epochs=1", f"diagnose.jobs={jobs}", f"hydra.run.dir=outputs/jobs{jobs}"], tmp_path
+        )
+        run = tmp_path / "outputs" / f"jobs{jobs}"
+        results[jobs] = json.loads((run / "diagnosis.json").read_text())
+        (first,) = results[jobs]["finetuned"][:1]
+        assert first["trials"], "the screen found no candidate: the parallel path was not exercised"
+        assert (run / "fix" / "round1" / "control" / "checkpoints" / "best.ckpt").is_file()
+        finetuned = sorted((run / "fix" / "round1").glob("*/checkpoints/best.ckpt"))
+        assert len(finetuned) == 1 + len(first["trials"])  # the control and every candidate wrote a checkpoint
+    serial, parallel = (r["finetuned"][0] for r in (results[1], results[2]))
+    assert parallel["error_control"] == pytest.approx(serial["error_control"], rel=1e-5)
+    assert [t["label"] for t in parallel["trials"]] == [t["label"] for t in serial["trials"]]
+    for a, b in zip(parallel["trials"], serial["trials"], strict=True):
+        assert a["error_after"] == pytest.approx(b["error_after"], rel=1e-5)
+    assert results[2]["verdict"] == results[1]["verdict"]

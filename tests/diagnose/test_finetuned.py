@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from mpsim.diagnose.finetuned import PHASES_AGREE, finetune_candidates, judge_by_finetune, shared_phase
+from mpsim.diagnose.finetuned import PHASES_AGREE, finetune_candidates, judge_by_finetune, serial, shared_phase
 from mpsim.diagnose.heldout import EFFECTS_NAMED, UNEXPLAINED
 from mpsim.diagnose.library import Candidate
 from mpsim.diagnose.loop import Diagnosis, Finding
@@ -49,7 +49,7 @@ def damped():
 def test_names_what_the_control_finetune_cannot_learn(damped):
     train, test, model, (diag, library) = damped
     tags: list[str] = []
-    fj = judge_by_finetune(model, diag, library, train, test, 20, 1e-10, PARAMS, _finetune(train, tags), "round1")
+    fj = judge_by_finetune(model, diag, library, train, test, 20, 1e-10, PARAMS, serial(_finetune(train, tags)), "round1")
     assert tags[0] == "round1/control" and len(tags) == 1 + len(fj.trials)  # the control first, then each candidate
     assert fj.verdict == EFFECTS_NAMED
     (named,) = fj.named
@@ -67,7 +67,7 @@ def test_a_candidate_that_the_control_matches_is_not_named(damped):
     # it predicts no better than the control
     *_, (diag, library) = damped
     train, test, model = _setup([], seed=1)
-    fj = judge_by_finetune(model, diag, library, train, test, 20, 1e-10, PARAMS, _finetune(train, []), "round1")
+    fj = judge_by_finetune(model, diag, library, train, test, 20, 1e-10, PARAMS, serial(_finetune(train, [])), "round1")
     assert fj.verdict == UNEXPLAINED and fj.named == [] and fj.model is None
     (trial,) = [t for t in fj.trials if t.kind == "LinearDamping"]
     assert not trial.accepted and abs(trial.values["coef"]) < 0.01
@@ -131,7 +131,7 @@ def test_what_a_named_candidate_leaves_must_have_no_structure_the_screen_sees(da
             done[tag] = fresh(m, tag)
         return copy.deepcopy(done[tag][0]), done[tag][1]
 
-    args = (model, diag, library, train, test, 20, 1e-10, params, finetune, "round1")
+    args = (model, diag, library, train, test, 20, 1e-10, params, serial(finetune), "round1")
     named = judge_by_finetune(*args, rescreen=clean)
     assert named.verdict == EFFECTS_NAMED and calls == [1] and named.rest is not None
     assert "finds no structure" in named.named[0].reason

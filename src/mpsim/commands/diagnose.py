@@ -10,17 +10,24 @@ from __future__ import annotations
 
 import logging
 import math
+import multiprocessing
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+import torch
 from omegaconf import DictConfig, OmegaConf
 
 from mpsim import plotting
 from mpsim.commands.building import Shape, build, build_model_for, build_system, model_and_data
 from mpsim.commands.checkpoints import checkpoint_base, load_init
 from mpsim.commands.console import fmt, print_summary
-from mpsim.commands.runtime import setup_runtime
+from mpsim.commands.runtime import Runtime, setup_runtime
+from mpsim.data.dataset import Splits
 from mpsim.data.trajectories import Trajectories
+from mpsim.diagnose.finetuned import serial
 from mpsim.diagnose.heldout import EFFECTS_NAMED, NOTHING_MISSING
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.diagnose.rounds import LoopResult, holdout_metrics, run_loop
@@ -88,21 +95,27 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
         configured = list(model_cfg.get("effects") or [])
         return {**model_cfg, "effects": configured + [e.config() for e in fixed.effects[len(configured) :]]}
 
-    def finetune(fixed: Model, tag: str) -> tuple[Model, str]:
-        fixed_cfg = fixed_config(fixed)
-        built, _ = build_model_for(
-            cfg, rt, Shape.of(splits.train), {**ckpt, "model": {**ckpt["model"], "config": fixed_cfg}}
+    def job(fixed: Model, tag: str, progress: bool = True) -> _FinetuneJob:
+        latent = fixed.latent_reset if isinstance(fixed, LatentState) else None
+        return _FinetuneJob(
+            cfg, rt, splits, ckpt, fixed_config(fixed), fixed.state_dict(), latent, params.fix_lr_factor, tag, progress
         )
-        built.load_state_dict(fixed.state_dict())  # fitted coefficients and refit own parameters
-        if isinstance(built, LatentState) and isinstance(model, LatentState):
-            built.latent_reset = model.latent_reset
-        trainer = build(cfg.trainer, "trainer", lr=cfg.trainer.lr * params.fix_lr_factor)
-        run_dir = rt.output_dir / "fix" / tag
-        base = checkpoint_base(fixed_cfg, built, splits.train.meta, {"mode": "finetune", "init": ckpt["path"]})
-        trainer.fit(built, splits.train, splits.val, splits.test, run_dir=run_dir, seed=cfg.seed, checkpoint_base=base)
-        if trainer.status_ == "diverged":
-            raise DivergenceError(trainer.divergence_ or "NaN/inf")
-        return built, str(run_dir / "checkpoints" / "best.ckpt")
+
+    def finetune(fixed: Model, tag: str) -> tuple[Model, str]:
+        return _collect(job(fixed, tag), _run_finetune(job(fixed, tag)))
+
+    def finetune_all(runs: list[tuple[Model, str]]) -> list[tuple[Model, str] | DivergenceError]:
+        """The control's and the candidates' finetunes, in up to `diagnose.jobs` processes at once."""
+        jobs = [job(m, tag, progress=i == 0) for i, (m, tag) in enumerate(runs)]
+        n = min(len(jobs), _workers(params.jobs, rt))
+        if n <= 1:
+            return serial(finetune)(runs)
+        log.info(f"{len(jobs)} finetunes in {n} processes (diagnose.jobs); the bar shows the control's")
+        ctx = multiprocessing.get_context("spawn")  # fork would copy torch's thread pools mid-use
+        with ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=_worker_init) as pool:
+            futures = [pool.submit(_run_finetune, j) for j in jobs]
+            outcomes = [f.result() for f in futures]  # an error other than divergence is raised here
+        return [o if isinstance(o, DivergenceError) else _collect(j, o) for j, o in zip(jobs, outcomes, strict=True)]
 
     def save(fixed: Model, k: int) -> str:
         fixed_cfg = fixed_config(fixed)
@@ -123,6 +136,7 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
             finetune if cfg.fix else None,
             save if cfg.fix else None,
             log.info,
+            finetune_all if cfg.fix else None,
         )
     except DivergenceError as err:  # the report of what was found is still written, then the error is raised
         error, result = err, None
@@ -135,6 +149,72 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
     atomic_write(rt.output_dir / "diagnosis.md", lambda f: f.write(_markdown(out)), mode="w")
     _print(out, rt.output_dir)
     return out
+
+
+@dataclass
+class _FinetuneJob:
+    """One finetune of `mpsim diagnose fix=true`, self-contained so that it can run in another process."""
+
+    cfg: DictConfig
+    rt: Runtime
+    splits: Splits
+    ckpt: dict[str, Any]
+    model_config: dict[str, Any]  # the model's config with the effects the loop added
+    state_dict: dict[str, torch.Tensor]
+    latent_reset: int | None
+    lr_factor: float
+    tag: str  # the run's directory under fix/
+    progress: bool
+
+
+def _build_fixed(job: _FinetuneJob) -> Model:
+    """The model `job` finetunes: the checkpoint's model config with the added effects, its current weights."""
+    ckpt = {**job.ckpt, "model": {**job.ckpt["model"], "config": job.model_config}}
+    built, _ = build_model_for(job.cfg, job.rt, Shape.of(job.splits.train), ckpt)
+    built.load_state_dict(job.state_dict)  # fitted coefficients and refit own parameters
+    if isinstance(built, LatentState) and job.latent_reset is not None:
+        built.latent_reset = job.latent_reset
+    return built
+
+
+def _run_finetune(job: _FinetuneJob) -> tuple[dict[str, torch.Tensor], str] | DivergenceError:
+    """Finetune `job`'s model under fix/<tag>/: (its finetuned weights, best checkpoint), or the divergence."""
+    cfg, splits = job.cfg, job.splits
+    built = _build_fixed(job)
+    trainer = build(
+        cfg.trainer, "trainer", lr=cfg.trainer.lr * job.lr_factor, progress=cfg.trainer.progress and job.progress
+    )
+    run_dir = job.rt.output_dir / "fix" / job.tag
+    base = checkpoint_base(job.model_config, built, splits.train.meta, {"mode": "finetune", "init": job.ckpt["path"]})
+    trainer.fit(built, splits.train, splits.val, splits.test, run_dir=run_dir, seed=cfg.seed, checkpoint_base=base)
+    if trainer.status_ == "diverged":
+        return DivergenceError(trainer.divergence_ or "NaN/inf")
+    return built.state_dict(), str(run_dir / "checkpoints" / "best.ckpt")
+
+
+def _collect(job: _FinetuneJob, outcome: tuple[dict[str, torch.Tensor], str] | DivergenceError) -> tuple[Model, str]:
+    """The finetuned model in this process (raises the run's DivergenceError)."""
+    if isinstance(outcome, DivergenceError):
+        raise outcome
+    state, path = outcome
+    return _build_fixed(replace(job, state_dict=state)), path
+
+
+def _worker_init() -> None:
+    torch.set_num_threads(1)  # one core per finetune: the small batched solves do not gain from threads
+
+
+def _workers(jobs: int | None, rt: Runtime) -> int:
+    """Processes for parallel finetunes: `diagnose.jobs`, or (null) the CPU cores on a CPU, one on a GPU."""
+    if jobs is not None:
+        return jobs
+    return (
+        1
+        if rt.device.type != "cpu"
+        else len(os.sched_getaffinity(0))
+        if hasattr(os, "sched_getaffinity")
+        else (os.cpu_count() or 1)
+    )
 
 
 def _summary(cfg, ckpt, splits, result: LoopResult, truths) -> dict[str, Any]:

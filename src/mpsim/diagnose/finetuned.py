@@ -44,6 +44,9 @@ PHASES_AGREE = 0.9
 
 #: finetune(model, tag) -> (finetuned model, its checkpoint path); `tag` names the run ("round1/control", ...)
 TaggedFinetune = Callable[[Model, str], tuple[Model, str]]
+#: finetune_all([(model, tag), ...]) -> for each, (finetuned model, checkpoint path) or the DivergenceError of its
+#: run, in order; the runs are independent (same epochs, learning rate and seed), so they may run at once
+FinetuneAll = Callable[[list[tuple[Model, str]]], list[tuple[Model, str] | DivergenceError]]
 #: the one-step screen of a model on held-in data: (diagnosis, candidate library)
 Screened = tuple[Diagnosis, list[Candidate]]
 
@@ -119,6 +122,21 @@ def finetune_candidates(
     return out, notes
 
 
+def serial(finetune: TaggedFinetune) -> FinetuneAll:
+    """`finetune_all` that runs one finetune after another in this process."""
+
+    def run(jobs: list[tuple[Model, str]]) -> list[tuple[Model, str] | DivergenceError]:
+        out: list[tuple[Model, str] | DivergenceError] = []
+        for model, tag in jobs:
+            try:
+                out.append(finetune(model, tag))
+            except DivergenceError as exc:
+                out.append(exc)
+        return out
+
+    return run
+
+
 def _slug(label: str) -> str:
     return re.sub(r"[^A-Za-z0-9]+", "_", label).strip("_")[:60]
 
@@ -132,7 +150,7 @@ def judge_by_finetune(
     horizon: int,
     error_null: float,
     params: DiagnoseParams,
-    finetune: TaggedFinetune,
+    finetune: FinetuneAll,
     tag: str,
     log: Callable[[str], None] = lambda _: None,
     rescreen: Callable[[Model], Screened] | None = None,
@@ -148,22 +166,25 @@ def judge_by_finetune(
             "screen recognises — the network's own error or an effect outside the library; nothing is claimed"
         )
         return FinetuneJudgement(UNEXPLAINED, horizon, given, given, error_null, given, 0.0, [], notes=notes)
-    log(f"{tag}: finetuning the control (no candidate)")
-    control, control_path = _finetune(finetune, copy.deepcopy(model), f"{tag}/control", "the control")
+    jobs = [(copy.deepcopy(model), f"{tag}/control")]
+    effects = [cand.make_effect(coef, f.target, diag.state_names) for f, cand, coef, _ in candidates]
+    jobs += [(with_effect(model, e), f"{tag}/{_slug(c[3])}") for c, e in zip(candidates, effects, strict=True)]
+    log(f"{tag}: finetuning the control (no candidate) and with {'; '.join(c[3] for c in candidates)}")
+    outcomes = finetune(jobs)
+    if isinstance(outcomes[0], DivergenceError):
+        raise DivergenceError(f"the finetune of the control diverged: {outcomes[0]}")
+    control, control_path = outcomes[0]
     e_control = window_error(control, test, horizon)
     err_control = float(e_control.mean())
     excess = max(err_control - error_null, 1e-300)
     floor = max(error_null, 1e-14)
     trials: list[Trial] = []
     models: dict[int, tuple[Model, str]] = {}
-    for f, cand, coef, label in candidates:
-        log(f"{tag}: finetuning with {label}")
-        effect = cand.make_effect(coef, f.target, diag.state_names)
-        try:
-            tuned, path = finetune(with_effect(model, effect), f"{tag}/{_slug(label)}")
-        except DivergenceError as exc:  # a wrong candidate can derail training: it is rejected, not an error
-            trials.append(_diverged(label, cand.kind, effect, err_control, str(exc)))
+    for (_, cand, _, label), effect, outcome in zip(candidates, effects, outcomes[1:], strict=True):
+        if isinstance(outcome, DivergenceError):  # a wrong candidate can derail training: rejected, not an error
+            trials.append(_diverged(label, cand.kind, effect, err_control, str(outcome)))
             continue
+        tuned, path = outcome
         e_after = window_error(tuned, test, horizon)
         log_gain, log_se = log_ratio(e_control, e_after, floor)
         diff = (e_control - e_after)[torch.isfinite(e_control - e_after)]
@@ -284,10 +305,3 @@ def _diverged(label: str, kind: str, effect: Any, before: float, why: str) -> Tr
         accepted=False,
         reason=f"the finetune with it diverged ({why})",
     )
-
-
-def _finetune(finetune: TaggedFinetune, model: Model, tag: str, what: str) -> tuple[Model, str]:
-    try:
-        return finetune(model, tag)
-    except DivergenceError as exc:
-        raise DivergenceError(f"the finetune of {what} diverged: {exc}") from None

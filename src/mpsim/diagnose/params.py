@@ -60,6 +60,9 @@ class DiagnoseParams:
     Fix (fix=true):
         fix_lr_factor: the finetune runs at trainer.lr × this (it starts near the optimum).
         rounds: effects added one per round (the strongest), each followed by a finetune and a new diagnosis.
+        jobs: a network's finetunes (the control and each candidate) run in this many processes at once, one
+            thread each (null: one per CPU core on a CPU, one at a time on a GPU). Results do not depend on it
+            beyond floating-point summation order.
     """
 
     kinds: list[str] = field(default_factory=lambda: list(DEFAULT_KINDS))
@@ -82,6 +85,7 @@ class DiagnoseParams:
     vpt_threshold: float = 0.3
     fix_lr_factor: float = 0.1
     rounds: int = 3
+    jobs: int | None = None
 
     def __post_init__(self) -> None:
         for kind in self.kinds:
@@ -90,3 +94,5 @@ class DiagnoseParams:
                     f"diagnose.kinds: unknown effect kind {kind!r}; the library holds {', '.join(DEFAULT_KINDS)}."
                     + did_you_mean(str(kind), DEFAULT_KINDS)
                 )
+        if self.jobs is not None and self.jobs < 1:
+            raise ConfigError(f"diagnose.jobs must be >= 1 or null (one per CPU core); got {self.jobs}.")

@@ -18,7 +18,7 @@ import torch
 
 from mpsim.data.dataset import Splits
 from mpsim.data.trajectories import Trajectories
-from mpsim.diagnose.finetuned import FinetuneJudgement, judge_by_finetune
+from mpsim.diagnose.finetuned import FinetuneAll, FinetuneJudgement, judge_by_finetune, serial
 from mpsim.diagnose.heldout import EFFECTS_NAMED, EXIT_CODES, NOTHING_MISSING, Judgement, Trial, dynamic_rows, judge
 from mpsim.diagnose.library import Candidate, build_library
 from mpsim.diagnose.loop import Diagnosis, find_effects
@@ -122,9 +122,12 @@ def run_loop(
     finetune: Finetune | None = None,
     save: Save | None = None,
     log: Callable[[str], None] = lambda _: None,
+    finetune_all: FinetuneAll | None = None,
 ) -> LoopResult:
     """Diagnose `model` on `splits.train` (held-in), judge candidates on `splits.test` (held-out); with
-    `finetune`/`save` given (fix=true), add what is named, finetune, and diagnose again, up to `params.rounds`."""
+    `finetune`/`save` given (fix=true), add what is named, finetune, and diagnose again, up to `params.rounds`.
+    `finetune_all` runs a network's control and candidate finetunes (default: one after another with `finetune`;
+    the command layer runs them in parallel processes)."""
     train, test = splits.train, splits.test
     diag, library = screen(model, train, params, seed)
     # a network absorbs part of a missing effect: with a finetune at hand its candidates are tested by finetuning
@@ -134,7 +137,8 @@ def run_loop(
     before = holdout_metrics(model, test, horizons, params.vpt_threshold)
     result = LoopResult(diag, judgement, judgement.verdict, before, model=model, named=judgement.named)
     if black_box and finetune is not None and judgement.verdict != NOTHING_MISSING:
-        return _black_box_fix(model, splits, params, horizons, seed, finetune, log, result, library)
+        runs = finetune_all or serial(finetune)
+        return _black_box_fix(model, splits, params, horizons, seed, runs, log, result, library)
     if finetune is None or save is None or judgement.verdict != EFFECTS_NAMED:
         return result
     if any(t.effect["_target_"].endswith("PhasedDrive") for t in judgement.named):
@@ -220,7 +224,7 @@ def _black_box_fix(
     params: DiagnoseParams,
     horizons: list[int],
     seed: int,
-    finetune: Finetune,
+    finetune: FinetuneAll,
     log: Callable[[str], None],
     result: LoopResult,
     library: list[Candidate],
