@@ -49,7 +49,9 @@ def damped():
 def test_names_what_the_control_finetune_cannot_learn(damped):
     train, test, model, (diag, library) = damped
     tags: list[str] = []
-    fj = judge_by_finetune(model, diag, library, train, test, 20, 1e-10, PARAMS, serial(_finetune(train, tags)), "round1")
+    fj = judge_by_finetune(
+        model, diag, library, train, test, 20, 1e-10, PARAMS, serial(_finetune(train, tags)), "round1"
+    )
     assert tags[0] == "round1/control" and len(tags) == 1 + len(fj.trials)  # the control first, then each candidate
     assert fj.verdict == EFFECTS_NAMED
     (named,) = fj.named
