@@ -89,7 +89,8 @@ def test_bad_diagnose_settings(tmp_path, tiny_ckpt, bad, match):
     assert not [p for p in tmp_path.rglob("*") if p.is_file()]
 
 
-@pytest.mark.scaling  # ~25 s of spawned processes: run by .ci/run's `-m scaling` step, outside the default suite
+@pytest.mark.slow
+@pytest.mark.scaling  # ~20 s of spawned processes: run by .ci/run's `-m scaling` step, outside the default suite
 def test_a_networks_finetunes_run_in_parallel_processes_with_the_serial_results(tmp_path):
     """fix=true on an MP-NODE finetunes a control and each candidate; diagnose.jobs=2 runs them in two spawned
     processes, and must give what one process gives (same seed, epochs and data; one thread each)."""
