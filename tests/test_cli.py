@@ -193,6 +193,18 @@ def _fails(args, cwd, match, code=2):
     return proc
 
 
+def test_an_interrupted_command_other_than_train_is_told_to_run_again_not_to_resume(tmp_path, monkeypatch):
+    import mpsim.commands.simulate as simulate
+
+    def ctrl_c(cfg):  # what Ctrl-C raises inside the command
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(simulate, "build_system", ctrl_c)
+    cut = run_mpsim(["simulate", "n=2"], tmp_path)
+    assert cut.code == 130 and "interrupted" in cut.err, (cut.code, cut.err[-2000:])
+    assert "resume=true" not in cut.err and "run the same command again" in cut.err  # resume= is train's alone
+
+
 def test_bad_inputs_end_with_one_clear_message(lorenz_ws, tmp_path):
     ws = lorenz_ws
     _fails(["train", "system=lorenz4"], ws, "Could not find 'system/lorenz4'")

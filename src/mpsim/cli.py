@@ -102,11 +102,24 @@ def _divergence_message(command: str, result: dict[str, Any]) -> str:
     )
 
 
+def _interrupt_hint(command: str) -> str:
+    """What a Ctrl-C leaves: `train` resumes from last.ckpt; the other commands start over (resume is train's)."""
+    from mpsim.commands.runtime import hydra_overrides
+
+    if command == "train":
+        args = " ".join(a for a in hydra_overrides() if not a.startswith("resume="))
+        return f"Completed epochs are saved in last.ckpt; continue with:\n  mpsim train {args} resume=true"
+    return (
+        "Every file it wrote is complete (files are written atomically, none half-written); "
+        "run the same command again to redo it (resume= is for mpsim train)."
+    )
+
+
 def _guard(command: str, func: Callable[[Any], dict], cfg: Any) -> dict | float | None:
     """Run a command; turn user errors into one message and an exit code."""
     from hydra.core.hydra_config import HydraConfig
 
-    from mpsim.commands.runtime import hydra_overrides, is_multirun
+    from mpsim.commands.runtime import is_multirun
 
     multirun = is_multirun()
     run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else None
@@ -114,12 +127,7 @@ def _guard(command: str, func: Callable[[Any], dict], cfg: Any) -> dict | float 
     try:
         result = func(cfg)
     except KeyboardInterrupt:
-        args = " ".join(a for a in hydra_overrides() if not a.startswith("resume="))
-        print(
-            f"\nmpsim {command}: interrupted. Completed epochs are saved in last.ckpt; continue with:\n"
-            f"  mpsim {command} {args} resume=true",
-            file=sys.stderr,
-        )
+        print(f"\nmpsim {command}: interrupted. {_interrupt_hint(command)}", file=sys.stderr)
         sys.exit(130)
     except Exception as err:  # noqa: BLE001 - user errors become one message; bugs are re-raised
         user = _as_user_error(err)
