@@ -99,3 +99,22 @@ def test_sum_aggregation_sees_the_degree_and_mean_does_not():
     assert not torch.allclose(mean.rollout(x0, t, Inputs(ring)), total.rollout(x0, t, Inputs(ring)), atol=1e-4)
     with pytest.raises(ValueError, match="aggregation"):
         MPNODE(2, aggregation="max")
+
+
+def test_full_graph_ignores_the_datas_graph_like_mpnode_jl():
+    # graph="full" (MPNODE.jl's shipped configs): messages go all-to-all with self-loops whatever graph the data
+    # carries, so it equals the data-graph model run on the complete graph with self-loops
+    t = torch.linspace(0, 1, 6, dtype=torch.float64)
+    x0 = torch.randn(2, 4, 2, dtype=torch.float64)
+    full, sys_graph = _model(graph="full"), _model(self_loops=True)
+    sys_graph.load_state_dict(full.state_dict())
+    on_chain, on_pairs = (
+        full.rollout(x0, t, Inputs(chain(4))),
+        full.rollout(x0, t, Inputs(torch.tensor([[0, 2], [2, 0]]))),
+    )
+    assert torch.allclose(on_chain, on_pairs, atol=1e-12)
+    assert torch.allclose(on_chain, sys_graph.rollout(x0, t, Inputs(complete(4, self_loops=True))), atol=1e-10)
+    # the default follows the data's graph: the same two graphs give different predictions
+    assert not torch.allclose(sys_graph.rollout(x0, t, Inputs(chain(4))), on_chain, atol=1e-4)
+    with pytest.raises(ValueError, match="model.graph"):
+        MPNODE(2, graph="sys")

@@ -8,7 +8,8 @@ the ODE right-hand side, i.e. at every solver stage,
 
 with f_θ a tanh MLP shared by all nodes (Sanchez/Gupta et al., "Learning Modular Simulations for
 Homogeneous Systems"; MPNODE.jl `EMPDynamicsModel`). Only x is supervised; messages evolve freely. The
-node's own message is not an input unless `self_loops=true` (MPNODE.jl's `graph="full"`). Because f_θ does
+node's own message is not an input unless `self_loops=true`. `graph="full"` ignores the data's graph and passes
+messages all-to-all with self-loops, as every config MPNODE.jl ships does (its `graph="full"`). Because f_θ does
 not depend on the number of nodes, a checkpoint trained on one graph runs on any other.
 """
 
@@ -22,11 +23,13 @@ from torch import nn
 from mpsim.data.trajectories import Inputs
 from mpsim.effects import Effect, EffectContext, total
 from mpsim.graphs.batch import BatchedGraph, batch_graph, mean_aggregate, sum_aggregate
+from mpsim.graphs.topology import complete
 from mpsim.models.controls import ControlledModel, ControlNormalisation, HeldField, integrate_held, zero_order_hold
 from mpsim.models.layers import mlp
 from mpsim.solvers.odeint import ODESolver
 
 AGGREGATIONS = {"mean": mean_aggregate, "sum": sum_aggregate}
+GRAPHS = ("data", "full")
 
 
 class _MessagePassingField(HeldField):
@@ -92,6 +95,9 @@ class MPNODE(ControlledModel):
         aggregation: "mean" of the neighbours' messages (paper, MPNODE.jl's SegmentedMean) or their "sum", which
             lets the node see how many neighbours it has (coupling that adds up over neighbours, e.g. gene
             regulation, whose strength a mean cannot tell apart across node degrees).
+        graph: "data", the messages follow the data's graph (MPNODE.jl `graph="sys"`), or "full": all-to-all
+            with self-loops whatever the data's graph (MPNODE.jl `graph="full"`; named effects still follow
+            the data's graph).
         effects: named physical terms with learnable coefficients added to the node dynamics.
         solver: how the vector field is integrated (default: dopri5, rtol = atol = 1e-4).
     """
@@ -118,11 +124,14 @@ class MPNODE(ControlledModel):
         effects: Sequence[Effect] = (),
         solver: ODESolver | None = None,
         aggregation: str = "mean",
+        graph: str = "data",
     ) -> None:
         super().__init__(state_dim, control_dim, effects)
         if aggregation not in AGGREGATIONS:
             raise ValueError(f'model.aggregation must be one of {sorted(AGGREGATIONS)}; got "{aggregation}".')
-        self.aggregation = aggregation
+        if graph not in GRAPHS:
+            raise ValueError(f'model.graph must be one of {list(GRAPHS)}; got "{graph}".')
+        self.aggregation, self.graph = aggregation, graph
         if message_size < 0 or hidden < 1 or n_hidden_layers < 1:
             raise ValueError(
                 f"model.message_size must be >= 0, model.hidden and model.n_hidden_layers >= 1; got "
@@ -148,7 +157,7 @@ class MPNODE(ControlledModel):
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         b, n, d = x0.shape
         edge_index = inputs.edge_index.to(x0.device)
-        graph = batch_graph(edge_index, b, n, self_loops=self.self_loops, dtype=x0.dtype)
+        graph = self._message_graph(edge_index, b, n, x0.dtype)
         y0 = torch.cat([self.normalise(x0), x0.new_zeros(b, n, self.message_size)], dim=-1)
         effect_graph = batch_graph(edge_index, b, n, dtype=x0.dtype) if len(self.effects) else None
         u = self.controls(inputs.u)
@@ -158,6 +167,17 @@ class MPNODE(ControlledModel):
         # with controls, one solve per sample interval with the input held (see mpsim.models.controls)
         ys = integrate_held(lambda f, y, tt: self.integrate(f, y, tt, self.solver), field, y0, t)  # [B, T, N, D+M]
         return self.denormalise(ys[..., :d]), {"messages": ys[..., d:]}
+
+    def _message_graph(
+        self,
+        edge_index: torch.Tensor,  # [2, E] or [B, 2, E] the data's graph
+        b: int,
+        n: int,
+        dtype: torch.dtype,
+    ) -> BatchedGraph:
+        if self.graph == "full":
+            return batch_graph(complete(n, self_loops=True).to(edge_index.device), b, n, dtype=dtype)
+        return batch_graph(edge_index, b, n, self_loops=self.self_loops, dtype=dtype)
 
     def one_step(
         self,
@@ -170,7 +190,7 @@ class MPNODE(ControlledModel):
         sees the latent state a rollout would."""
         b, n_t, n, d = x.shape
         edge_index, u = inputs.edge_index, inputs.u
-        graph = batch_graph(edge_index.to(x.device), b, n, self_loops=self.self_loops, dtype=x.dtype)
+        graph = self._message_graph(edge_index.to(x.device), b, n, x.dtype)
         effect_graph = batch_graph(edge_index.to(x.device), b, n, dtype=x.dtype) if len(self.effects) else None
         field = _MessagePassingField(
             self.net, graph, d, self.zero_messages, t.to(x), self.controls(u), self, effect_graph, self.aggregation
