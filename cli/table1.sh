@@ -23,6 +23,7 @@ SEEDS=${SEEDS:-"0 1 2"}
 MODELS=${MODELS:-"mpnode l2s"}   # add node for the monolithic baseline (same 16 nodes, so it can run zero-shot)
 JOBS=${JOBS:-2}
 EXTRA=${EXTRA:-}                 # extra train overrides for an ablation, e.g. EXTRA=model.aggregation=sum OUT=outputs/table1_sum
+ZS_EXTRA=${ZS_EXTRA:-}           # extra zero-shot overrides (model.* come from the checkpoint), e.g. for EXTRA=system.initial=uniform: ZS_EXTRA=++system.initial=uniform
 common=(paths.output_root=$OUT trainer=$TRAINER trainer.progress=false trainer.early_stop_patience=0 eval.plots=false)
 
 [ "${FRESH:-0}" = 1 ] && rm -rf "$OUT"
@@ -37,7 +38,7 @@ done | parallel "$JOBS"
 for seed in $SEEDS; do
   for model in $MODELS; do
     mpsim train -m mode=zeroshot init=$OUT/checkpoints/$model/s$seed/gene_ba_small.ckpt \
-      system=gene_er_small,gene_ws_small hydra.sweep.dir=$OUT/zeroshot/$model/s$seed "${common[@]}"
+      system=gene_er_small,gene_ws_small hydra.sweep.dir=$OUT/zeroshot/$model/s$seed "${common[@]}" $ZS_EXTRA
   done
 done
 
