@@ -100,3 +100,16 @@ def test_dense_and_edge_list_aggregation_agree():
         assert torch.allclose(dense.rollout(x0, t, Inputs(graph)), sparse.rollout(x0, t, Inputs(graph)), atol=1e-10)
     loops_dense, loops_sparse = _model(self_loops=True), _model(self_loops=True, dense_max_nodes=0)
     assert torch.allclose(loops_dense.rollout(x0, t, Inputs(a)), loops_sparse.rollout(x0, t, Inputs(a)), atol=1e-10)
+
+
+def test_full_graph_sums_over_every_node_whatever_the_datas_graph():
+    # graph="full" (MPNODE.jl's shipped configs): the sum runs over all nodes, self included, so the data's graph
+    # does not matter and the model equals the data-graph model on the complete graph with self-loops
+    t = torch.linspace(0, 1, 6, dtype=torch.float64)
+    x0 = torch.randn(2, 4, 2, dtype=torch.float64)
+    full, data = _model(graph="full"), _model(self_loops=True)
+    data.load_state_dict(full.state_dict())
+    on_chain = full.rollout(x0, t, Inputs(chain(4)))
+    assert torch.allclose(on_chain, full.rollout(x0, t, Inputs(torch.tensor([[0, 2], [2, 0]]))), atol=1e-12)
+    assert torch.allclose(on_chain, data.rollout(x0, t, Inputs(complete(4, self_loops=True))), atol=1e-10)
+    assert not torch.allclose(data.rollout(x0, t, Inputs(chain(4))), on_chain, atol=1e-4)

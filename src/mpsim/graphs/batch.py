@@ -62,6 +62,28 @@ def batch_graph(
     return BatchedGraph(src=src, dst=dst, n_graphs=n_graphs, n_nodes=n_nodes, inv_degree=inv)
 
 
+#: the graph a model passes messages on: "data", the data's own graph (MPNODE.jl graph="sys"), or "full",
+#: all-to-all with self-loops whatever the data's graph (MPNODE.jl graph="full", its shipped configs' setting)
+GRAPH_MODES = ("data", "full")
+
+
+def message_graph(
+    edge_index: torch.Tensor,  # [2, E] shared, or [B, 2, E] per graph padded with -1: the data's graph
+    n_graphs: int,
+    n_nodes: int,
+    mode: str = "data",
+    self_loops: bool = False,
+    dtype: torch.dtype = torch.float32,
+) -> BatchedGraph:
+    """`batch_graph` of the graph a model passes messages on (see `GRAPH_MODES`)."""
+    if mode not in GRAPH_MODES:
+        raise ValueError(f'model.graph must be one of {list(GRAPH_MODES)}; got "{mode}".')
+    if mode == "full":
+        nodes = torch.arange(n_nodes, device=edge_index.device)
+        edge_index = torch.stack([nodes.repeat(n_nodes), nodes.repeat_interleave(n_nodes)])
+    return batch_graph(edge_index, n_graphs, n_nodes, self_loops=self_loops, dtype=dtype)
+
+
 def inverse_degree(
     dst: torch.Tensor,  # [E] receiver of each edge
     n_nodes: int,

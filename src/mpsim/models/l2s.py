@@ -29,7 +29,7 @@ from torch import nn
 
 from mpsim.data.trajectories import Inputs
 from mpsim.effects import Effect
-from mpsim.graphs.batch import BatchedGraph, batch_graph, segment_sum, sum_aggregate
+from mpsim.graphs.batch import GRAPH_MODES, BatchedGraph, message_graph, segment_sum, sum_aggregate
 from mpsim.models.controls import ControlledModel, ControlNormalisation, HeldField, integrate_held, zero_order_hold
 from mpsim.models.layers import ACTIVATIONS, dense
 from mpsim.solvers.odeint import ODESolver
@@ -101,7 +101,9 @@ class L2S(ControlledModel):
         hidden: embedding width H (reference: 32).
         depth: processor rounds per right-hand-side evaluation (reference: 1).
         activation: tanh (reference), relu, softplus, silu or gelu.
-        self_loops: include each node among its own neighbours (MPNODE.jl's graph="full").
+        self_loops: include each node among its own neighbours.
+        graph: "data", the sum runs over the data's graph (MPNODE.jl `graph="sys"`), or "full": over all nodes,
+            self included, whatever the data's graph (MPNODE.jl `graph="full"`, its shipped configs' setting).
         dense_max_nodes: graphs of at most this many nodes aggregate with a dense adjacency product (faster
             on small graphs); larger ones over the edge list.
         effects: named physical terms with learnable coefficients (not supported: must be empty).
@@ -119,6 +121,7 @@ class L2S(ControlledModel):
         dense_max_nodes: int = 128,
         effects: Sequence[Effect] = (),
         solver: ODESolver | None = None,
+        graph: str = "data",
     ) -> None:
         if effects:
             raise ValueError("model=l2s does not take effects; use model=mpnode or model=physics for them.")
@@ -128,7 +131,9 @@ class L2S(ControlledModel):
                 f"model.hidden must be >= 1, model.depth >= 0 and model.activation one of {sorted(ACTIVATIONS)}; "
                 f"got {hidden}, {depth}, {activation!r}."
             )
-        self.hidden, self.depth, self.self_loops = int(hidden), int(depth), bool(self_loops)
+        if graph not in GRAPH_MODES:
+            raise ValueError(f'model.graph must be one of {list(GRAPH_MODES)}; got "{graph}".')
+        self.hidden, self.depth, self.self_loops, self.graph = int(hidden), int(depth), bool(self_loops), graph
         self.dense_max_nodes = int(dense_max_nodes)
         self.solver = solver or ODESolver()
         self.act = ACTIVATIONS[activation]()
@@ -144,7 +149,7 @@ class L2S(ControlledModel):
         inputs: Inputs,  # graph (padded with −1), controls [B, T, N, C] (zero-order hold); nodes are identical
     ) -> torch.Tensor:
         b, n, _ = x0.shape
-        graph = batch_graph(inputs.edge_index.to(x0.device), b, n, self_loops=self.self_loops, dtype=x0.dtype)
+        graph = message_graph(inputs.edge_index.to(x0.device), b, n, self.graph, self.self_loops, x0.dtype)
         field = _GraphField(self, graph, t.to(x0), self.controls(inputs.u), self.dense_max_nodes)
         z = integrate_held(lambda f, y, tt: self.integrate(f, y, tt, self.solver), field, self.normalise(x0), t)
         return self.denormalise(z)

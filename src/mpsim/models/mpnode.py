@@ -22,14 +22,12 @@ from torch import nn
 
 from mpsim.data.trajectories import Inputs
 from mpsim.effects import Effect, EffectContext, total
-from mpsim.graphs.batch import BatchedGraph, batch_graph, mean_aggregate, sum_aggregate
-from mpsim.graphs.topology import complete
+from mpsim.graphs.batch import GRAPH_MODES, BatchedGraph, batch_graph, mean_aggregate, message_graph, sum_aggregate
 from mpsim.models.controls import ControlledModel, ControlNormalisation, HeldField, integrate_held, zero_order_hold
 from mpsim.models.layers import mlp
 from mpsim.solvers.odeint import ODESolver
 
 AGGREGATIONS = {"mean": mean_aggregate, "sum": sum_aggregate}
-GRAPHS = ("data", "full")
 
 
 class _MessagePassingField(HeldField):
@@ -129,8 +127,8 @@ class MPNODE(ControlledModel):
         super().__init__(state_dim, control_dim, effects)
         if aggregation not in AGGREGATIONS:
             raise ValueError(f'model.aggregation must be one of {sorted(AGGREGATIONS)}; got "{aggregation}".')
-        if graph not in GRAPHS:
-            raise ValueError(f'model.graph must be one of {list(GRAPHS)}; got "{graph}".')
+        if graph not in GRAPH_MODES:
+            raise ValueError(f'model.graph must be one of {list(GRAPH_MODES)}; got "{graph}".')
         self.aggregation, self.graph = aggregation, graph
         if message_size < 0 or hidden < 1 or n_hidden_layers < 1:
             raise ValueError(
@@ -157,7 +155,7 @@ class MPNODE(ControlledModel):
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         b, n, d = x0.shape
         edge_index = inputs.edge_index.to(x0.device)
-        graph = self._message_graph(edge_index, b, n, x0.dtype)
+        graph = message_graph(edge_index, b, n, self.graph, self.self_loops, x0.dtype)
         y0 = torch.cat([self.normalise(x0), x0.new_zeros(b, n, self.message_size)], dim=-1)
         effect_graph = batch_graph(edge_index, b, n, dtype=x0.dtype) if len(self.effects) else None
         u = self.controls(inputs.u)
@@ -167,17 +165,6 @@ class MPNODE(ControlledModel):
         # with controls, one solve per sample interval with the input held (see mpsim.models.controls)
         ys = integrate_held(lambda f, y, tt: self.integrate(f, y, tt, self.solver), field, y0, t)  # [B, T, N, D+M]
         return self.denormalise(ys[..., :d]), {"messages": ys[..., d:]}
-
-    def _message_graph(
-        self,
-        edge_index: torch.Tensor,  # [2, E] or [B, 2, E] the data's graph
-        b: int,
-        n: int,
-        dtype: torch.dtype,
-    ) -> BatchedGraph:
-        if self.graph == "full":
-            return batch_graph(complete(n, self_loops=True).to(edge_index.device), b, n, dtype=dtype)
-        return batch_graph(edge_index, b, n, self_loops=self.self_loops, dtype=dtype)
 
     def one_step(
         self,
@@ -190,7 +177,7 @@ class MPNODE(ControlledModel):
         sees the latent state a rollout would."""
         b, n_t, n, d = x.shape
         edge_index, u = inputs.edge_index, inputs.u
-        graph = self._message_graph(edge_index.to(x.device), b, n, x.dtype)
+        graph = message_graph(edge_index.to(x.device), b, n, self.graph, self.self_loops, x.dtype)
         effect_graph = batch_graph(edge_index.to(x.device), b, n, dtype=x.dtype) if len(self.effects) else None
         field = _MessagePassingField(
             self.net, graph, d, self.zero_messages, t.to(x), self.controls(u), self, effect_graph, self.aggregation
