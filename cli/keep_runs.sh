@@ -4,7 +4,8 @@
 # numbers in docs/ can be checked against the runs that produced them, and an interrupted paper-sized run can be
 # resumed from another checkout.
 #   cli/keep_runs.sh /work/runs/table1_paper            → results/table1_paper/
-# Files over MAX_KB (default 2048) are left out (simulated data, trajectory dumps) and listed.
+# Files over MAX_KB (default 2048) are left out (simulated data, trajectory dumps) and listed. CHECKPOINTS=0 keeps
+# only the record (metrics, summaries, logs, Hydra record): for finished runs nobody needs to resume or reload.
 # To go on with them, copy the folder anywhere and run the recipe again with the same settings and OUT pointing at
 # the copy: finished runs are kept, interrupted ones resume there (a resumed run takes new paths.*), e.g.
 #   cp -r results/table1_paper /tmp/ && OUT=/tmp/table1_paper PAPER=1 cli/table1.sh
@@ -16,10 +17,12 @@ case "$name" in *[!A-Za-z0-9_.-]*|.*) echo "keep_runs: name '$name' must be [A-Z
 here=$(cd "$(dirname "$0")/.." && pwd)
 dest="$here/results/$name"
 max_kb=${MAX_KB:-2048}
+skip=(! -name '*.tmp')
+[ "${CHECKPOINTS:-1}" = 0 ] && skip+=(! -name '*.ckpt' ! -name '*.png')
 mkdir -p "$here/results"
 tmp=$(mktemp -d "$here/results/.keep.XXXXXX")
 trap 'rm -rf "$tmp"' EXIT
-(cd "$src" && find . -type f -size -"$((max_kb + 1))"k ! -name '*.tmp' -print0) |
+(cd "$src" && find . -type f -size -"$((max_kb + 1))"k "${skip[@]}" -print0) |
   (cd "$src" && xargs -0 -r cp --parents -t "$tmp")
 (cd "$src" && find . -type f -size +"$max_kb"k -printf "left out (over $max_kb KB): %p\n")
 rm -rf "$dest" && mv "$tmp" "$dest" && trap - EXIT

@@ -10,6 +10,8 @@ from dataclasses import dataclass
 
 import torch
 
+from mpsim.graphs.topology import complete
+
 
 @dataclass(frozen=True)
 class BatchedGraph:
@@ -76,12 +78,16 @@ def message_graph(
     dtype: torch.dtype = torch.float32,
 ) -> BatchedGraph:
     """`batch_graph` of the graph a model passes messages on (see `GRAPH_MODES`)."""
+    if check_graph_mode(mode) == "full":
+        edge_index = complete(n_nodes, self_loops=True).to(edge_index.device)
+    return batch_graph(edge_index, n_graphs, n_nodes, self_loops=self_loops, dtype=dtype)
+
+
+def check_graph_mode(mode: str) -> str:
+    """`mode` if it is one of `GRAPH_MODES`; a ValueError naming `model.graph` otherwise."""
     if mode not in GRAPH_MODES:
         raise ValueError(f'model.graph must be one of {list(GRAPH_MODES)}; got "{mode}".')
-    if mode == "full":
-        nodes = torch.arange(n_nodes, device=edge_index.device)
-        edge_index = torch.stack([nodes.repeat(n_nodes), nodes.repeat_interleave(n_nodes)])
-    return batch_graph(edge_index, n_graphs, n_nodes, self_loops=self_loops, dtype=dtype)
+    return mode
 
 
 def inverse_degree(

@@ -29,7 +29,7 @@ from torch import nn
 
 from mpsim.data.trajectories import Inputs
 from mpsim.effects import Effect
-from mpsim.graphs.batch import GRAPH_MODES, BatchedGraph, message_graph, segment_sum, sum_aggregate
+from mpsim.graphs.batch import BatchedGraph, check_graph_mode, message_graph, segment_sum, sum_aggregate
 from mpsim.models.controls import ControlledModel, ControlNormalisation, HeldField, integrate_held, zero_order_hold
 from mpsim.models.layers import ACTIVATIONS, dense
 from mpsim.solvers.odeint import ODESolver
@@ -131,9 +131,12 @@ class L2S(ControlledModel):
                 f"model.hidden must be >= 1, model.depth >= 0 and model.activation one of {sorted(ACTIVATIONS)}; "
                 f"got {hidden}, {depth}, {activation!r}."
             )
-        if graph not in GRAPH_MODES:
-            raise ValueError(f'model.graph must be one of {list(GRAPH_MODES)}; got "{graph}".')
-        self.hidden, self.depth, self.self_loops, self.graph = int(hidden), int(depth), bool(self_loops), graph
+        self.hidden, self.depth, self.self_loops, self.graph = (
+            int(hidden),
+            int(depth),
+            bool(self_loops),
+            check_graph_mode(graph),
+        )
         self.dense_max_nodes = int(dense_max_nodes)
         self.solver = solver or ODESolver()
         self.act = ACTIVATIONS[activation]()

@@ -22,7 +22,7 @@ from torch import nn
 
 from mpsim.data.trajectories import Inputs
 from mpsim.effects import Effect, EffectContext, total
-from mpsim.graphs.batch import GRAPH_MODES, BatchedGraph, batch_graph, mean_aggregate, message_graph, sum_aggregate
+from mpsim.graphs.batch import BatchedGraph, batch_graph, check_graph_mode, mean_aggregate, message_graph, sum_aggregate
 from mpsim.models.controls import ControlledModel, ControlNormalisation, HeldField, integrate_held, zero_order_hold
 from mpsim.models.layers import mlp
 from mpsim.solvers.odeint import ODESolver
@@ -127,9 +127,7 @@ class MPNODE(ControlledModel):
         super().__init__(state_dim, control_dim, effects)
         if aggregation not in AGGREGATIONS:
             raise ValueError(f'model.aggregation must be one of {sorted(AGGREGATIONS)}; got "{aggregation}".')
-        if graph not in GRAPH_MODES:
-            raise ValueError(f'model.graph must be one of {list(GRAPH_MODES)}; got "{graph}".')
-        self.aggregation, self.graph = aggregation, graph
+        self.aggregation, self.graph = aggregation, check_graph_mode(graph)
         if message_size < 0 or hidden < 1 or n_hidden_layers < 1:
             raise ValueError(
                 f"model.message_size must be >= 0, model.hidden and model.n_hidden_layers >= 1; got "
