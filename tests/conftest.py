@@ -5,6 +5,7 @@ Helpers (tiny configs, `make_cfg`, `run_mpsim`, `run_cli`) live in `tests/helper
 from __future__ import annotations
 
 import os
+import signal
 
 import pytest
 import torch
@@ -23,9 +24,9 @@ def _one_thread():
 
 @pytest.fixture(autouse=True)
 def _no_leaked_process_state():
-    """A test that leaves the working directory, torch's default dtype, the umask or Hydra's global state
-    changed fails (and the state is put back, so that later tests do not fail for it)."""
-    cwd, dtype = os.getcwd(), torch.get_default_dtype()
+    """A test that leaves the working directory, torch's default dtype, the umask, the SIGINT (Ctrl-C) handler or
+    Hydra's global state changed fails (and the state is put back, so that later tests do not fail for it)."""
+    cwd, dtype, sigint = os.getcwd(), torch.get_default_dtype(), signal.getsignal(signal.SIGINT)
     umask = os.umask(0o022)
     os.umask(umask)
     yield
@@ -36,6 +37,9 @@ def _no_leaked_process_state():
     if torch.get_default_dtype() != dtype:
         leaked.append(f"default dtype {torch.get_default_dtype()}")
         torch.set_default_dtype(dtype)
+    if signal.getsignal(signal.SIGINT) is not sigint:
+        leaked.append(f"SIGINT handler {signal.getsignal(signal.SIGINT)!r}")
+        signal.signal(signal.SIGINT, sigint)
     now = os.umask(umask)
     if now != umask:
         leaked.append(f"umask {now:o}")

@@ -20,9 +20,15 @@ def test_ctrl_c_during_a_checkpoint_write_lands_after_the_file_is_whole(tmp_path
         steps.append("after the signal")
         torch.save(payload, f)
 
-    with pytest.raises(KeyboardInterrupt):
-        atomic_write(tmp_path / "last.ckpt", write)
+    # Python's own Ctrl-C handler, whatever the test runner installed (the interrupt must reach *this* handler)
+    runner = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            atomic_write(tmp_path / "last.ckpt", write)
+        handler = signal.getsignal(signal.SIGINT)
+    finally:
+        signal.signal(signal.SIGINT, runner)
     assert steps == ["after the signal"]  # the write went on
     assert torch.equal(torch.load(tmp_path / "last.ckpt")["w"], payload["w"])  # and the file is whole
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is back
+    assert handler is signal.default_int_handler  # the handler is back
     assert [p.name for p in tmp_path.iterdir()] == ["last.ckpt"]  # no temporary file left
