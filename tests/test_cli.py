@@ -264,8 +264,16 @@ def test_entry_points_exit_codes_and_stderr(tmp_path):
     # Ctrl-C: far more epochs than can finish, so the signal always lands in a running training loop
     args = ["train", "trainer=quick", "trainer.max_epochs=100000", "trainer.early_stop_patience=0"]
     args += ["trainer.progress=false", "data.n_train=8", "data.n_val=4", "data.n_test=4", "data.horizon=10"]
+    # as from a terminal: Ctrl-C at its default action, whatever this process inherited (a test run started in the
+    # background, e.g. `nohup ... &`, ignores SIGINT, and an ignored signal stays ignored across exec)
     proc = subprocess.Popen(
-        [*_entry_points()[0], *args], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+        [*_entry_points()[0], *args],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     try:
         deadline = time.time() + 120
