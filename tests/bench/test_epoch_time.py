@@ -1,5 +1,7 @@
 """`bench=epoch_time`: real training runs, their per-epoch times and the projected paper budget."""
 
+from pathlib import Path
+
 import pytest
 
 from mpsim.bench.epoch_time import PAPER_CASES, EpochTimeBench
@@ -36,3 +38,20 @@ def test_a_failing_case_names_its_command():
     bench = EpochTimeBench(cases=[{"name": "bad", "overrides": ["system=no_such_system"]}], epochs=2)
     with pytest.raises(RuntimeError, match="system=no_such_system"):
         bench.run()
+
+
+def test_trained_cases_pair_fresh_and_kept_checkpoints():
+    """bench=epoch_time_trained: every trained case starts from a checkpoint kept in the repository and has a
+    fresh-weights twin with the same overrides, so each pair is a side-by-side ratio."""
+    import yaml
+
+    root = Path(__file__).resolve().parents[2]
+    cfg = yaml.safe_load((root / "src/mpsim/conf/bench/epoch_time_trained.yaml").read_text())
+    cases = EpochTimeBench(cases=cfg["cases"]).cases
+    fresh = {tuple(c["overrides"]) for c in cases if not any(o.startswith("init=") for o in c["overrides"])}
+    trained = [c for c in cases if any(o.startswith("init=") for o in c["overrides"])]
+    assert len(trained) == len(fresh) >= 3
+    for c in trained:
+        (init,) = [o.removeprefix("init=") for o in c["overrides"] if o.startswith("init=")]
+        assert (root / init).is_file(), f"{c['name']}: {init} is not in the repository"
+        assert tuple(o for o in c["overrides"] if not o.startswith("init=")) in fresh, c["name"]
