@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -85,11 +86,25 @@ def test_lorenz3_then_finetune_zeroshot_eval_simulate(lorenz_ws):
     zs = json.loads((_runs(ws)[-1] / "summary.json").read_text())
     assert zs["mode"] == "zeroshot" and zs["test_error"] > 0 and not (_runs(ws)[-1] / "metrics.csv").exists()
 
-    run_mpsim_ok(["eval", "init=lorenz3.ckpt", "system=lorenz10", "data.n_test=3", "data.horizon=10"], ws)
+    args = [
+        "eval",
+        "init=lorenz3.ckpt",
+        "system=lorenz10",
+        "data.n_test=3",
+        "data.horizon=10",
+        "eval.save_predictions=true",
+    ]
+    run_mpsim_ok(args, ws)
     (ev_run,) = _runs(ws, "eval")
     ev = json.loads((ev_run / "summary.json").read_text())
     assert ev["trained_on"] == "lorenz3" and ev["system"]["name"] == "lorenz10"
     assert list((ev_run / "plots").glob("*.png"))
+    # the saved test split and rollout are the ones the metrics were computed on
+    with np.load(ev_run / "test.npz") as truth, np.load(ev_run / "test_model.npz") as model:
+        x, pred = truth["x"], model["x"]
+        assert x.shape == pred.shape == (3, 11, 10, 3) and np.array_equal(truth["t"], model["t"])
+    assert np.allclose(pred[:, 0], x[:, 0], atol=1e-5) and not np.allclose(pred[:, 1:], x[:, 1:])
+    assert np.sqrt(((pred - x)[:, 1:] ** 2).mean()) == pytest.approx(ev["test"]["rmse_raw"], rel=1e-4)
 
     run_mpsim_ok(["simulate", "system=lorenz10", "init=lorenz3.ckpt", "format=csv", "n=2", "data.horizon=5"], ws)
     (sim,) = _runs(ws, "simulate")

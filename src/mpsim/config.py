@@ -93,6 +93,7 @@ class EvalConf:
     horizons: list[int] = field(default_factory=lambda: [1, 10, 25, 50])  # steps at which RMSE is reported
     n_plot: int = 2  # test trajectories drawn in the trajectory plot
     plots: bool = True
+    save_predictions: bool = False  # write the test split and the model's rollout of it (test.npz, test_model.npz)
 
 
 @dataclass

@@ -4,6 +4,7 @@ training. Shared by `mpsim eval` and `mpsim train` (its final test, and `mode=ze
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +16,7 @@ from mpsim.commands.building import build_system, model_and_data
 from mpsim.commands.checkpoints import load_init
 from mpsim.commands.console import fmt, print_summary
 from mpsim.commands.runtime import Runtime
+from mpsim.data.io import save_npz
 from mpsim.data.trajectories import Trajectories
 from mpsim.files import write_json
 from mpsim.metrics import relative_energy_error, rollout_metrics
@@ -32,13 +34,22 @@ def evaluate_model(
     n_plot: int = 2,
     plots: bool = True,
     title: str = "",
+    save_predictions: bool = False,
 ) -> dict[str, Any]:
     """Roll `model` out on `test`, compute the common metrics and draw the trajectory/error plots.
 
     Args:
         system: the generating system, for the energy error (None for file data or energy-free systems).
+        save_predictions: also write `test.npz` (the test split) and `test_model.npz` (the model's rollout of
+            it from each first state, raw units) to `output_dir`, in `mpsim simulate`'s format.
     """
     pred, aux = predict(model, test, aux=True)
+    if save_predictions:
+        save_npz(test, output_dir / "test.npz")
+        save_npz(
+            replace(test, x=pred.double(), meta={**test.meta, "model": "rollout from each first state"}),
+            output_dir / "test_model.npz",
+        )
     true = test.x.to(pred.dtype)
     std = model.state_std.detach().cpu().to(pred.dtype)
     metrics = rollout_metrics(
@@ -97,6 +108,7 @@ def evaluate_checkpoint(cfg: DictConfig, rt: Runtime, task: str) -> dict:
         cfg.eval.n_plot,
         cfg.eval.plots,
         title,
+        cfg.eval.save_predictions,
     )
     summary = {
         "task": task,

@@ -143,6 +143,7 @@ def _run(cfg: DictConfig, rt: Runtime, ctx: DistContext) -> dict:
         cfg.eval.n_plot,
         cfg.eval.plots,
         title=f"{train.system_name}: {mode}, best epoch {trainer.best_epoch_}",
+        save_predictions=cfg.eval.save_predictions,
     )
     trained = [r for r in history if r["epoch"] >= 1]
     table2 = epochs_x_min_error([r["epoch"] for r in trained], [r["test_error"] for r in trained])
