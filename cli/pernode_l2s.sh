@@ -7,14 +7,21 @@
 # it is). Each best checkpoint's test rollout (`mpsim eval eval.save_predictions=true`) is then read in both
 # units: z-scored per feature (pooled over nodes, as MPNODE.jl reports MP-NODE) and per node (as it reports L2S).
 # CPU-sized by default (EPOCHS=150, N=300 → 210 training trajectories, 3 seeds: about an hour of one core).
+# Paper-sized: PAPER=1 (MPNODE.jl's trainer, 4000 epochs, L2S 10000, N=1000 → 700 training trajectories, seed 0;
+# about 4 h a run here, see bench=epoch_time_trained).
 #   cli/pernode_l2s.sh                         → $OUT/pernode_l2s.md
 # Resumable (cli/lib.sh): run it again and finished runs are kept.
 set -euo pipefail
 source "$(dirname "$0")/lib.sh"
 OUT=${OUT:-outputs/pernode_l2s}
+if [ "${PAPER:-0}" = 1 ]; then
+  N=${N:-1000}; EPOCHS=${EPOCHS:-4000}; L2S_EPOCHS=${L2S_EPOCHS:-10000}; SEEDS=${SEEDS:-0}; TRAINER=${TRAINER:-paper}
+fi
 N=${N:-300}
 EPOCHS=${EPOCHS:-150}
+L2S_EPOCHS=${L2S_EPOCHS:-$EPOCHS}
 SEEDS=${SEEDS:-"0 1 2"}
+TRAINER=${TRAINER:-default}
 RUNS=${RUNS:-"l2s/per_feature l2s/per_node mpnode/per_feature"}  # model/units of its training file
 JOBS=${JOBS:-2}
 mkdir -p "$OUT/data"
@@ -41,8 +48,9 @@ PY
 fi
 for seed in $SEEDS; do
   for run in $RUNS; do
+    epochs=$EPOCHS; [ "${run%%/*}" = l2s ] && epochs=$L2S_EPOCHS
     echo "train_once $OUT/train/$run/s$seed model=${run%%/*} data.path=$OUT/data/${run#*/}.npz seed=$seed \
-      trainer.max_epochs=$EPOCHS trainer.progress=false trainer.early_stop_patience=0 eval.plots=false export=false \
+      trainer=$TRAINER trainer.max_epochs=$epochs trainer.progress=false trainer.early_stop_patience=0 eval.plots=false export=false \
       paths.output_root=$OUT"
   done
 done | parallel "$JOBS"
