@@ -36,7 +36,11 @@ PAPER_CASES: tuple[dict[str, Any], ...] = (
         "overrides": ["system=kuramoto10_er", "data.n_train=500"],
         "paper_epochs": 4000,
     },
-    {"name": "pendulum pair (Figure 3a)", "overrides": ["system=pendulum2", "data.n_train=500"], "paper_epochs": 4000},
+    {  # cli/foundation.sh PAPER=1: 500 trajectories of 10 s at dt 0.1 split 350/150, 100 more for the test
+        "name": "pendulum pair (Figure 3a)",
+        "overrides": ["system=pendulum2", "data.n_train=350", "data.n_val=150", "data.n_test=100", "data.horizon=100"],
+        "paper_epochs": 4000,
+    },
 )
 
 
