@@ -17,7 +17,7 @@ case "$name" in *[!A-Za-z0-9_.-]*|.*) echo "keep_runs: name '$name' must be [A-Z
 here=$(cd "$(dirname "$0")/.." && pwd)
 dest="$here/results/$name"
 max_kb=${MAX_KB:-2048}
-skip=(! -name '*.tmp')
+skip=(! -name '*.tmp' ! -name '*.lock')
 [ "${CHECKPOINTS:-1}" = 0 ] && skip+=(! -name '*.ckpt' ! -name '*.png')
 mkdir -p "$here/results"
 tmp=$(mktemp -d "$here/results/.keep.XXXXXX")

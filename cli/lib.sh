@@ -4,11 +4,21 @@
 #     DIR/summary.json exists          → the run finished: kept, not rerun
 #     DIR/checkpoints/last.ckpt exists → the run was interrupted: resumed with resume=DIR (same arguments)
 #     otherwise                        → a fresh run in DIR
+#     Each run holds the lock DIR.lock while it trains, so two recipes (or a recipe and a hand-started
+#     train_once) that reach the same run never train it twice at once: the second waits, then keeps or
+#     resumes what the first left.
 #   parallel JOBS < lines              → runs each line (a train_once call) with up to JOBS at once
 #
 # So an interrupted recipe is continued by running it again with the same settings; FRESH=1 starts over.
 train_once() {
-  local dir=$1; shift
+  local dir=${1%/}; shift
+  local lock
+  mkdir -p "$(dirname "$dir")"
+  exec {lock}>"$dir.lock"
+  if ! flock -n "$lock"; then
+    echo "waiting: $dir is being trained by another process"
+    flock "$lock"
+  fi
   if [ -f "$dir/summary.json" ]; then
     echo "kept (finished): $dir"
   elif [ -f "$dir/checkpoints/last.ckpt" ]; then
@@ -17,6 +27,9 @@ train_once() {
   else
     mpsim train "$@" hydra.run.dir="$dir"
   fi
+  local rc=$?
+  exec {lock}>&-
+  return $rc
 }
 
 parallel() {
