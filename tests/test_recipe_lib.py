@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import textwrap
+import time
 from pathlib import Path
 
 import pytest
@@ -85,7 +86,7 @@ def test_two_processes_on_one_run_train_it_once(env, tmp_path):
     for _ in range(100):  # until the first has started its run (holds the lock)
         if calls(log):
             break
-        subprocess.run(["sleep", "0.05"], check=True)
+        time.sleep(0.05)
     second = train_once(slow, run, "seed=0", wait=False)
     out1, _ = first.communicate(timeout=60)
     out2, _ = second.communicate(timeout=60)
