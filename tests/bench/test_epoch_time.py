@@ -32,6 +32,11 @@ def test_epoch_time_refuses_bad_cases_and_keeps_paper_defaults():
     with pytest.raises(ConfigError, match="epochs must be >= 2"):
         EpochTimeBench(epochs=1)
     assert {c["paper_epochs"] for c in PAPER_CASES} == {4000, 10000}  # MP-NODE 4000, L2S 10000 (the paper's)
+    with pytest.raises(ConfigError, match="matches no case; the cases are: 'gene 4×4 BA"):
+        EpochTimeBench(only=["no such case"])
+    quads = EpochTimeBench(only=["quadrotors"]).cases
+    assert len(quads) == 3 and all("quadrotors" in c["name"] for c in quads)
+    assert len(EpochTimeBench(only="8×8").cases) == 2  # a single string from the command line
 
 
 def test_a_failing_case_names_its_command():
@@ -55,3 +60,12 @@ def test_trained_cases_pair_fresh_and_kept_checkpoints():
         (init,) = [o.removeprefix("init=") for o in c["overrides"] if o.startswith("init=")]
         assert (root / init).is_file(), f"{c['name']}: {init} is not in the repository"
         assert tuple(o for o in c["overrides"] if not o.startswith("init=")) in fresh, c["name"]
+
+
+@pytest.mark.parametrize("case", PAPER_CASES, ids=lambda c: c["name"])
+def test_every_paper_case_composes_as_a_train_config(cfg_factory, case):
+    """A typo in a paper case would otherwise surface only after minutes of data simulation."""
+    cfg = cfg_factory("train", *case["overrides"], "trainer=paper")
+    sizes = {o.split("=")[0]: int(o.split("=")[1]) for o in case["overrides"] if o.startswith("data.n_")}
+    assert {k: cfg.data[k.removeprefix("data.")] for k in sizes} == sizes
+    assert cfg.trainer.batch_size == 128

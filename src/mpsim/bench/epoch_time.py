@@ -22,6 +22,8 @@ from typing import Any
 from mpsim.bench.common import Suite
 from mpsim.errors import ConfigError
 
+_QUAD = ("data.horizon=50", "data.n_val=30", "data.n_test=30", "solver=dopri5")  # the recipes' PAPER=1 quadrotor data
+
 #: the cases of the paper's tables and figures (system, model, dataset size, epochs of the paper's budget)
 PAPER_CASES: tuple[dict[str, Any], ...] = (
     {"name": "gene 4×4 BA (Table 1)", "overrides": ["system=gene_ba_small", "data.n_train=700"], "paper_epochs": 4000},
@@ -35,6 +37,31 @@ PAPER_CASES: tuple[dict[str, Any], ...] = (
         "name": "Kuramoto10 ER ds=500 (Table 2)",
         "overrides": ["system=kuramoto10_er", "data.n_train=500"],
         "paper_epochs": 4000,
+    },
+    {  # cli/table2.sh PAPER=1: the gene column's target (G_DS=700), finetuned from gene 4×4 or from scratch
+        "name": "gene 8×8 BA (Table 2)",
+        "overrides": ["system=gene_ba_large", "data.n_train=700"],
+        "paper_epochs": 4000,
+    },
+    {
+        "name": "gene 8×8 BA, L2S (Table 2)",
+        "overrides": ["system=gene_ba_large", "model=l2s", "data.n_train=700"],
+        "paper_epochs": 10000,
+    },
+    {  # cli/table2.sh and cli/message_size.sh PAPER=1: 50-step records, 30/30 validation/test, dopri5
+        "name": "3 quadrotors, m=13, 700 trajectories (Table 2 pre-training, Figure 7)",
+        "overrides": [*_QUAD, "system=quad3", "model.message_size=13", "data.n_train=700"],
+        "paper_epochs": 4000,
+    },
+    {
+        "name": "6 quadrotors, m=13, ds=500 (Table 2)",
+        "overrides": [*_QUAD, "system=quad6", "model.message_size=13", "data.n_train=500"],
+        "paper_epochs": 4000,
+    },
+    {
+        "name": "6 quadrotors, L2S, ds=500 (Table 2)",
+        "overrides": [*_QUAD, "system=quad6", "model=l2s", "data.n_train=500"],
+        "paper_epochs": 10000,
     },
     {  # cli/foundation.sh PAPER=1: 500 trajectories of 10 s at dt 0.1 split 350/150, 100 more for the test
         "name": "pendulum pair (Figure 3a)",
@@ -51,6 +78,7 @@ class EpochTimeBench(Suite):
     trainer: the trainer preset (the paper's: `paper`).
     threads: torch threads of each training process (`threads=` of `mpsim train`).
     timeout: seconds allowed per case (data simulation included).
+    only: keep the cases whose name contains one of these strings, e.g. `bench.only=[8×8,quadrotors]`.
     """
 
     name = "epoch_time"
@@ -62,6 +90,7 @@ class EpochTimeBench(Suite):
         trainer: str = "paper",
         threads: int = 1,
         timeout: float = 1800.0,
+        only: Sequence[str] | None = None,
     ) -> None:
         if epochs < 2:
             raise ConfigError(f"bench.epochs must be >= 2 (the first epoch is warm-up); got {epochs}.")
@@ -71,6 +100,14 @@ class EpochTimeBench(Suite):
             if not isinstance(c.get("name"), str) or isinstance(overrides, str) or not isinstance(overrides, Sequence):
                 raise ConfigError(f"bench.cases: each case needs a name and a list of overrides; got {c!r}.")
             self.cases.append({**dict(c), "overrides": [str(o) for o in overrides]})
+        if only is not None:
+            if isinstance(only, str):
+                only = [only]
+            kept = [c for c in self.cases if any(str(o) in c["name"] for o in only)]
+            if not kept:
+                names = ", ".join(repr(c["name"]) for c in self.cases)
+                raise ConfigError(f"bench.only={list(only)} matches no case; the cases are: {names}.")
+            self.cases = kept
         self.epochs, self.trainer, self.threads, self.timeout = int(epochs), trainer, int(threads), float(timeout)
 
     def _train(self, overrides: list[str], run_dir: Path) -> list[dict[str, float]]:
