@@ -1,5 +1,8 @@
 """`bench=epoch_time`: real training runs, their per-epoch times and the projected paper budget."""
 
+import os
+import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -69,3 +72,65 @@ def test_every_paper_case_composes_as_a_train_config(cfg_factory, case):
     sizes = {o.split("=")[0]: int(o.split("=")[1]) for o in case["overrides"] if o.startswith("data.n_")}
     assert {k: cfg.data[k.removeprefix("data.")] for k in sizes} == sizes
     assert cfg.trainer.batch_size == 128
+
+
+# --- the paper cases time what the PAPER=1 recipes train -------------------------------------------------------------
+# Each recipe runs with `mpsim` replaced on PATH by a stub that logs its arguments and leaves what a run or a report
+# writes, so the recipes' own PAPER=1 settings are read, not restated here.
+_RECIPE_STUB = """#!/usr/bin/env bash
+echo "$*" >> "$STUB_LOG"
+for a in "$@"; do
+  case $a in hydra.run.dir=*|resume=*)
+    d=${a#*=}; mkdir -p "$d" && echo '{}' > "$d/summary.json"
+    for f in report.md report.csv table1.png table2.png curves.png message_size.png message_size_curves.png; do
+      : > "$d/$f"
+    done;;
+  esac
+done
+"""
+_RECIPES = {  # recipe: the environment that keeps it to one seed
+    "table1.sh": {"SEEDS": "0"},
+    "table2.sh": {"SEEDS": "0"},
+    "message_size.sh": {"SEEDS": "0"},
+    "foundation.sh": {"SEEDS": "0", "PARTS": "pendulum"},
+}
+_DATA_KEYS = ("system=", "data.", "solver=")  # what sets the data a case trains on
+
+
+@pytest.fixture(scope="module")
+def paper_recipe_calls(tmp_path_factory):
+    if shutil.which("flock") is None:
+        pytest.skip("the recipes need flock (util-linux)")
+    root = Path(__file__).resolve().parents[2]
+    tmp = tmp_path_factory.mktemp("recipes")
+    (tmp / "bin").mkdir()
+    stub = tmp / "bin" / "mpsim"
+    stub.write_text(_RECIPE_STUB)
+    stub.chmod(0o755)
+    log = tmp / "calls.log"
+    for recipe, extra in _RECIPES.items():
+        env = {
+            **os.environ,
+            "PATH": f"{tmp / 'bin'}:{os.environ['PATH']}",
+            "STUB_LOG": str(log),
+            "PAPER": "1",
+            "OUT": str(tmp / recipe),
+            **extra,
+        }
+        p = subprocess.run(["bash", str(root / "cli" / recipe)], env=env, capture_output=True, text=True, timeout=120)
+        assert p.returncode == 0, f"{recipe} with a stub mpsim failed:\n{p.stdout}\n{p.stderr}"
+    return [line.split() for line in log.read_text().splitlines() if line.startswith("train ") and " -m " not in line]
+
+
+@pytest.mark.parametrize("case", PAPER_CASES, ids=[c["name"] for c in PAPER_CASES])
+def test_every_paper_case_times_a_run_a_paper_recipe_trains(paper_recipe_calls, case):
+    """A case matches a recipe's PAPER=1 training call when the call has every override of the case and trains on the
+    same data (no system=/data./solver= setting the case lacks) with the paper's trainer; a recipe that changes its
+    PAPER=1 data (say, QH=60) leaves a case without a match, and this test names it."""
+    wanted = set(case["overrides"])
+    matches = [
+        call
+        for call in paper_recipe_calls
+        if wanted <= set(call) and "trainer=paper" in call and {a for a in call if a.startswith(_DATA_KEYS)} <= wanted
+    ]
+    assert matches, f"no PAPER=1 recipe trains {case['name']!r} ({' '.join(case['overrides'])})"
