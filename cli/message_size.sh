@@ -4,7 +4,8 @@
 # CPU-sized by default (about an hour on 2 free cores): K_EPOCHS=100 Kuramoto epochs on 100 trajectories,
 # Q_EPOCHS=40 quadrotor epochs on 100 trajectories of QH=60 steps (one RK4 step per sample: QSOLVER=rk4), 2 seeds
 # (paper: 4000 epochs).
-# Paper-sized: PAPER=1 cli/message_size.sh. Figures and tables: $OUT/message_size.md.
+# Paper-sized: PAPER=1 cli/message_size.sh. Figures and tables: $OUT/message_size.md. PARTS=kuramoto runs only
+# Figure 8 (PARTS=quad only Figure 7); the report covers whatever runs have finished under $OUT.
 # Resumable: run it again with the same settings and finished runs are kept, interrupted ones resumed
 # (cli/lib.sh); FRESH=1 starts over.
 set -euo pipefail
@@ -23,6 +24,10 @@ fi
 K_MSG=${K_MSG:-1,3,7,13}
 Q_MSG=${Q_MSG:-7,13,20}
 JOBS=${JOBS:-2}
+PARTS=${PARTS:-"kuramoto quad"}
+for part in $PARTS; do
+  case $part in kuramoto|quad) ;; *) echo "message_size.sh: unknown part '$part' in PARTS (kuramoto, quad)" >&2; exit 2;; esac
+done
 common=(paths.output_root=$OUT trainer=$TRAINER trainer.progress=false trainer.early_stop_patience=0 eval.plots=false
         export=false data.n_train=$N_TRAIN)
 quad=(data.horizon=$QH data.n_val=30 data.n_test=30 trainer.max_epochs=$Q_EPOCHS solver=$QSOLVER)
@@ -30,20 +35,25 @@ quad=(data.horizon=$QH data.n_val=30 data.n_test=30 trainer.max_epochs=$Q_EPOCHS
 [ "${FRESH:-0}" = 1 ] && rm -rf "$OUT"
 rm -rf "$OUT/report"
 for seed in ${SEEDS//,/ }; do
-  for m in ${K_MSG//,/ }; do
-    echo "train_once $OUT/kuramoto/m${m}_s$seed system=kuramoto10_ba model.message_size=$m seed=$seed \
-      trainer.max_epochs=$K_EPOCHS ${common[*]}"
-  done
-  for system in quad3 quad6; do
-    for m in ${Q_MSG//,/ }; do
-      echo "train_once $OUT/quad/${system}_m${m}_s$seed system=$system model.message_size=$m seed=$seed ${quad[*]} ${common[*]}"
+  if [[ " $PARTS " == *" kuramoto "* ]]; then
+    for m in ${K_MSG//,/ }; do
+      echo "train_once $OUT/kuramoto/m${m}_s$seed system=kuramoto10_ba model.message_size=$m seed=$seed \
+        trainer.max_epochs=$K_EPOCHS ${common[*]}"
     done
-    echo "train_once $OUT/quad_l2s/${system}_s$seed system=$system model=l2s seed=$seed ${quad[*]} ${common[*]}"
-  done
+  fi
+  if [[ " $PARTS " == *" quad "* ]]; then
+    for system in quad3 quad6; do
+      for m in ${Q_MSG//,/ }; do
+        echo "train_once $OUT/quad/${system}_m${m}_s$seed system=$system model.message_size=$m seed=$seed ${quad[*]} ${common[*]}"
+      done
+      echo "train_once $OUT/quad_l2s/${system}_s$seed system=$system model=l2s seed=$seed ${quad[*]} ${common[*]}"
+    done
+  fi
 done | parallel "$JOBS"
 
+runs=$(for d in kuramoto quad quad_l2s; do if [ -d "$OUT/$d" ]; then echo "$OUT/$d"; fi; done | paste -sd, -)
 mpsim report layout=message_size "title='Figures 7 and 8: message size ($SIZE)'" \
-  "runs=[$OUT/kuramoto,$OUT/quad,$OUT/quad_l2s]" hydra.run.dir=$OUT/report paths.output_root=$OUT
+  "runs=[$runs]" hydra.run.dir=$OUT/report paths.output_root=$OUT
 cp "$OUT/report/report.md" "$OUT/message_size.md"
 cp "$OUT/report/message_size.png" "$OUT/report/message_size_curves.png" "$OUT/"
 echo "figures: $OUT/message_size.md"

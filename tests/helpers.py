@@ -164,3 +164,33 @@ def declared_pendulums(train):
     ).double()
     model.set_normalisation(train.x.reshape(-1, 2).mean(0), train.x.reshape(-1, 2).std(0))
     return model
+
+
+# ---- the cli/ recipes with a stub `mpsim` ----------------------------------------------------------------------
+_RECIPE_STUB = """#!/usr/bin/env bash
+# stub mpsim: log the call; leave what a run (summary.json) or a report (its files) leaves in hydra.run.dir= or resume=
+echo "$*" >> "$STUB_LOG"
+for a in "$@"; do
+  case $a in hydra.run.dir=*|resume=*)
+    d=${a#*=}; mkdir -p "$d" && echo '{}' > "$d/summary.json"
+    for f in report.md report.csv table1.png table2.png curves.png message_size.png message_size_curves.png; do
+      : > "$d/$f"
+    done;;
+  esac
+done
+"""
+
+
+def run_recipe(recipe: str, tmp: Path, **env: str) -> tuple[subprocess.CompletedProcess, list[list[str]]]:
+    """Run `cli/<recipe>` with OUT=tmp/<recipe> and `mpsim` replaced on PATH by a stub that only logs its arguments,
+    so a recipe's settings can be checked without training. Returns the process and the `mpsim` calls it made."""
+    bin_dir = tmp / "stub_bin"
+    bin_dir.mkdir(exist_ok=True)
+    (bin_dir / "mpsim").write_text(_RECIPE_STUB)
+    (bin_dir / "mpsim").chmod(0o755)
+    log = tmp / f"{recipe}.calls"
+    log.unlink(missing_ok=True)
+    environ = {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}", "STUB_LOG": str(log), "OUT": str(tmp / recipe)}
+    script = Path(__file__).resolve().parents[1] / "cli" / recipe
+    proc = subprocess.run(["bash", str(script)], env={**environ, **env}, capture_output=True, text=True, timeout=120)
+    return proc, [line.split() for line in log.read_text().splitlines()] if log.exists() else []

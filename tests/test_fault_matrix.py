@@ -345,6 +345,20 @@ CASES: dict[str, Case] = {
         2,
         "runs/b/summary.json must hold a JSON object",
     ),
+    "report_missing_path": Case(
+        lambda w, d: (
+            (d / "runs/a").mkdir(parents=True),
+            (d / "runs/a/summary.json").write_text("{}"),
+            ["report", f"runs=[{d / 'runs'},{d / 'rusn'}]"],
+        )[2],
+        2,
+        "rusn' matches no file or folder",
+    ),
+    "report_nothing_finished": Case(
+        lambda w, d: ((d / "runs/a").mkdir(parents=True), ["report", f"runs=[{d / 'runs'}]"])[1],
+        2,
+        "no run there has finished",
+    ),
     # -- memory: estimated and refused before anything is allocated
     "memory_simulate_nbody": Case(
         lambda w, d: ["simulate", "system=nbody", "system.n_particles=10000000"], 5, "memory_check=false"

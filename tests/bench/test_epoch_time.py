@@ -1,14 +1,13 @@
 """`bench=epoch_time`: real training runs, their per-epoch times and the projected paper budget."""
 
-import os
 import shutil
-import subprocess
 from pathlib import Path
 
 import pytest
 
 from mpsim.bench.epoch_time import PAPER_CASES, EpochTimeBench
 from mpsim.errors import ConfigError
+from tests.helpers import run_recipe
 
 
 def test_epoch_time_rows_come_from_a_real_training_run():
@@ -75,19 +74,8 @@ def test_every_paper_case_composes_as_a_train_config(cfg_factory, case):
 
 
 # --- the paper cases time what the PAPER=1 recipes train -------------------------------------------------------------
-# Each recipe runs with `mpsim` replaced on PATH by a stub that logs its arguments and leaves what a run or a report
-# writes, so the recipes' own PAPER=1 settings are read, not restated here.
-_RECIPE_STUB = """#!/usr/bin/env bash
-echo "$*" >> "$STUB_LOG"
-for a in "$@"; do
-  case $a in hydra.run.dir=*|resume=*)
-    d=${a#*=}; mkdir -p "$d" && echo '{}' > "$d/summary.json"
-    for f in report.md report.csv table1.png table2.png curves.png message_size.png message_size_curves.png; do
-      : > "$d/$f"
-    done;;
-  esac
-done
-"""
+# Each recipe runs with a stub `mpsim` (tests.helpers.run_recipe), so the recipes' own PAPER=1 settings are read, not
+# restated here.
 _RECIPES = {  # recipe: the environment that keeps it to one seed
     "table1.sh": {"SEEDS": "0"},
     "table2.sh": {"SEEDS": "0"},
@@ -101,25 +89,13 @@ _DATA_KEYS = ("system=", "data.", "solver=")  # what sets the data a case trains
 def paper_recipe_calls(tmp_path_factory):
     if shutil.which("flock") is None:
         pytest.skip("the recipes need flock (util-linux)")
-    root = Path(__file__).resolve().parents[2]
     tmp = tmp_path_factory.mktemp("recipes")
-    (tmp / "bin").mkdir()
-    stub = tmp / "bin" / "mpsim"
-    stub.write_text(_RECIPE_STUB)
-    stub.chmod(0o755)
-    log = tmp / "calls.log"
+    calls = []
     for recipe, extra in _RECIPES.items():
-        env = {
-            **os.environ,
-            "PATH": f"{tmp / 'bin'}:{os.environ['PATH']}",
-            "STUB_LOG": str(log),
-            "PAPER": "1",
-            "OUT": str(tmp / recipe),
-            **extra,
-        }
-        p = subprocess.run(["bash", str(root / "cli" / recipe)], env=env, capture_output=True, text=True, timeout=120)
-        assert p.returncode == 0, f"{recipe} with a stub mpsim failed:\n{p.stdout}\n{p.stderr}"
-    return [line.split() for line in log.read_text().splitlines() if line.startswith("train ") and " -m " not in line]
+        proc, made = run_recipe(recipe, tmp, PAPER="1", **extra)
+        assert proc.returncode == 0, f"{recipe} with a stub mpsim failed:\n{proc.stdout}\n{proc.stderr}"
+        calls += [c[1:] for c in made if c[0] == "train" and "-m" not in c]
+    return calls
 
 
 @pytest.mark.parametrize("case", PAPER_CASES, ids=[c["name"] for c in PAPER_CASES])

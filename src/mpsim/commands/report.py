@@ -22,7 +22,7 @@ import pandas as pd
 import yaml
 from omegaconf import DictConfig
 
-from mpsim.commands.console import markdown, print_summary
+from mpsim.commands.console import markdown
 from mpsim.commands.report_layouts import DEFAULT_TITLES, LAYOUT_FUNCS, run_facts, settings_caption
 from mpsim.commands.runtime import locate, resolve_path
 from mpsim.errors import ConfigError, DataError
@@ -166,11 +166,20 @@ def run_report(cfg: DictConfig, output_dir: str | Path | None = None, overrides:
     if layout is not None and layout not in LAYOUT_FUNCS:
         raise ConfigError(f"layout={layout!r} is unknown; choose one of {', '.join(LAYOUT_FUNCS)} (or null).")
     start_dir, out_dir = locate(output_dir)
-    roots = [Path(m) for pattern in cfg.runs for m in sorted(glob.glob(str(resolve_path(pattern, start_dir))))]
+    matches = {str(p): sorted(glob.glob(str(resolve_path(p, start_dir)))) for p in cfg.runs}
+    missing = [p for p, found in matches.items() if not found]
+    if missing:  # a mistyped path would otherwise drop its runs from the table without a word
+        raise ConfigError(
+            f"runs: {', '.join(map(repr, missing))} matches no file or folder (relative paths are read from "
+            f"{start_dir}); fix the path or leave it out of runs=[...]."
+        )
+    roots = [Path(m) for found in matches.values() for m in found]
     frame = collect(roots, facts=layout is not None)
     if frame.empty:
-        print_summary("mpsim report", [("runs", f"no summary.json found under {list(cfg.runs)}")])
-        return {"n_runs": 0}
+        raise ConfigError(
+            f"runs: no summary.json under {', '.join(map(str, roots))}: no run there has finished (a run writes "
+            "summary.json when it ends); point runs=[...] at finished run or sweep folders."
+        )
     frame = frame[~frame["run"].str.startswith(str(out_dir))].reset_index(drop=True)
     if layout is not None:
         return _run_layout(cfg, layout, frame, roots, out_dir)

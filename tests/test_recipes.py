@@ -1,0 +1,42 @@
+"""The cli/ recipes' own options, checked with a stub `mpsim` (tests.helpers.run_recipe): what each queues and
+reports, and one clear refusal for a bad option. (That the PAPER=1 recipes train what `bench=epoch_time` times is
+tests/bench/test_epoch_time.py; the resumable-run helper is tests/test_recipe_lib.py.)"""
+
+import shutil
+
+import pytest
+
+from tests.helpers import run_recipe
+
+pytestmark = pytest.mark.skipif(shutil.which("flock") is None, reason="the recipes need flock (util-linux)")
+
+
+def _arg(call, key):
+    return next(a.split("=", 1)[1] for a in call if a.startswith(key + "="))
+
+
+def test_message_size_parts_kuramoto_trains_and_reports_only_figure_8(tmp_path):
+    proc, calls = run_recipe("message_size.sh", tmp_path, PAPER="1", SEEDS="0", K_MSG="1,7,13", PARTS="kuramoto")
+    assert proc.returncode == 0, proc.stderr
+    trains = [c for c in calls if c[0] == "train"]
+    assert [(_arg(c, "system"), _arg(c, "model.message_size")) for c in trains] == [
+        ("kuramoto10_ba", "1"),
+        ("kuramoto10_ba", "7"),
+        ("kuramoto10_ba", "13"),
+    ]
+    (report,) = [c for c in calls if c[0] == "report"]
+    assert _arg(report, "runs") == f"[{tmp_path / 'message_size.sh' / 'kuramoto'}]"  # no folder that was not made
+
+
+def test_message_size_default_runs_both_figures(tmp_path):
+    proc, calls = run_recipe("message_size.sh", tmp_path, SEEDS="0")
+    assert proc.returncode == 0, proc.stderr
+    systems = sorted({_arg(c, "system") for c in calls if c[0] == "train"})
+    assert systems == ["kuramoto10_ba", "quad3", "quad6"]
+    (report,) = [c for c in calls if c[0] == "report"]
+    assert _arg(report, "runs").count(",") == 2  # kuramoto, quad, quad_l2s
+
+
+def test_message_size_refuses_an_unknown_part(tmp_path):
+    proc, calls = run_recipe("message_size.sh", tmp_path, PARTS="kuramoto quads")
+    assert proc.returncode == 2 and "unknown part 'quads'" in proc.stderr and calls == []
