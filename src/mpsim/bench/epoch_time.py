@@ -22,7 +22,8 @@ from typing import Any
 from mpsim.bench.common import Suite
 from mpsim.errors import ConfigError
 
-_QUAD = ("data.horizon=50", "data.n_val=30", "data.n_test=30", "solver=dopri5")  # cli/table2.sh, cli/message_size.sh PAPER=1 (tested)
+# the quadrotor data of cli/table2.sh and cli/message_size.sh at PAPER=1 (tests/bench/test_epoch_time.py checks it)
+_QUAD = ("data.horizon=50", "data.n_val=30", "data.n_test=30", "solver=dopri5")
 
 #: the cases of the paper's tables and figures (system, model, dataset size, epochs of the paper's budget)
 PAPER_CASES: tuple[dict[str, Any], ...] = (
