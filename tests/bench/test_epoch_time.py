@@ -4,6 +4,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+import torch
 
 from mpsim.bench.epoch_time import PAPER_CASES, EpochTimeBench
 from mpsim.errors import ConfigError
@@ -22,7 +23,8 @@ def test_epoch_time_rows_come_from_a_real_training_run():
         epochs=3,
     )
     (row,) = bench.run()
-    assert row["case"] == "tiny" and row["epochs_timed"] == 2  # epoch 0 (evaluation) and the warm-up dropped
+    # epoch 0 (evaluation) and the warm-up dropped
+    assert row["case"] == "tiny" and row["device"] == "cpu" and row["epochs_timed"] == 2
     assert 0 < row["train_pass_s"] <= row["epoch_with_eval_s"]
     assert row["paper_budget_h"] == pytest.approx(4000 * row["epoch_with_eval_s"] / 3600, abs=0.006)
     assert f"{row['paper_budget_h']:.1f} h" in bench.summarise([row])[0]
@@ -39,6 +41,28 @@ def test_epoch_time_refuses_bad_cases_and_keeps_paper_defaults():
     quads = EpochTimeBench(only=["quadrotors"]).cases
     assert len(quads) == 3 and all("quadrotors" in c["name"] for c in quads)
     assert len(EpochTimeBench(only="8×8").cases) == 2  # a single string from the command line
+
+
+def test_every_child_trains_on_the_bench_device(monkeypatch):
+    """`mpsim train` picks `device=auto`: without `device=` passed on, a CPU bench on a GPU machine timed the GPU."""
+    seen = []
+
+    def fake_run(cmd, **kwargs):
+        seen.append(cmd)
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr("mpsim.bench.epoch_time.subprocess.run", fake_run)
+    for device in ("cpu", "auto"):
+        with pytest.raises(RuntimeError, match="stop here"):
+            EpochTimeBench(only=["pendulum"], device=device).run()
+    want = "device=cuda" if torch.cuda.is_available() else "device=cpu"
+    assert "device=cpu" in seen[0] and want in seen[1]
+    assert EpochTimeBench(only=["pendulum"]).device == "cpu"
+    with pytest.raises(ConfigError, match="device must be cpu, cuda or auto"):
+        EpochTimeBench(device="tpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="CUDA is not available"):
+            EpochTimeBench(device="cuda")
 
 
 def test_a_failing_case_names_its_command():

@@ -6,6 +6,8 @@ The trainer logs every epoch's training-pass time and wall clock in `metrics.csv
 allocator growth) is dropped and the median of the rest is reported, with the projected time of the paper's
 epoch budget (4000 epochs for MP-NODE, 10000 for L2S). Simulating the dataset is not timed: it happens once,
 before the first epoch, and is cached under `paths.cache_dir`, where the paper-sized runs find it again.
+Each child trains on the bench's `device` (`cpu` by default, also on a machine with a GPU; `device=cuda` times
+the GPU), never on whatever `mpsim train`'s `device=auto` would pick.
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
+
+import torch
 
 from mpsim.bench.common import Suite
 from mpsim.errors import ConfigError
@@ -80,6 +84,7 @@ class EpochTimeBench(Suite):
     threads: torch threads of each training process (`threads=` of `mpsim train`).
     timeout: seconds allowed per case (data simulation included).
     only: keep the cases whose name contains one of these strings, e.g. `bench.only=[8×8,quadrotors]`.
+    device: where each training child runs: `cpu`, `cuda` or `auto` (`cuda` when one is available).
     """
 
     name = "epoch_time"
@@ -92,7 +97,15 @@ class EpochTimeBench(Suite):
         threads: int = 1,
         timeout: float = 1800.0,
         only: Sequence[str] | None = None,
+        device: str = "cpu",
     ) -> None:
+        if device == "auto":
+            device = "cuda" if torch.cuda.is_available() else "cpu"
+        if device.startswith("cuda") and not torch.cuda.is_available():
+            raise ConfigError(f"device={device} but CUDA is not available on this machine; use device=cpu.")
+        if not (device == "cpu" or device.startswith("cuda")):
+            raise ConfigError(f"bench=epoch_time: device must be cpu, cuda or auto; got {device!r}.")
+        self.device = device
         if epochs < 2:
             raise ConfigError(f"bench.epochs must be >= 2 (the first epoch is warm-up); got {epochs}.")
         self.cases = []
@@ -125,6 +138,7 @@ class EpochTimeBench(Suite):
             "eval.plots=false",
             "export=false",
             f"threads={self.threads}",
+            f"device={self.device}",
             f"hydra.run.dir={run_dir}",
         ]
         done = subprocess.run(cmd, capture_output=True, text=True, timeout=self.timeout)
@@ -152,6 +166,7 @@ class EpochTimeBench(Suite):
                 rows.append(
                     {
                         "case": case["name"],
+                        "device": self.device,
                         "overrides": " ".join(case["overrides"]),
                         "epochs_timed": len(train),
                         "train_pass_s": round(epoch_s, 4),
@@ -165,7 +180,8 @@ class EpochTimeBench(Suite):
     def summarise(self, rows: list[dict[str, Any]]) -> list[str]:
         total = sum(r["paper_budget_h"] for r in rows)
         return [
-            f"One run of each case at the paper's budget: {total:.1f} h in all on {self.threads} thread(s) "
+            f"One run of each case at the paper's budget: {total:.1f} h in all on {self.device} with "
+            f"{self.threads} thread(s) "
             "(an epoch = one training pass over the dataset plus the per-epoch validation and test rollouts; "
             "median over the timed epochs after a warm-up epoch). Runs on separate cores add up in parallel."
         ]

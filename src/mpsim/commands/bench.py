@@ -60,6 +60,6 @@ def _device_arg(cfg: DictConfig) -> dict[str, str]:
         return {"device": device}
     if device != "cpu":
         raise ConfigError(
-            f"bench={target} runs on the CPU only; drop device={device} (suites with a device: bench=ddp)."
+            f"bench={target} runs on the CPU only; drop device={device} (suites with a device: bench=ddp, bench=epoch_time)."
         )
     return {}
