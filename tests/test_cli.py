@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+import torch
 
 from tests.helpers import TINY_TRAIN, run_cli, run_mpsim, run_mpsim_ok
 
@@ -42,6 +43,8 @@ def test_default_train_writes_every_output(tmp_path):
     for key in ("min_test_error", "min_test_error_epoch", "epochs_x_min_error", "final", "wall_time"):
         assert key in summary, key
     assert summary["model"]["n_params"] == 1413
+    where = "cuda:0 (" if torch.cuda.is_available() else "cpu ("  # device=auto; the summary says which it chose
+    assert summary["device"].startswith(where) and f"on {summary['device']}" in proc.stdout
     assert summary["epochs_x_min_error"] == pytest.approx(summary["min_test_error"] * summary["min_test_error_epoch"])
     for name in (
         "checkpoints/best.ckpt",

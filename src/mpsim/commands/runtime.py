@@ -87,6 +87,14 @@ def setup_runtime(cfg: DictConfig, output_dir: str | Path | None = None, overrid
     )
 
 
+def describe_device(device: torch.device) -> str:
+    """Where a run computed, for its summary: `cpu (2 threads)` or `cuda:0 (NVIDIA H100 80GB HBM3)`."""
+    if device.type == "cuda":
+        index = torch.cuda.current_device() if device.index is None else device.index
+        return f"cuda:{index} ({torch.cuda.get_device_name(index)})"
+    return f"{device.type} ({torch.get_num_threads()} thread{'s' if torch.get_num_threads() != 1 else ''})"
+
+
 def inline_specs(cfg: DictConfig) -> None:
     """`system.spec=<file>` / `model.spec=<file>` (model=equations, system=equations): replace the file name by
     the file's content, so that checkpoints, dataset cache keys and summaries carry the equations themselves."""

@@ -19,7 +19,7 @@ from mpsim.commands.building import build, build_system, model_and_data
 from mpsim.commands.checkpoints import checkpoint_base, load_init
 from mpsim.commands.console import duration, fmt, print_summary
 from mpsim.commands.evaluation import evaluate_checkpoint, evaluate_model, horizon_rows
-from mpsim.commands.runtime import Runtime, is_multirun, resolve_path, setup_runtime
+from mpsim.commands.runtime import Runtime, describe_device, is_multirun, resolve_path, setup_runtime
 from mpsim.commands.splits import check_training_memory, noisy_train
 from mpsim.config import check_target_node, plain_dict
 from mpsim.errors import CheckpointError, ConfigError, OutputError
@@ -193,6 +193,7 @@ def _run(cfg: DictConfig, rt: Runtime, ctx: DistContext) -> dict:
         "export_replaced": None if previous is None else str(previous),
         "export_error": None if export_error is None else str(export_error),
         "distributed": {"world_size": ctx.world_size, "backend": ctx.backend},
+        "device": describe_device(rt.device),
     }
     summary["objective"] = {"name": cfg.objective, "value": objective_value(summary, cfg.objective)}
     write_json(rt.output_dir / "summary.json", summary)
@@ -300,7 +301,11 @@ def _print(s: dict[str, Any], train, model_lines: list[tuple[str, str]]) -> None
             f"{s['data']['train']}/{s['data']['val']}/{s['data']['test']} train/val/test trajectories, "
             f"N={train.n_nodes}, {train.n_times - 1} steps of {fmt(train.meta.get('dt'))}",
         ),
-        ("epochs", f"{s['epochs_run']} ({s['status'].replace('_', ' ')}), wall time {duration(s['wall_time'])}"),
+        (
+            "epochs",
+            f"{s['epochs_run']} ({s['status'].replace('_', ' ')}), wall time {duration(s['wall_time'])}"
+            + (f" on {s['device']}" if s.get("device") else ""),
+        ),
         (
             "min test error",
             f"{fmt(s['min_test_error'])} at epoch {s['min_test_error_epoch']} "
