@@ -16,6 +16,8 @@ from typing import Any
 
 import torch
 
+from mpsim.errors import ConfigError
+
 
 def timeit(fn: Callable[[], Any], repeats: int = 5, warmup: int = 1, max_seconds: float = 30.0) -> dict[str, float]:
     """Median and minimum wall time of `fn()` over `repeats` runs after `warmup` runs (fewer if slow).
@@ -36,6 +38,18 @@ def timeit(fn: Callable[[], Any], repeats: int = 5, warmup: int = 1, max_seconds
         if time.perf_counter() - start > max_seconds:
             break
     return {"median_s": statistics.median(times), "min_s": min(times), "runs": len(times)}
+
+
+def resolve_device(device: str) -> str:
+    """A suite's `device=`: `auto` becomes `cuda` when one is available, else `cpu`; `cuda` without one, or
+    anything but cpu/cuda[:i], is a `ConfigError`."""
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise ConfigError(f"device={device} but CUDA is not available on this machine; use device=cpu.")
+    if not (device == "cpu" or device.startswith("cuda")):
+        raise ConfigError(f"device must be cpu, cuda or auto; got {device!r}.")
+    return device
 
 
 def cuda_sync() -> None:

@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 import torch.multiprocessing as mp
 
-from mpsim.bench.common import Suite
+from mpsim.bench.common import Suite, resolve_device
 from mpsim.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -85,11 +85,7 @@ class DDPBench(Suite):
         self.nbody_n, self.nbody_batch, self.nbody_graph = nbody_n, nbody_batch, nbody_graph
         self.mpnode_batch, self.mpnode_steps = mpnode_batch, mpnode_steps
         self.steps, self.repeats, self.warmup, self.threads = steps, repeats, warmup, threads
-        if device == "auto":
-            device = "cuda" if torch.cuda.is_available() else "cpu"
-        if device.startswith("cuda") and not torch.cuda.is_available():
-            raise ConfigError(f"device={device} but CUDA is not available on this machine; use device=cpu.")
-        self.device = device
+        self.device = resolve_device(device)
 
     def run(self) -> list[dict[str, Any]]:
         rows: list[dict[str, Any]] = []

@@ -21,9 +21,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import torch
-
-from mpsim.bench.common import Suite
+from mpsim.bench.common import Suite, resolve_device
 from mpsim.errors import ConfigError
 
 # the quadrotor data of cli/table2.sh and cli/message_size.sh at PAPER=1 (tests/bench/test_epoch_time.py checks it)
@@ -99,13 +97,7 @@ class EpochTimeBench(Suite):
         only: Sequence[str] | None = None,
         device: str = "cpu",
     ) -> None:
-        if device == "auto":
-            device = "cuda" if torch.cuda.is_available() else "cpu"
-        if device.startswith("cuda") and not torch.cuda.is_available():
-            raise ConfigError(f"device={device} but CUDA is not available on this machine; use device=cpu.")
-        if not (device == "cpu" or device.startswith("cuda")):
-            raise ConfigError(f"bench=epoch_time: device must be cpu, cuda or auto; got {device!r}.")
-        self.device = device
+        self.device = resolve_device(device)
         if epochs < 2:
             raise ConfigError(f"bench.epochs must be >= 2 (the first epoch is warm-up); got {epochs}.")
         self.cases = []
