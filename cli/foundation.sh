@@ -25,6 +25,7 @@ SEEDS=${SEEDS:-0,1}
 TRAINER=${TRAINER:-default}
 PEND_DATA=${PEND_DATA:-}   # pendulum2 data overrides (default: the system's 200 trajectories of 50 steps)
 PARTS=${PARTS:-"lorenz pendulum"}
+check_parts foundation.sh lorenz pendulum
 CKPT=$OUT/checkpoints
 common=(paths.output_root=$OUT paths.ckpt_dir=$CKPT trainer=$TRAINER trainer.progress=false trainer.early_stop_patience=0)
 report=(hydra.run.dir=$OUT/report paths.output_root=$OUT)

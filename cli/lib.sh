@@ -1,4 +1,5 @@
-# Shared by the paper recipes (cli/table1.sh, cli/table2.sh, cli/message_size.sh): resumable runs.
+# Shared by the paper recipes (cli/table1.sh, cli/table2.sh, cli/message_size.sh, cli/foundation.sh): resumable
+# runs, and the PARTS option.
 #
 #   train_once DIR [mpsim train arguments...]
 #     DIR/summary.json exists          → the run finished: kept, not rerun
@@ -8,6 +9,8 @@
 #     train_once) that reach the same run never train it twice at once: the second waits, then keeps or
 #     resumes what the first left.
 #   parallel JOBS < lines              → runs each line (a train_once call) with up to JOBS at once
+#   check_parts RECIPE PART...         → stops (exit 2, one message) if $PARTS names a part not in PART...,
+#                                        before anything trains: a typo must not cost the parts before it
 #
 # So an interrupted recipe is continued by running it again with the same settings; FRESH=1 starts over.
 train_once() {
@@ -35,4 +38,14 @@ train_once() {
 parallel() {
   local here; here=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
   xargs -P "$1" -I{} bash -c "set -euo pipefail; source '$here/lib.sh'; {}"
+}
+
+check_parts() {
+  local recipe=$1 part; shift
+  for part in $PARTS; do
+    if [[ " $* " != *" $part "* ]]; then
+      echo "$recipe: unknown part '$part' in PARTS (known: $*)" >&2
+      exit 2
+    fi
+  done
 }

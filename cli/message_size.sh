@@ -25,9 +25,7 @@ K_MSG=${K_MSG:-1,3,7,13}
 Q_MSG=${Q_MSG:-7,13,20}
 JOBS=${JOBS:-2}
 PARTS=${PARTS:-"kuramoto quad"}
-for part in $PARTS; do
-  case $part in kuramoto|quad) ;; *) echo "message_size.sh: unknown part '$part' in PARTS (kuramoto, quad)" >&2; exit 2;; esac
-done
+check_parts message_size.sh kuramoto quad
 common=(paths.output_root=$OUT trainer=$TRAINER trainer.progress=false trainer.early_stop_patience=0 eval.plots=false
         export=false data.n_train=$N_TRAIN)
 quad=(data.horizon=$QH data.n_val=30 data.n_test=30 trainer.max_epochs=$Q_EPOCHS solver=$QSOLVER)

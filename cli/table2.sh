@@ -12,7 +12,8 @@
 # Paper-sized: PAPER=1 cli/table2.sh.
 # Finetunes refit the normalisation on the new data, as MPNODE.jl does (REFIT=false keeps the checkpoint's).
 # Seeds vary the initial weights of scratch runs and the batch order of every run; datasets are fixed.
-# Any size can be overridden, e.g. EPOCHS=100 SEEDS=0,1,2 COLS="gene quad" cli/table2.sh.
+# Any size can be overridden, e.g. EPOCHS=100 SEEDS=0,1,2 PARTS="gene quad" cli/table2.sh
+# (the columns to run; COLS, its older name, still works).
 # REUSE=1 keeps a pre-trained checkpoint already in $OUT/checkpoints (e.g. cli/table1.sh's MP-NODE seed 0,
 # which is the same run as the gene pre-training here) instead of training it again.
 # Tables: $OUT/table2.md (Table 2) and $OUT/figure5.md (learning curves), with PNGs beside them.
@@ -37,7 +38,8 @@ DS=${DS:-50,100,500}        # Lorenz10 / Kuramoto finetuning dataset sizes
 REFIT=${REFIT:-true}        # finetunes refit the state (and control) normalisation on the target data
 MSG=${MSG:-13}              # quadrotor message size
 JOBS=${JOBS:-2}             # parallel jobs per sweep
-COLS=${COLS:-"lorenz kuramoto gene quad"}  # not COLUMNS: shells set that to the terminal width
+PARTS=${PARTS:-${COLS:-"lorenz kuramoto gene quad"}}  # the columns to run; COLS is its older name
+check_parts table2.sh lorenz kuramoto gene quad
 CKPT=$OUT/checkpoints
 common=(paths.output_root=$OUT paths.ckpt_dir=$CKPT trainer=$TRAINER trainer.progress=false
         trainer.early_stop_patience=0 eval.plots=false)
@@ -71,7 +73,7 @@ l2s() {  # name system size [overrides...]: L2S from scratch over seeds
   done | parallel "$JOBS"
 }
 
-for column in $COLS; do
+for column in $PARTS; do
   case $column in
     lorenz)
       pretrain lorenz3_pre lorenz3
@@ -87,7 +89,6 @@ for column in $COLS; do
       pretrain quad_pre quad3 model.message_size=$MSG "${quad[@]}"
       target quad quad6 quad3.ckpt "$Q_DS" model.message_size=$MSG "${quad[@]}"
       l2s quad_l2s quad6 "$Q_DS" "${quad[@]}" ;;
-    *) echo "unknown column $column (lorenz, kuramoto, gene, quad)" >&2; exit 2 ;;
   esac
 done
 

@@ -38,6 +38,36 @@ def test_message_size_default_runs_both_figures(tmp_path):
     assert _arg(report, "runs").count(",") == 2  # kuramoto, quad, quad_l2s
 
 
-def test_message_size_refuses_an_unknown_part(tmp_path):
-    proc, calls = run_recipe("message_size.sh", tmp_path, PARTS="kuramoto quads")
-    assert proc.returncode == 2 and "unknown part 'quads'" in proc.stderr and calls == []
+@pytest.mark.parametrize("option", ["PARTS", "COLS"])  # COLS: table2.sh's older name for PARTS
+def test_table2_parts_runs_only_the_columns_named(tmp_path, option):
+    proc, calls = run_recipe("table2.sh", tmp_path, SEEDS="0", DS="50", **{option: "kuramoto"})
+    assert proc.returncode == 0, proc.stderr
+    trains = sorted(
+        (_arg(c, "system"), _arg(c, "init") if any(a.startswith("init=") for a in c) else "-")
+        for c in calls
+        if c[0] == "train"
+    )
+    assert trains == [("kuramoto10_ba", "-"), ("kuramoto10_er", "kuramoto10_ba.ckpt"), ("kuramoto10_er", "null")]
+
+
+@pytest.mark.parametrize(
+    ("recipe", "parts", "bad"),
+    [
+        ("table2.sh", "lorenz kuramotoo", "kuramotoo"),
+        ("foundation.sh", "pendulum pendulums", "pendulums"),
+        ("message_size.sh", "kuramoto quads", "quads"),
+    ],
+)
+def test_a_misspelt_part_stops_the_recipe_before_anything_trains(tmp_path, recipe, parts, bad):
+    # the parts before the typo are valid: they must not train for hours and then fail on the typo
+    proc, calls = run_recipe(recipe, tmp_path, SEEDS="0", PARTS=parts)
+    assert proc.returncode == 2, proc.stderr
+    assert f"{recipe}: unknown part '{bad}' in PARTS" in proc.stderr
+    assert calls == []
+
+
+def test_foundation_parts_pendulum_trains_messages_on_and_off(tmp_path):
+    proc, calls = run_recipe("foundation.sh", tmp_path, SEEDS="0", PARTS="pendulum")
+    assert proc.returncode == 0, proc.stderr
+    trains = sorted((_arg(c, "system"), _arg(c, "model.zero_messages")) for c in calls if c[0] == "train")
+    assert trains == [("pendulum2", "false"), ("pendulum2", "true")]
