@@ -2,7 +2,8 @@
 
 Each run directory holds `summary.json` and `.hydra/overrides.yaml`; the overrides become columns, so a
 sweep's table has one row per job and one column per swept key. Rows that differ only by `seed` are
-aggregated as mean ± std.
+aggregated as mean ± std. Runs that began training but wrote no summary.json (interrupted, or still training)
+are not in the table; report.md names each with the epoch it reached.
 
 `layout=table2|table1|curves|message_size` replaces the generic table by one of the MP-NODE paper's tables
 or figures (`mpsim.commands.report_layouts`), built from the same runs: report.md (with the settings the runs
@@ -65,6 +66,60 @@ def collect(roots: list[Path], facts: bool = False) -> pd.DataFrame:
         }
     )
     return pd.DataFrame([_row(run, facts) for run in runs])
+
+
+def unfinished(roots: list[Path]) -> list[dict[str, Any]]:
+    """Runs under `roots` that began training but wrote no summary.json (interrupted, or still training), each
+    with the last epoch in its metrics.csv and the epochs it was set to run (None where a file does not say), so a
+    report can name what it leaves out instead of averaging over fewer runs without a word."""
+    dirs = sorted(
+        {
+            p.parent if p.name == "metrics.csv" else p.parent.parent
+            for root in roots
+            if root.is_dir()
+            for pattern in ("metrics.csv", "checkpoints/last.ckpt")
+            for p in root.rglob(pattern)
+        }
+    )
+    return [
+        {"run": str(d), "epoch": _last_epoch(d / "metrics.csv"), "max_epochs": _max_epochs(d)}
+        for d in dirs
+        if not (d / "summary.json").is_file()
+    ]
+
+
+def _last_epoch(path: Path) -> int | None:
+    try:
+        epochs = pd.read_csv(path, usecols=["epoch"])["epoch"]
+        return int(epochs.iloc[-1]) if len(epochs) else None
+    except (OSError, ValueError, pd.errors.ParserError):  # no file yet, no epoch column: nothing to say
+        return None
+
+
+def _max_epochs(run: Path) -> int | None:
+    try:
+        config = yaml.safe_load((run / ".hydra" / "config.yaml").read_text())
+        value = config["trainer"]["max_epochs"]
+    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        return None
+    return value if isinstance(value, int) and not isinstance(value, bool) else None
+
+
+def unfinished_note(runs: list[dict[str, Any]]) -> str:
+    """One paragraph naming the unfinished runs a report leaves out ("" when there are none)."""
+    if not runs:
+        return ""
+
+    def where(r: dict[str, Any]) -> str:
+        if r["epoch"] is None:
+            return "no epoch logged"
+        return f"epoch {r['epoch']}" + (f" of {r['max_epochs']}" if r["max_epochs"] is not None else "")
+
+    items = "; ".join(f"{r['run']} ({where(r)})" for r in runs)
+    return (
+        f"Not in the table: {len(runs)} run{'s' * (len(runs) != 1)} without summary.json (interrupted or still "
+        f"training; resume one with `mpsim train resume=<run dir>`): {items}.\n\n"
+    )
 
 
 def read_summary(path: Path) -> dict[str, Any]:
@@ -175,14 +230,16 @@ def run_report(cfg: DictConfig, output_dir: str | Path | None = None, overrides:
         )
     roots = [Path(m) for found in matches.values() for m in found]
     frame = collect(roots, facts=layout is not None)
+    pending = unfinished(roots)
     if frame.empty:
+        started = f" ({len(pending)} began training but wrote no summary.json)" if pending else ""
         raise ConfigError(
-            f"runs: no summary.json under {', '.join(map(str, roots))}: no run there has finished (a run writes "
-            "summary.json when it ends); point runs=[...] at finished run or sweep folders."
+            f"runs: no summary.json under {', '.join(map(str, roots))}: no run there has finished{started} (a run "
+            "writes summary.json when it ends); point runs=[...] at finished run or sweep folders."
         )
     frame = frame[~frame["run"].str.startswith(str(out_dir))].reset_index(drop=True)
     if layout is not None:
-        return _run_layout(cfg, layout, frame, roots, out_dir)
+        return _run_layout(cfg, layout, frame, roots, out_dir, pending)
     if cfg.target is not None:
         add_epochs_to_target(frame, cfg.target)
     fixed = {"run", "seed", "target_error", "status", *NUMERIC}
@@ -194,20 +251,25 @@ def run_report(cfg: DictConfig, output_dir: str | Path | None = None, overrides:
         table = table[[c for c in order if c in table.columns]]
     atomic_write(out_dir / "report.csv", lambda f: frame.to_csv(f, index=False), mode="w")
     note = f" Target test error {frame['target_error'].iloc[0]:.4g} ({cfg.target})." if cfg.target is not None else ""
-    text = f"# {cfg.title}\n\n{len(frame)} runs under {', '.join(map(str, roots))}.{note}\n\n{markdown(table)}\n"
+    text = (
+        f"# {cfg.title}\n\n{len(frame)} runs under {', '.join(map(str, roots))}.{note}\n\n"
+        f"{unfinished_note(pending)}{markdown(table)}\n"
+    )
     atomic_write(out_dir / "report.md", lambda f: f.write(text), mode="w")
     print(text)
-    return {"n_runs": len(frame), "report": str(out_dir / "report.md"), "table": table}
+    return {"n_runs": len(frame), "report": str(out_dir / "report.md"), "table": table, "unfinished": pending}
 
 
-def _run_layout(cfg: DictConfig, layout: str, frame: pd.DataFrame, roots: list[Path], out_dir: Path) -> dict:
+def _run_layout(
+    cfg: DictConfig, layout: str, frame: pd.DataFrame, roots: list[Path], out_dir: Path, pending: list[dict[str, Any]]
+) -> dict:
     """Write one built-in layout: report.md, report.csv (its table), runs.csv (every run) and its figures."""
     result = LAYOUT_FUNCS[layout](frame, out_dir)
     title = cfg.title if cfg.title != "mpsim report" else DEFAULT_TITLES[layout]
     figures = "".join(f"\n\n![{p.stem}]({p.name})" for p in result.figures)
     text = (
         f"# {title}\n\n{len(frame)} runs under {', '.join(map(str, roots))}. Settings of the runs:\n\n"
-        f"{settings_caption(frame)}\n\n{result.markdown}{figures}\n"
+        f"{settings_caption(frame)}\n\n{unfinished_note(pending)}{result.markdown}{figures}\n"
     )
     atomic_write(out_dir / "report.md", lambda f: f.write(text), mode="w")
     atomic_write(out_dir / "report.csv", lambda f: result.table.to_csv(f, index=False), mode="w")
@@ -218,4 +280,5 @@ def _run_layout(cfg: DictConfig, layout: str, frame: pd.DataFrame, roots: list[P
         "report": str(out_dir / "report.md"),
         "table": result.table,
         "figures": [str(p) for p in result.figures],
+        "unfinished": pending,
     }

@@ -1,0 +1,83 @@
+"""`mpsim report` names the runs it leaves out: a run that began training but wrote no summary.json (interrupted,
+or still training) is listed with the epoch it reached, in the generic table and in every layout."""
+
+import json
+
+import pandas as pd
+import pytest
+import yaml
+
+from mpsim.commands.report import run_report
+from mpsim.errors import ConfigError
+
+
+def _finished(run, seed):
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump([f"seed={seed}", "data.n_train=50"]))
+    pd.DataFrame({"epoch": [0, 1, 2], "val_error": [1.0, 0.5, 0.4], "test_error": [1.0, 0.5, 0.4]}).to_csv(
+        run / "metrics.csv", index=False
+    )
+    summary = {
+        "task": "train",
+        "mode": "scratch",
+        "status": "complete",
+        "system": {"name": "lorenz10", "n_nodes": 10},
+        "model": {"model": "MPNODE", "config": {"_target_": "mpsim.models.MPNODE", "message_size": 3}},
+        "data": {"train": 50, "val": 20, "test": 20, "n_times": 51},
+        "min_test_error": 0.4,
+        "min_test_error_epoch": 2,
+        "epochs_x_min_error": 0.8,
+        "initial_test_error": 1.0,
+        "epochs_run": 2,
+        "test": {"rmse": 0.4},
+    }
+    (run / "summary.json").write_text(json.dumps(summary))
+
+
+def _interrupted(run, last_epoch, max_epochs):
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "config.yaml").write_text(yaml.safe_dump({"trainer": {"max_epochs": max_epochs}}))
+    (run / "checkpoints").mkdir()
+    (run / "checkpoints" / "last.ckpt").write_bytes(b"")
+    if last_epoch is not None:
+        epochs = list(range(last_epoch + 1))
+        pd.DataFrame({"epoch": epochs, "test_error": [1.0] * len(epochs)}).to_csv(run / "metrics.csv", index=False)
+
+
+@pytest.fixture
+def runs(tmp_path):
+    root = tmp_path / "runs"
+    _finished(root / "s0", 0)
+    _finished(root / "s1", 1)
+    _interrupted(root / "s2", last_epoch=195, max_epochs=4000)
+    _interrupted(root / "s3", last_epoch=None, max_epochs=4000)  # killed before its first epoch was logged
+    return root
+
+
+def test_generic_report_names_the_unfinished_runs_it_leaves_out(cfg_factory, tmp_path, runs):
+    result = run_report(cfg_factory("report", f"runs=[{runs}]"), output_dir=tmp_path / "out")
+    assert result["n_runs"] == 2
+    assert [(r["run"], r["epoch"], r["max_epochs"]) for r in result["unfinished"]] == [
+        (str(runs / "s2"), 195, 4000),
+        (str(runs / "s3"), None, 4000),
+    ]
+    text = (tmp_path / "out" / "report.md").read_text()
+    assert "Not in the table: 2 runs without summary.json" in text
+    assert f"{runs / 's2'} (epoch 195 of 4000)" in text and f"{runs / 's3'} (no epoch logged)" in text
+
+
+def test_a_layout_report_names_them_too(cfg_factory, tmp_path, runs):
+    result = run_report(cfg_factory("report", "layout=curves", f"runs=[{runs}]"), output_dir=tmp_path / "out")
+    assert len(result["unfinished"]) == 2
+    assert "Not in the table: 2 runs" in (tmp_path / "out" / "report.md").read_text()
+
+
+def test_a_report_of_finished_runs_says_nothing_about_unfinished_ones(cfg_factory, tmp_path, runs):
+    result = run_report(cfg_factory("report", f"runs=[{runs / 's0'},{runs / 's1'}]"), output_dir=tmp_path / "out")
+    assert result["unfinished"] == []
+    assert "Not in the table" not in (tmp_path / "out" / "report.md").read_text()
+
+
+def test_only_unfinished_runs_is_one_clear_error(cfg_factory, tmp_path, runs):
+    with pytest.raises(ConfigError, match=r"no run there has finished \(1 began training but wrote no summary.json\)"):
+        run_report(cfg_factory("report", f"runs=[{runs / 's2'}]"), output_dir=tmp_path / "out")
