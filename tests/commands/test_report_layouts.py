@@ -171,6 +171,22 @@ def test_message_size_layout(cfg_factory, tmp_path):
     assert (out / "message_size.png").is_file() and (out / "message_size_curves.png").is_file()
 
 
+def test_message_size_layout_compares_runs_at_matched_epochs(cfg_factory, tmp_path):
+    root = tmp_path / "runs"
+    # 8 epochs: m = 1 leads until epoch 4, m = 7 from epoch 6 on; m = 13 stopped after epoch 4
+    _run(root, "m1", system="kuramoto10_ba", message_size=1, errors=[2, 0.5, 0.4, 0.4, 0.4, 0.4, 0.4, 0.4, 0.4])
+    for seed, late in ((0, 0.2), (1, 0.3)):
+        errors = [2, 0.9, 0.8, 0.7, 0.6, 0.5, late, 0.9, 0.9]  # a rise after the minimum keeps the minimum so far
+        _run(root, f"m7_{seed}", system="kuramoto10_ba", seed=seed, message_size=7, errors=errors)
+    _run(root, "m13", system="kuramoto10_ba", message_size=13, errors=[2, 0.6, 0.5, 0.45, 0.3])
+    _, out = _report(cfg_factory, tmp_path, "message_size", root)
+    text = (out / "report.md").read_text()
+    assert "| message size | by epoch 2 | by epoch 4 | by epoch 6 | by epoch 8 |" in text
+    assert "| 1 | 0.4 | 0.4 | 0.4 | 0.4 |" in text
+    assert "| 7 | 0.8 ± 0 | 0.6 ± 0 | 0.25 ± 0.071 | 0.25 ± 0.071 |" in text
+    assert "| 13 | 0.5 | 0.3 | – | – |" in text
+
+
 def test_unknown_layout_is_refused(cfg_factory, tmp_path, table2_runs):
     with pytest.raises(ConfigError, match="layout='table3' is unknown; choose one of table2, table1"):
         _report(cfg_factory, tmp_path, "table3", table2_runs)

@@ -476,6 +476,23 @@ def _reach_table(system: str, n_train: Any, means: dict[str, pd.Series]) -> str:
 
 
 # ---- message size (figures 7, 8) ---------------------------------------------------------------------------
+def _checkpoint_epochs(curves: Sequence[pd.DataFrame]) -> list[int]:
+    """The quarters of the longest run (1000/2000/3000/4000 for 4000 epochs): where runs are compared."""
+    last = max((int(c["epoch"].max()) for c in curves), default=0)
+    return sorted({max(1, round(last * q / 4)) for q in (1, 2, 3, 4)}) if last >= 1 else []
+
+
+def _min_so_far(curve: pd.DataFrame, epochs: Sequence[int]) -> list[float]:
+    """The curve's minimum test error over epochs 1..e for each e (NaN where the run stopped before e)."""
+    trained = curve[curve["epoch"] >= 1].set_index("epoch")["test_error"].sort_index().cummin()
+    return [float(trained[trained.index <= e].iloc[-1]) if trained.index.max() >= e else math.nan for e in epochs]
+
+
+def _by_epoch_row(label: Any, curves: Sequence[pd.DataFrame], epochs: Sequence[int]) -> list[Any]:
+    values = pd.DataFrame([_min_so_far(c, epochs) for c in curves], columns=list(epochs))
+    return [label] + ["–" if values[e].isna().any() else pm(*_stats(values[e])[:2], digits=3) for e in epochs]
+
+
 def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
     """Figures 7 and 8: MP-NODE's minimum test error and learning curves per message size, per system."""
     train = frame[frame["task"] == "train"].copy()
@@ -488,7 +505,9 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
     cfig, caxes = subplots(2, len(systems), figsize=(4.2 * len(systems), 6.2), squeeze=False, layout="constrained")
     for k, system in enumerate(systems):
         part = mp[mp["system"] == system]
-        rows = []
+        rows, by_epoch = [], []
+        everyone = [c for c in (_curve(r) for r in train.loc[train["system"] == system, "run"]) if c is not None]
+        epochs = _checkpoint_epochs(everyone)
         for m, runs in sorted(part.groupby("message_size"), key=lambda kv: int(kv[0])):
             err, err_sd, n = _stats(runs["min_test_error"])
             exm, exm_sd, _ = _stats(runs["epochs_x_min_error"])
@@ -508,6 +527,8 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
                 }
             )
             rows.append([int(m), n, pm(err, err_sd, 3), pm(final_loss[0], final_loss[1], 3), pm(exm, exm_sd, 4)])
+            if loaded and epochs:
+                by_epoch.append(_by_epoch_row(int(m), loaded, epochs))
             for key, ax in (("train_loss", caxes[0, k]), ("test_error", caxes[1, k])):
                 if loaded:
                     mean = pd.concat([c.set_index("epoch")[key] for c in loaded], axis=1).mean(axis=1).dropna()
@@ -536,8 +557,11 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
                 }
             )
             rows.append(["L2S", n, pm(ref, ref_sd, 3), "", ""])
-            for c in (c for c in (_curve(r) for r in l2s["run"]) if c is not None):
+            l2s_curves = [c for c in (_curve(r) for r in l2s["run"]) if c is not None]
+            for c in l2s_curves:
                 caxes[1, k].plot(c["epoch"], c["test_error"], color="tab:red", linestyle="--", linewidth=0.8)
+            if l2s_curves and epochs:
+                by_epoch.append(_by_epoch_row("L2S", l2s_curves, epochs))
         axes[0, k].set(xlabel="message size", ylabel="min test rollout RMSE", title=system, yscale="log")
         axes[0, k].legend(fontsize=8)
         caxes[0, k].set(yscale="log", ylabel="train loss", title=system)
@@ -547,6 +571,11 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
             f"**{system}**\n\n"
             + md_table(["message size", "runs", "min test error", "final train loss", "epochs_x_min_error"], rows)
         )
+        if by_epoch:  # matched epochs: is the order the same at every stage of training, or only at the end?
+            sections.append(
+                f"Minimum test error so far, by epoch ({system}; – where a run stopped earlier):\n\n"
+                + md_table(["message size", *(f"by epoch {e}" for e in epochs)], by_epoch)
+            )
     fig.suptitle("Effect of message size (Figure 8; Figure 7 for quadrotors)")
     cfig.suptitle("Train loss and test error per message size (mean over seeds; L2S dashed)")
     figures = [save_figure(fig, out_dir / "message_size.png"), save_figure(cfig, out_dir / "message_size_curves.png")]
