@@ -226,9 +226,10 @@ def table2(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
                 "min_test_error_epoch": ep,
                 "min_test_error_epoch_std": ep_sd,
                 "paper": PAPER_TABLE2.get(row, {}).get(column, math.nan),
+                "by_seed": _by_seed(part),
             }
         )
-    table = pd.DataFrame(records)
+    table = pd.DataFrame(records).drop(columns="by_seed")
     columns = sorted(
         table["column"].unique(), key=lambda c: (_column_key(table.loc[table["column"] == c, "system"].iloc[0]), _ds(c))
     )
@@ -274,8 +275,24 @@ def _num(v: Any) -> str:
     return "N/A" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:g}"
 
 
+def _by_seed(part: pd.DataFrame) -> dict[int, float]:
+    """epochs_x_min_error per seed (runs whose summary names no seed are left out)."""
+    seeds = pd.to_numeric(part["seed_"], errors="coerce") if "seed_" in part else pd.Series(math.nan, part.index)
+    values = pd.to_numeric(part["epochs_x_min_error"], errors="coerce")
+    return {int(s): float(v) for s, v in zip(seeds, values, strict=True) if not (math.isnan(s) or math.isnan(v))}
+
+
+def _paired(fine: dict, scratch: dict) -> str:
+    """How many seeds that ran both arms have finetuned < scratch ("" with fewer than two such seeds)."""
+    common = sorted(set(fine["by_seed"]) & set(scratch["by_seed"]))
+    if len(common) < 2:
+        return ""
+    wins = sum(fine["by_seed"][k] < scratch["by_seed"][k] for k in common)
+    return f"; seed by seed: in {wins} of {len(common)}"
+
+
 def _orderings(cell: dict, columns: list[str]) -> list[str]:
-    """finetuned < scratch in every column; MP-NODE < L2S where both ran."""
+    """finetuned < scratch in every column (on the means, and seed by seed); MP-NODE < L2S where both ran."""
     lines = []
     for c in columns:
         fine, scratch = cell.get(("MP-NODE finetuned", c)), cell.get(("MP-NODE scratch", c))
@@ -283,7 +300,7 @@ def _orderings(cell: dict, columns: list[str]) -> list[str]:
             a, b = fine["epochs_x_min_error"], scratch["epochs_x_min_error"]
             lines.append(
                 f"- {c}: finetuned {'<' if a < b else '≥'} scratch ({a:.4g} vs {b:.4g}, "
-                f"{b / a:.2g}×) — {'holds' if a < b else 'does NOT hold'}"
+                f"{b / a:.2g}×) — {'holds' if a < b else 'does NOT hold'}{_paired(fine, scratch)}"
             )
         l2s = cell.get(("L2S", c))
         best = min((r for r in (fine, scratch) if r), key=lambda r: r["epochs_x_min_error"], default=None)
