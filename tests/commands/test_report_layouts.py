@@ -25,6 +25,7 @@ def _run(
     trained_on: str | None = None,
     best_val: float | None = None,
     overrides: list[str] = (),
+    device: str | None = None,
 ) -> Path:
     """A run directory as `mpsim train` (or a zero-shot run) leaves it: summary.json, metrics.csv, overrides."""
     run = root / name
@@ -39,7 +40,7 @@ def _run(
         "system": {"name": system, "n_nodes": 10},
         "model": {"model": model, "config": config},
         "data": {"train": n_train, "val": 20, "test": 20, "n_times": 51},
-    }
+    } | ({"device": device} if device else {})
     if errors is not None:  # a training run: per-epoch curve, Table 2 metric from it
         epochs = list(range(len(errors)))
         pd.DataFrame(
@@ -198,6 +199,17 @@ def test_message_size_layout_compares_runs_at_matched_epochs(cfg_factory, tmp_pa
     assert "| 1 | 0.4 | 0.4 | 0.4 | 0.4 |" in text
     assert "| 7 | 0.8 ± 0 | 0.6 ± 0 | 0.25 ± 0.071 | 0.25 ± 0.071 |" in text
     assert "| 13 | 0.5 | 0.3 | – | – |" in text
+
+
+def test_the_settings_caption_says_where_the_runs_ran(cfg_factory, tmp_path):
+    root = tmp_path / "runs"
+    for seed, device in ((0, "cpu (1 thread)"), (1, "cpu (1 thread)"), (2, "cuda:0 (NVIDIA H100 80GB HBM3)")):
+        _run(root, f"k{seed}", system="kuramoto10_ba", seed=seed, errors=[2.0, 1.0, 0.5], device=device)
+    _run(root, "old", system="lorenz10", errors=[2.0, 1.0, 0.5])  # a summary from before `device` was kept
+    _, out = _report(cfg_factory, tmp_path, "message_size", root)
+    text = (out / "report.md").read_text()
+    assert "seeds 0, 1, 2, on cpu (1 thread) ×2 / cuda:0 (NVIDIA H100 80GB HBM3) ×1" in text
+    assert "- `lorenz10`: 1 run, 100 training trajectories, 50 steps, up to 2 epochs, seed 0\n" in text
 
 
 def test_unknown_layout_is_refused(cfg_factory, tmp_path, table2_runs):

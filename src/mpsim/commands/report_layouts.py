@@ -91,6 +91,7 @@ def run_facts(run: Path, summary: dict[str, Any]) -> dict[str, Any]:
         "test_rmse": test.get("rmse", summary.get("test_error")),
         "trained_on": summary.get("trained_on"),
         "seed_": summary.get("seed"),
+        "device": summary.get("device"),  # "cpu (N threads)" / "cuda:0 (name)"; runs from before it was kept: None
     }
 
 
@@ -166,6 +167,9 @@ def settings_caption(frame: pd.DataFrame) -> str:
             bits.append(f"up to {int(epochs.max())} epochs")
         if seeds:
             bits.append(f"seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))}")
+        devices = trained["device"].dropna().astype(str).value_counts() if "device" in trained else pd.Series(dtype=int)
+        if len(devices):  # wall times are only comparable between runs on the same device
+            bits.append("on " + " / ".join(f"{d}{f' ×{n}' if len(devices) > 1 else ''}" for d, n in devices.items()))
         lines.append(f"- `{system}`: {', '.join(bits)}")
     return "\n".join(lines)
 
