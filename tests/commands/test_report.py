@@ -51,6 +51,10 @@ def runs(tmp_path):
     _finished(root / "s1", 1)
     _interrupted(root / "s2", last_epoch=195, max_epochs=4000)
     _interrupted(root / "s3", last_epoch=None, max_epochs=4000)  # killed before its first epoch was logged
+    fix = root / "diagnosis" / "fix" / "added_effect"  # `mpsim diagnose fix=true` trains here: not a run of its own
+    (fix / "checkpoints").mkdir(parents=True)
+    (fix / "checkpoints" / "last.ckpt").write_bytes(b"")
+    pd.DataFrame({"epoch": [0, 1], "test_error": [1.0, 0.5]}).to_csv(fix / "metrics.csv", index=False)
     return root
 
 

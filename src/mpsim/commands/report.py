@@ -84,8 +84,8 @@ def unfinished(roots: list[Path]) -> list[dict[str, Any]]:
     return [
         {"run": str(d), "epoch": _last_epoch(d / "metrics.csv"), "max_epochs": _max_epochs(d)}
         for d in dirs
-        if not (d / "summary.json").is_file()
-    ]
+        if (d / ".hydra").is_dir() and not (d / "summary.json").is_file()  # an `mpsim train` run directory (not,
+    ]  # e.g., `mpsim diagnose`'s fix/<tag>, which trains inside the diagnosis and writes no summary of its own)
 
 
 def _last_epoch(path: Path) -> int | None:
