@@ -193,12 +193,15 @@ def test_message_size_layout_compares_runs_at_matched_epochs(cfg_factory, tmp_pa
         errors = [2, 0.9, 0.8, 0.7, 0.6, 0.5, late, 0.9, 0.9]  # a rise after the minimum keeps the minimum so far
         _run(root, f"m7_{seed}", system="kuramoto10_ba", seed=seed, message_size=7, errors=errors)
     _run(root, "m13", system="kuramoto10_ba", message_size=13, errors=[2, 0.6, 0.5, 0.45, 0.3])
+    l2s = [2, 0.7, 0.7, 0.7, 0.7, 0.7, 0.7, 0.7, 0.65, 0.1, 0.1, 0.1, 0.1]  # longer than MP-NODE (as 10000 vs 4000)
+    _run(root, "l2s", system="kuramoto10_ba", model="L2S", message_size=None, errors=l2s)
     _, out = _report(cfg_factory, tmp_path, "message_size", root)
     text = (out / "report.md").read_text()
     assert "| message size | by epoch 2 | by epoch 4 | by epoch 6 | by epoch 8 |" in text
     assert "| 1 | 0.4 | 0.4 | 0.4 | 0.4 |" in text
     assert "| 7 | 0.8 ± 0 | 0.6 ± 0 | 0.25 ± 0.071 | 0.25 ± 0.071 |" in text
     assert "| 13 | 0.5 | 0.3 | – | – |" in text
+    assert "| L2S | 0.7 | 0.7 | 0.7 | 0.65 |" in text  # at MP-NODE's epochs, not the quarters of its own 12
 
 
 def test_the_settings_caption_says_where_the_runs_ran(cfg_factory, tmp_path):
