@@ -10,6 +10,10 @@ C=examples/diagnose_cases
 SEEDS=${SEEDS:-"0 1 2 3 4"}
 NOISES=${NOISES:-"0 0.01"}
 CASES=${CASES:-"a_damped a_undamped b_vdp c_kuramoto_lag d_chain_friction e_pendulum_sin2 case1 case2 case2_clean clean"}
+source "$(dirname "$0")/lib.sh"
+check_choices diagnose_cases.sh CASES a_damped a_undamped b_vdp c_kuramoto_lag d_chain_friction e_pendulum_sin2 \
+  case1 case2 case2_clean clean
+SEEDS=${SEEDS//,/ }; NOISES=${NOISES//,/ }
 common=(paths.ckpt_dir=$OUT/checkpoints trainer.progress=false)
 mkdir -p "$OUT"
 has() { [[ " $CASES " == *" $1 "* ]]; }

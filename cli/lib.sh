@@ -9,8 +9,10 @@
 #     train_once) that reach the same run never train it twice at once: the second waits, then keeps or
 #     resumes what the first left.
 #   parallel JOBS < lines              → runs each line (a train_once call) with up to JOBS at once
-#   check_parts RECIPE PART...         → stops (exit 2, one message) if $PARTS names a part not in PART...,
-#                                        before anything trains: a typo must not cost the parts before it
+#   check_choices RECIPE NAME VALUE... → stops (exit 2, one message) if the list in $NAME (commas or spaces)
+#                                        holds a value not in VALUE..., before anything trains: a typo must
+#                                        not cost the hours the parts before it take
+#   check_parts RECIPE PART...         → check_choices RECIPE PARTS PART...
 #
 # So an interrupted recipe is continued by running it again with the same settings; FRESH=1 starts over.
 train_once() {
@@ -40,12 +42,15 @@ parallel() {
   xargs -P "$1" -I{} bash -c "set -euo pipefail; source '$here/lib.sh'; {}"
 }
 
-check_parts() {
-  local recipe=$1 part; shift
-  for part in $PARTS; do
-    if [[ " $* " != *" $part "* ]]; then
-      echo "$recipe: unknown part '$part' in PARTS (known: $*)" >&2
+check_choices() {  # RECIPE NAME ALLOWED...: the list in $NAME (commas or spaces) may hold only ALLOWED values
+  local recipe=$1 name=$2 value; shift 2
+  printf -v "$name" '%s' "${!name//,/ }"
+  for value in ${!name}; do
+    if [[ " $* " != *" $value "* ]]; then
+      echo "$recipe: unknown value '$value' in $name (known: $*)" >&2
       exit 2
     fi
   done
 }
+
+check_parts() { local recipe=$1; shift; check_choices "$recipe" PARTS "$@"; }

@@ -46,7 +46,7 @@ tmp.replace(d / "per_node.npz")
 print(f"per-node std {std.min():.2f}..{std.max():.2f}, mean {mean.min():.2f}..{mean.max():.2f}")
 PY
 fi
-for seed in $SEEDS; do
+for seed in ${SEEDS//,/ }; do
   for run in $RUNS; do
     epochs=$EPOCHS; [ "${run%%/*}" = l2s ] && epochs=$L2S_EPOCHS
     echo "train_once $OUT/train/$run/s$seed model=${run%%/*} data.path=$OUT/data/${run#*/}.npz seed=$seed \
@@ -54,7 +54,7 @@ for seed in $SEEDS; do
       paths.output_root=$OUT"
   done
 done | parallel "$JOBS"
-for seed in $SEEDS; do
+for seed in ${SEEDS//,/ }; do
   for run in $RUNS; do
     dir=$OUT/train/$run/s$seed
     [ -f "$dir/eval/test_model.npz" ] || mpsim eval "init=$dir/checkpoints/best.ckpt" \

@@ -28,15 +28,15 @@ common=(paths.output_root=$OUT trainer=$TRAINER trainer.progress=false trainer.e
 
 [ "${FRESH:-0}" = 1 ] && rm -rf "$OUT"
 rm -rf "$OUT/zeroshot" "$OUT/report"  # zero-shot evaluations are cheap: always redone from the checkpoints
-for seed in $SEEDS; do  # one checkpoint directory per seed: every run exports <system>.ckpt
-  for model in $MODELS; do
+for seed in ${SEEDS//,/ }; do  # one checkpoint directory per seed: every run exports <system>.ckpt
+  for model in ${MODELS//,/ }; do
     epochs=$EPOCHS; [ $model = l2s ] && epochs=$L2S_EPOCHS
     echo "train_once $OUT/train/$model/s$seed system=gene_ba_small model=$model seed=$seed data.n_train=$N_TRAIN \
       trainer.max_epochs=$epochs paths.ckpt_dir=$OUT/checkpoints/$model/s$seed ${common[*]} $EXTRA"
   done
 done | parallel "$JOBS"
-for seed in $SEEDS; do
-  for model in $MODELS; do
+for seed in ${SEEDS//,/ }; do
+  for model in ${MODELS//,/ }; do
     mpsim train -m mode=zeroshot init=$OUT/checkpoints/$model/s$seed/gene_ba_small.ckpt \
       system=gene_er_small,gene_ws_small hydra.sweep.dir=$OUT/zeroshot/$model/s$seed "${common[@]}" $ZS_EXTRA
   done

@@ -54,6 +54,7 @@ def test_table2_parts_runs_only_the_columns_named(tmp_path, option):
     ("recipe", "parts", "bad"),
     [
         ("table2.sh", "lorenz kuramotoo", "kuramotoo"),
+        ("table2.sh", "lorenz,kuramotoo", "kuramotoo"),
         ("foundation.sh", "pendulum pendulums", "pendulums"),
         ("message_size.sh", "kuramoto quads", "quads"),
     ],
@@ -62,7 +63,7 @@ def test_a_misspelt_part_stops_the_recipe_before_anything_trains(tmp_path, recip
     # the parts before the typo are valid: they must not train for hours and then fail on the typo
     proc, calls = run_recipe(recipe, tmp_path, SEEDS="0", PARTS=parts)
     assert proc.returncode == 2, proc.stderr
-    assert f"{recipe}: unknown part '{bad}' in PARTS" in proc.stderr
+    assert f"{recipe}: unknown value '{bad}' in PARTS" in proc.stderr
     assert calls == []
 
 
@@ -71,3 +72,16 @@ def test_foundation_parts_pendulum_trains_messages_on_and_off(tmp_path):
     assert proc.returncode == 0, proc.stderr
     trains = sorted((_arg(c, "system"), _arg(c, "model.zero_messages")) for c in calls if c[0] == "train")
     assert trains == [("pendulum2", "false"), ("pendulum2", "true")]
+
+
+def test_diagnose_cases_refuses_an_unknown_case_before_simulating_anything(tmp_path):
+    proc, calls = run_recipe("diagnose_cases.sh", tmp_path, CASES="a_damped b_vdpp")
+    assert proc.returncode == 2, proc.stderr
+    assert "diagnose_cases.sh: unknown value 'b_vdpp' in CASES" in proc.stderr and calls == []
+
+
+@pytest.mark.parametrize("seeds", ["0,1", "0 1"])  # lists take commas or spaces in every recipe
+def test_table1_seeds_take_commas_or_spaces(tmp_path, seeds):
+    proc, calls = run_recipe("table1.sh", tmp_path, SEEDS=seeds, MODELS="mpnode")
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(_arg(c, "seed") for c in calls if c[0] == "train" and "-m" not in c) == ["0", "1"]
