@@ -131,6 +131,7 @@ def test_command_line_typos_get_a_did_you_mean(args, match):
         (["system=lorenz3", "system.sigma=nan"], "system.sigma=nan is not a finite number"),
         (["data.noise_std=-1"], "data.noise_std=-1.0"),
         (["trainer.early_stop_patience=-1"], "trainer.early_stop_patience=-1: must be >= 0"),
+        (["trainer.log_every_s=-5"], "trainer.log_every_s=-5.0: must be >= 0 seconds"),
         (["eval.horizons=[0]"], "horizons are numbers of steps >= 1"),
         (["-m", "data.n_train=4,0"], "data.n_train=0"),  # every sweep value is checked, not only the first
     ],

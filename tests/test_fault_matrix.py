@@ -525,14 +525,21 @@ def test_a_moved_run_resumes_where_it_is_now_and_writes_where_it_is_told(ws, tmp
     run_dir = moved / "run"
     shutil.copytree(lorenz_run(ws), run_dir)
     ckpts = moved / "ckpts"
-    res = run_mpsim(["train", f"resume={run_dir}", f"paths.ckpt_dir={ckpts}", f"paths.output_root={moved}"], tmp_path)
+    # how it shows progress is not what it computes either: a run started with a bar resumes in the background
+    shown = ["trainer.progress=false", "trainer.log_every_s=60"]
+    res = run_mpsim(
+        ["train", f"resume={run_dir}", f"paths.ckpt_dir={ckpts}", f"paths.output_root={moved}", *shown], tmp_path
+    )
     assert res.code == 0, res.err
     assert "mpsim train: lorenz3" in res.out
     assert (ckpts / "lorenz3.ckpt").is_file()  # exported where it was told, not where the run first wrote
-    refused = run_mpsim(["train", f"resume={run_dir}", f"paths.ckpt_dir={ckpts}", "trainer.lr=0.5"], tmp_path)
+    refused = run_mpsim(["train", f"resume={run_dir}", f"paths.ckpt_dir={ckpts}", *shown, "trainer.lr=0.5"], tmp_path)
     assert refused.code == 2, refused.err
     (line,) = refused.error_lines()
-    assert "trainer.lr=0.5 (not set in the run)" in line and "paths.ckpt_dir=" not in line.split(". A resumed")[0]
+    assert "trainer.lr=0.5 (not set in the run)" in line
+    assert not any(
+        key in line.split(". A resumed")[0] for key in ("paths.ckpt_dir=", "trainer.progress", "log_every_s")
+    )
 
 
 def test_resume_uses_the_runs_own_overrides_and_keeps_its_record(ws, tmp_path):

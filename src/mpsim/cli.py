@@ -214,8 +214,9 @@ def _with_resume(args: list[str]) -> list[str]:
 
     The resumed run keeps its `.hydra/` record (nothing is rewritten there). Overrides that differ from the
     run's own (other data, another learning rate, ...) are refused: they would silently change the run. Where it
-    writes (`paths.*`) is not what it computes: those given now replace the run's own, so a run directory moved to
-    another disk or machine resumes there.
+    writes (`paths.*`) and how it shows its progress (`trainer.progress`, `trainer.log_every_s`) are not what it
+    computes: those given now replace the run's own, so a run directory moved to another disk or machine resumes
+    there, and a run started with a bar can be resumed in the background without one.
     """
     values = [a.split("=", 1)[1] for a in args if a.startswith("resume=")]
     if not values or values[-1].lower() in {"false", "no", "0", "off", "null"}:
@@ -251,7 +252,7 @@ def _with_resume(args: list[str]) -> list[str]:
         differ = [
             f"{k}={v} (the run has {k}={theirs[k]})" if k in theirs else f"{k}={v} (not set in the run)"
             for k, v in mine.items()
-            if theirs.get(k) != v and not _is_location(k)
+            if theirs.get(k) != v and not _may_change_on_resume(k)
         ]
         if differ:
             raise MpsimError(
@@ -259,16 +260,16 @@ def _with_resume(args: list[str]) -> list[str]:
                 f"({' '.join(_own(saved)) or 'no overrides'}); drop the differing overrides, or start a new run "
                 "without resume= (finetune from its checkpoint with init=<run>/checkpoints/best.ckpt)."
             )
-        moved = {k for k in mine if _is_location(k)}
+        moved = {k for k in mine if _may_change_on_resume(k)}
         own = [a for a in _own(saved) if _split(a)[0] not in moved] + [a for a in _own(args) if _split(a)[0] in moved]
     print(f"mpsim train: resuming {run}", file=sys.stderr)
     hydra_args = [a for a in args if _key(a).startswith("hydra")]
     return [*own, *hydra_args, f"resume={value}", f"hydra.run.dir={run.resolve()}", "hydra.output_subdir=null"]
 
 
-def _is_location(key: str) -> bool:
-    """`paths.*`: where a run writes, not what it computes."""
-    return key == "paths" or key.startswith("paths.")
+def _may_change_on_resume(key: str) -> bool:
+    """`paths.*` (where a run writes) and the progress display: not what the run computes."""
+    return key == "paths" or key.startswith("paths.") or key in {"trainer.progress", "trainer.log_every_s"}
 
 
 def _split(arg: str) -> tuple[str, str]:

@@ -70,6 +70,7 @@ class TrainerConf:
     early_stop_patience: int = 30
     eval_batch_size: int = 512
     progress: bool = True
+    log_every_s: float = 300.0
     window: int | None = None
     eval_window: int | None = None
     optimizer: str = "adam"  # adam | lbfgs (white-box models: lr 1, full batches; see trainer=whitebox)
@@ -350,6 +351,7 @@ def _validate_trainer(t: DictConfig) -> None:
         ("plateau_factor", lambda v: 0 < v < 1, "between 0 and 1"),
         ("min_lr", lambda v: v >= 0, ">= 0"),
         ("early_stop_patience", lambda v: v >= 0, ">= 0 (0: never stop early)"),
+        ("log_every_s", lambda v: v >= 0, ">= 0 seconds (0: never)"),
         ("window", lambda v: v is None or v >= 1, ">= 1 step, or null"),
         ("eval_window", lambda v: v is None or v >= 1, ">= 1 step, or null"),
     ]

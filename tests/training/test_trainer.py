@@ -109,3 +109,20 @@ def test_window_training_sees_only_short_windows(tmp_path):
     n_batches = -(-len(train) // 8)
     tiles = (train.n_times - 1) // 3 - 1  # at least this many whole windows fit after any offset
     assert tiles >= 2 and len(seen) >= 3 * n_batches * tiles
+
+
+def test_without_a_progress_bar_a_heartbeat_line_says_where_the_run_stands(tmp_path, caplog):
+    train, val, test = _data()
+    with caplog.at_level("INFO", logger="mpsim.training.trainer"):
+        _trainer(3, log_every_s=1e-9).fit(_model(train), train, val, test, run_dir=tmp_path / "quiet")
+    beats = [r.getMessage() for r in caplog.records if " s/epoch, about " in r.getMessage()]
+    assert [b.split(":")[0] for b in beats] == ["epoch 1/3", "epoch 2/3", "epoch 3/3"]
+    assert "(best val " in beats[0] and beats[-1].endswith("about 0 min left")
+
+    caplog.clear()
+    with caplog.at_level("INFO", logger="mpsim.training.trainer"):
+        _trainer(2, log_every_s=0).fit(_model(train), train, val, test, run_dir=tmp_path / "never")
+        Trainer(max_epochs=2, batch_size=5, progress=True, log_every_s=1e-9).fit(
+            _model(train), train, val, test, run_dir=tmp_path / "bar"
+        )  # the bar already says it
+    assert not [r for r in caplog.records if " s/epoch, about " in r.getMessage()]

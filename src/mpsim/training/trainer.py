@@ -112,6 +112,9 @@ class Trainer:
             (null: whole trajectories) — for chaotic systems, whose long rollouts decorrelate from any model.
         eval_batch_size: trajectories per batch when evaluating.
         progress: show a progress bar.
+        log_every_s: without the bar (`progress=false`, as the recipes run), log one line this often (seconds;
+            0: never) — epoch, losses, best validation so far, seconds per epoch and the time left — so a run of
+            hours shows it is alive, in its train.log as on the terminal.
         optimizer: ``adam`` (neural models) or ``lbfgs`` (quasi-Newton with a strong-Wolfe line search, for the
             few smooth parameters of white-box models such as `model=equations`; use lr 1 and full batches).
     """
@@ -131,6 +134,7 @@ class Trainer:
         early_stop_patience: int = 30,
         eval_batch_size: int = 512,
         progress: bool = True,
+        log_every_s: float = 300.0,
         window: int | None = None,
         eval_window: int | None = None,
         optimizer: str = "adam",
@@ -149,6 +153,9 @@ class Trainer:
         self.clip_norm, self.loss, self.huber_delta = clip_norm, loss, huber_delta
         self.plateau_patience, self.plateau_factor, self.min_lr = plateau_patience, plateau_factor, min_lr
         self.early_stop_patience, self.eval_batch_size, self.progress = early_stop_patience, eval_batch_size, progress
+        if not log_every_s >= 0:
+            raise ConfigError(f"trainer.log_every_s must be >= 0 seconds (0: never); got {log_every_s}.")
+        self.log_every_s = log_every_s
         if window is not None and window < 1:
             raise ConfigError(f"trainer.window must be >= 1 step or null; got {window}.")
         self.window, self.eval_window = window, eval_window
@@ -247,6 +254,7 @@ class Trainer:
             dynamic_ncols=True,
             leave=True,
         )
+        beat = _Heartbeat(self.log_every_s if bar.disable and dist.is_main else 0.0, start_epoch, self.max_epochs)
         for epoch in bar:
             t0 = time.perf_counter()
             try:
@@ -272,6 +280,7 @@ class Trainer:
             bar.set_postfix(
                 loss=f"{train_loss:.3g}", val=f"{val_err:.3g}", test=f"{row['test_error']:.3g}", lr=f"{row['lr']:.1g}"
             )
+            beat(epoch, row, self.best_val_, self.best_epoch_)
             if self.early_stop_patience and since_best >= self.early_stop_patience:
                 self.status_ = "early_stopped"
                 log.info(f"early stop: no validation improvement for {since_best} epochs")
@@ -431,3 +440,29 @@ def _divergence_message(pred: torch.Tensor, t: torch.Tensor, epoch: int, batch: 
         f"training diverged in epoch {epoch}, batch {batch} (trajectories {_ids(idx)}): {where}. "
         "Lower trainer.lr, tighten trainer.clip_norm or use a shorter data.horizon."
     )
+
+
+class _Heartbeat:
+    """One log line every `every` seconds of training (0: never): where a run without a progress bar stands."""
+
+    def __init__(self, every: float, start_epoch: int, max_epochs: int) -> None:
+        self.every, self.first, self.max_epochs = every, start_epoch, max_epochs
+        self.t_start = self.t_last = time.perf_counter()
+
+    def __call__(self, epoch: int, row: dict, best_val: float, best_epoch: int) -> None:
+        now = time.perf_counter()
+        if not self.every or now - self.t_last < self.every:
+            return
+        self.t_last = now
+        per_epoch = (now - self.t_start) / (epoch - self.first + 1)  # this session's epochs (a resumed run: since then)
+        left = per_epoch * (self.max_epochs - epoch)
+        log.info(
+            f"epoch {epoch}/{self.max_epochs}: train loss {row['train_loss']:.4g}, val {row['val_error']:.4g}, "
+            f"test {row['test_error']:.4g} (best val {best_val:.4g} at epoch {best_epoch}), lr {row['lr']:.2g}; "
+            f"{per_epoch:.3g} s/epoch, about {_duration(left)} left"
+        )
+
+
+def _duration(seconds: float) -> str:
+    minutes = round(seconds / 60)
+    return f"{minutes // 60} h {minutes % 60:02d} min" if minutes >= 60 else f"{minutes} min"
