@@ -209,9 +209,12 @@ def test_the_settings_caption_says_where_the_runs_ran(cfg_factory, tmp_path):
     for seed, device in ((0, "cpu (1 thread)"), (1, "cpu (1 thread)"), (2, "cuda:0 (NVIDIA H100 80GB HBM3)")):
         _run(root, f"k{seed}", system="kuramoto10_ba", seed=seed, errors=[2.0, 1.0, 0.5], device=device)
     _run(root, "old", system="lorenz10", errors=[2.0, 1.0, 0.5])  # a summary from before `device` was kept
+    _run(root, "old3", system="kuramoto10_ba", seed=3, errors=[2.0, 1.0, 0.5])
     _, out = _report(cfg_factory, tmp_path, "message_size", root)
     text = (out / "report.md").read_text()
-    assert "seeds 0, 1, 2, on cpu (1 thread) ×2 / cuda:0 (NVIDIA H100 80GB HBM3) ×1" in text
+    assert (
+        "seeds 0, 1, 2, 3, on cpu (1 thread) ×2 / cuda:0 (NVIDIA H100 80GB HBM3) ×1 (device not recorded for 1)" in text
+    )
     assert "- `lorenz10`: 1 run, 100 training trajectories, 50 steps, up to 2 epochs, seed 0\n" in text
 
 

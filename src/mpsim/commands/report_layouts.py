@@ -169,7 +169,10 @@ def settings_caption(frame: pd.DataFrame) -> str:
             bits.append(f"seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))}")
         devices = trained["device"].dropna().astype(str).value_counts() if "device" in trained else pd.Series(dtype=int)
         if len(devices):  # wall times are only comparable between runs on the same device
-            bits.append("on " + " / ".join(f"{d}{f' ×{n}' if len(devices) > 1 else ''}" for d, n in devices.items()))
+            unknown = len(trained) - int(devices.sum())  # summaries from before `device` was recorded
+            counted = len(devices) > 1 or unknown > 0
+            where = " / ".join(f"{d}{f' ×{n}' if counted else ''}" for d, n in devices.items())
+            bits.append(f"on {where}" + (f" (device not recorded for {unknown})" if unknown else ""))
         lines.append(f"- `{system}`: {', '.join(bits)}")
     return "\n".join(lines)
 
