@@ -531,11 +531,12 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
         part = mp[mp["system"] == system]
         rows, by_epoch = [], []
         # compared at the quarters of the longest MP-NODE run (L2S may run longer: 10000 epochs against 4000)
-        epochs = _checkpoint_epochs([c for c in (_curve(r) for r in part["run"]) if c is not None])
+        curves = {r: c for r in part["run"] if (c := _curve(r)) is not None}  # each metrics.csv read once
+        epochs = _checkpoint_epochs(list(curves.values()))
         for m, runs in sorted(part.groupby("message_size"), key=lambda kv: int(kv[0])):
             err, err_sd, n = _stats(runs["min_test_error"])
             exm, exm_sd, _ = _stats(runs["epochs_x_min_error"])
-            loaded = [c for c in (_curve(r) for r in runs["run"]) if c is not None]
+            loaded = [curves[r] for r in runs["run"] if r in curves]
             final_loss = _stats(pd.Series([float(c["train_loss"].iloc[-1]) for c in loaded]))
             records.append(
                 {
