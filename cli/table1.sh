@@ -35,11 +35,13 @@ for seed in ${SEEDS//,/ }; do  # one checkpoint directory per seed: every run ex
       trainer.max_epochs=$epochs paths.ckpt_dir=$OUT/checkpoints/$model/s$seed ${common[*]} $EXTRA"
   done
 done | parallel "$JOBS"
-for seed in ${SEEDS//,/ }; do
-  for model in ${MODELS//,/ }; do
-    mpsim train -m mode=zeroshot init=$OUT/checkpoints/$model/s$seed/gene_ba_small.ckpt \
-      system=gene_er_small,gene_ws_small hydra.sweep.dir=$OUT/zeroshot/$model/s$seed "${common[@]}" $ZS_EXTRA
-  done
+# zero-shot every model trained in $OUT, not only this call's MODELS and SEEDS: the table reads every run in
+# $OUT/train, so a call that finishes one run (e.g. MODELS=l2s SEEDS=0) still regenerates the whole table
+for ckpt in "$OUT"/checkpoints/*/s*/gene_ba_small.ckpt; do
+  [ -f "$ckpt" ] || continue
+  run=${ckpt#"$OUT/checkpoints/"}; run=${run%/gene_ba_small.ckpt}  # <model>/s<seed>
+  mpsim train -m mode=zeroshot init="$ckpt" \
+    system=gene_er_small,gene_ws_small hydra.sweep.dir="$OUT/zeroshot/$run" "${common[@]}" $ZS_EXTRA
 done
 
 mpsim report layout=table1 "title='Table 1: zero-shot generalisation on gene 4×4 ($SIZE)'" \

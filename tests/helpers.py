@@ -168,16 +168,22 @@ def declared_pendulums(train):
 
 # ---- the cli/ recipes with a stub `mpsim` ----------------------------------------------------------------------
 _RECIPE_STUB = """#!/usr/bin/env bash
-# stub mpsim: log the call; leave what a run (summary.json) or a report (its files) leaves in hydra.run.dir= or resume=
+# stub mpsim: log the call; leave what a run (summary.json) or a report (its files) leaves in hydra.run.dir= or resume=,
+# and the exported <system>.ckpt a run leaves in paths.ckpt_dir=
 echo "$*" >> "$STUB_LOG"
+ckpt_dir=; system=
 for a in "$@"; do
-  case $a in hydra.run.dir=*|resume=*)
-    d=${a#*=}; mkdir -p "$d" && echo '{}' > "$d/summary.json"
-    for f in report.md report.csv table1.png table2.png curves.png message_size.png message_size_curves.png; do
-      : > "$d/$f"
-    done;;
+  case $a in
+    hydra.run.dir=*|resume=*)
+      d=${a#*=}; mkdir -p "$d" && echo '{}' > "$d/summary.json"
+      for f in report.md report.csv table1.png table2.png curves.png message_size.png message_size_curves.png; do
+        : > "$d/$f"
+      done;;
+    paths.ckpt_dir=*) ckpt_dir=${a#*=};;
+    system=*) system=${a#*=};;
   esac
 done
+if [ -n "$ckpt_dir" ] && [ -n "$system" ] && [[ $system != *,* ]]; then mkdir -p "$ckpt_dir" && : > "$ckpt_dir/$system.ckpt"; fi
 """
 
 

@@ -85,3 +85,20 @@ def test_table1_seeds_take_commas_or_spaces(tmp_path, seeds):
     proc, calls = run_recipe("table1.sh", tmp_path, SEEDS=seeds, MODELS="mpnode")
     assert proc.returncode == 0, proc.stderr
     assert sorted(_arg(c, "seed") for c in calls if c[0] == "train" and "-m" not in c) == ["0", "1"]
+
+
+def test_table1_zero_shots_every_trained_model_not_only_the_ones_named(tmp_path):
+    # a first call trains MP-NODE seeds 0 and 1; a second finishes L2S seed 0 alone: its table must still hold all three
+    run_recipe("table1.sh", tmp_path, SEEDS="0,1", MODELS="mpnode")
+    proc, calls = run_recipe("table1.sh", tmp_path, SEEDS="0", MODELS="l2s")
+    assert proc.returncode == 0, proc.stderr
+    assert [(_arg(c, "model"), _arg(c, "seed")) for c in calls if c[0] == "train" and "-m" not in c] == [("l2s", "0")]
+    out = tmp_path / "table1.sh"
+    zeroshot = sorted(_arg(c, "init") for c in calls if "mode=zeroshot" in c)
+    assert zeroshot == [
+        str(out / "checkpoints" / m / s / "gene_ba_small.ckpt")
+        for m, s in [("l2s", "s0"), ("mpnode", "s0"), ("mpnode", "s1")]
+    ]
+    assert {_arg(c, "hydra.sweep.dir") for c in calls if "mode=zeroshot" in c} == {
+        str(out / "zeroshot" / m / s) for m, s in [("l2s", "s0"), ("mpnode", "s0"), ("mpnode", "s1")]
+    }
