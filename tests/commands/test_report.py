@@ -85,3 +85,20 @@ def test_a_report_of_finished_runs_says_nothing_about_unfinished_ones(cfg_factor
 def test_only_unfinished_runs_is_one_clear_error(cfg_factory, tmp_path, runs):
     with pytest.raises(ConfigError, match=r"no run there has finished \(1 began training but wrote no summary.json\)"):
         run_report(cfg_factory("report", f"runs=[{runs / 's2'}]"), output_dir=tmp_path / "out")
+
+
+def test_an_unfinished_run_is_named_with_the_time_it_has_left_at_its_recent_pace(cfg_factory, tmp_path, runs):
+    # 300 epochs logged: 1 s each for the first 200, then 3 s each (e.g. a second job took the other core); 4000
+    # epochs set. The estimate uses the last 100 epochs' pace: 3700 epochs left × 3 s = 3.1 h
+    slow = runs / "s4"
+    _interrupted(slow, last_epoch=None, max_epochs=4000)
+    wall = [float(e) if e <= 200 else 200.0 + 3.0 * (e - 200) for e in range(301)]
+    pd.DataFrame({"epoch": range(301), "test_error": [1.0] * 301, "wall_time": wall}).to_csv(
+        slow / "metrics.csv", index=False
+    )
+    result = run_report(cfg_factory("report", f"runs=[{runs}]"), output_dir=tmp_path / "out")
+    (entry,) = [r for r in result["unfinished"] if r["run"] == str(slow)]
+    assert entry["epoch"] == 300 and entry["s_per_epoch"] == pytest.approx(3.0)
+    text = (tmp_path / "out" / "report.md").read_text()
+    assert f"{slow} (epoch 300 of 4000, about 3.1 h left at its last epochs' pace)" in text
+    assert f"{runs / 's2'} (epoch 195 of 4000)" in text  # no wall_time column: no estimate, and no guess

@@ -70,8 +70,9 @@ def collect(roots: list[Path], facts: bool = False) -> pd.DataFrame:
 
 def unfinished(roots: list[Path]) -> list[dict[str, Any]]:
     """Runs under `roots` that began training but wrote no summary.json (interrupted, or still training), each
-    with the last epoch in its metrics.csv and the epochs it was set to run (None where a file does not say), so a
-    report can name what it leaves out instead of averaging over fewer runs without a word."""
+    with the last epoch in its metrics.csv, the epochs it was set to run (None where a file does not say) and its
+    recent pace in seconds per epoch (None where too few epochs are logged), so a report can name what it leaves
+    out, and about how long each would take to finish, instead of averaging over fewer runs without a word."""
     dirs = sorted(
         {
             p.parent if p.name == "metrics.csv" else p.parent.parent
@@ -82,18 +83,39 @@ def unfinished(roots: list[Path]) -> list[dict[str, Any]]:
         }
     )
     return [
-        {"run": str(d), "epoch": _last_epoch(d / "metrics.csv"), "max_epochs": _max_epochs(d)}
+        {"run": str(d), **_progress(d / "metrics.csv"), "max_epochs": _max_epochs(d)}
         for d in dirs
         if (d / ".hydra").is_dir() and not (d / "summary.json").is_file()  # an `mpsim train` run directory (not,
     ]  # e.g., `mpsim diagnose`'s fix/<tag>, which trains inside the diagnosis and writes no summary of its own)
 
 
-def _last_epoch(path: Path) -> int | None:
+PACE_EPOCHS = 100  # the time left is estimated at the pace of the last this many logged epochs
+
+
+def _progress(path: Path) -> dict[str, Any]:
+    """The last logged epoch, and the seconds per epoch over the last PACE_EPOCHS epochs from the cumulative
+    `wall_time` column (it carries on across a resume); None for what the file does not say."""
     try:
-        epochs = pd.read_csv(path, usecols=["epoch"])["epoch"]
-        return int(epochs.iloc[-1]) if len(epochs) else None
-    except (OSError, ValueError, pd.errors.ParserError):  # no file yet, no epoch column: nothing to say
-        return None
+        table = pd.read_csv(path)
+        epochs = table["epoch"]
+    except (OSError, ValueError, KeyError, pd.errors.ParserError):  # no file yet, no epoch column: nothing to say
+        return {"epoch": None, "s_per_epoch": None}
+    if not len(epochs):
+        return {"epoch": None, "s_per_epoch": None}
+    pace = None
+    if "wall_time" in table and len(table) >= 2:
+        tail = table.iloc[-(PACE_EPOCHS + 1) :]
+        try:
+            span = float(tail["epoch"].iloc[-1] - tail["epoch"].iloc[0])
+            seconds = float(tail["wall_time"].iloc[-1] - tail["wall_time"].iloc[0])
+        except (TypeError, ValueError):
+            span = seconds = 0.0
+        pace = seconds / span if span > 0 and seconds > 0 else None
+    try:
+        last = int(epochs.iloc[-1])
+    except (TypeError, ValueError):
+        return {"epoch": None, "s_per_epoch": None}
+    return {"epoch": last, "s_per_epoch": pace}
 
 
 def _max_epochs(run: Path) -> int | None:
@@ -105,6 +127,14 @@ def _max_epochs(run: Path) -> int | None:
     return value if isinstance(value, int) and not isinstance(value, bool) else None
 
 
+def _duration(seconds: float) -> str:
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 90 * 60:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
 def unfinished_note(runs: list[dict[str, Any]]) -> str:
     """One paragraph naming the unfinished runs a report leaves out ("" when there are none)."""
     if not runs:
@@ -113,7 +143,13 @@ def unfinished_note(runs: list[dict[str, Any]]) -> str:
     def where(r: dict[str, Any]) -> str:
         if r["epoch"] is None:
             return "no epoch logged"
-        return f"epoch {r['epoch']}" + (f" of {r['max_epochs']}" if r["max_epochs"] is not None else "")
+        text = f"epoch {r['epoch']}"
+        if r["max_epochs"] is not None:
+            text += f" of {r['max_epochs']}"
+            left = r["max_epochs"] - r["epoch"]
+            if r.get("s_per_epoch") is not None and left > 0:
+                text += f", about {_duration(left * r['s_per_epoch'])} left at its last epochs' pace"
+        return text
 
     items = "; ".join(f"{r['run']} ({where(r)})" for r in runs)
     return (
