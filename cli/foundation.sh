@@ -3,7 +3,8 @@
 #   1. Lorenz3: test error of the trained model vs the untrained one.
 #   2. Lorenz10: finetuning the Lorenz3 model vs training from scratch — epochs to reach the same test error
 #      (the level both runs reach) and the MP-NODE paper's epochs_x_min_error.
-#   3. Pendulum2: messages on vs model.zero_messages=true (the paper's ablation).
+#   3. Pendulum2: messages on vs model.zero_messages=true (the paper's ablation; Figure 3a's curves in
+#      $OUT/figure3a.md and figure3a.png).
 # Override the sizes with environment variables, e.g. E3=600 E10=300 DS=100 cli/foundation.sh; PARTS="pendulum"
 # runs only part 3. The pendulum runs are resumable (cli/lib.sh: run the recipe again; FRESH=1 starts them over).
 # Paper-sized (PAPER=1): the MPNODE.jl trainer (batch 128, Adam 1e-3 halved after 500 flat epochs) for 4000 epochs,
@@ -57,6 +58,10 @@ if [[ " $PARTS " == *" pendulum "* ]]; then
   mpsim report "runs=[$OUT/pendulum2]" "title='Pendulum2: messages on vs zero_messages'" \
     "columns=[initial_test_error,min_test_error,min_test_error_epoch,epochs_x_min_error]" "${report[@]}"
   mv "$OUT/report/report.md" "$OUT/pendulum2.md"
+  # the paper's Figure 3a: train loss (and test error) per epoch, messages on vs off, and their ratio
+  mpsim report layout=messages "runs=[$OUT/pendulum2]" "title='Figure 3a: pendulum2, messages on vs zero_messages'" \
+    "${report[@]}"
+  mv "$OUT/report/report.md" "$OUT/figure3a.md"; mv "$OUT/report/messages.png" "$OUT/figure3a.png"
   tables+=("$OUT/pendulum2.md")
 fi
 cat "${tables[@]}" > "$OUT/foundation.md"

@@ -176,7 +176,7 @@ for a in "$@"; do
   case $a in
     hydra.run.dir=*|resume=*)
       d=${a#*=}; mkdir -p "$d" && echo '{}' > "$d/summary.json"
-      for f in report.md report.csv table1.png table2.png curves.png message_size.png message_size_curves.png; do
+      for f in report.md report.csv table1.png table2.png curves.png message_size.png message_size_curves.png messages.png; do
         : > "$d/$f"
       done;;
     paths.ckpt_dir=*) ckpt_dir=${a#*=};;

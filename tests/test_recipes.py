@@ -72,6 +72,11 @@ def test_foundation_parts_pendulum_trains_messages_on_and_off(tmp_path):
     assert proc.returncode == 0, proc.stderr
     trains = sorted((_arg(c, "system"), _arg(c, "model.zero_messages")) for c in calls if c[0] == "train")
     assert trains == [("pendulum2", "false"), ("pendulum2", "true")]
+    layouts = [next((a for a in c if a.startswith("layout=")), None) for c in calls if c[0] == "report"]
+    assert layouts == [None, "layout=messages"]  # the table, then Figure 3a
+    assert (tmp_path / "foundation.sh" / "figure3a.md").is_file() and (
+        tmp_path / "foundation.sh" / "figure3a.png"
+    ).is_file()
 
 
 def test_diagnose_cases_refuses_an_unknown_case_before_simulating_anything(tmp_path):

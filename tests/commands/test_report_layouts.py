@@ -26,12 +26,14 @@ def _run(
     best_val: float | None = None,
     overrides: list[str] = (),
     device: str | None = None,
+    zero_messages: bool | None = None,
 ) -> Path:
     """A run directory as `mpsim train` (or a zero-shot run) leaves it: summary.json, metrics.csv, overrides."""
     run = root / name
     (run / ".hydra").mkdir(parents=True)
     (run / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump([f"seed={seed}", *overrides]))
     config = {"_target_": f"mpsim.models.{model}"} | ({"message_size": message_size} if message_size else {})
+    config |= {} if zero_messages is None else {"zero_messages": zero_messages}
     summary = {
         "task": "train",
         "mode": mode,
@@ -202,6 +204,35 @@ def test_message_size_layout_compares_runs_at_matched_epochs(cfg_factory, tmp_pa
     assert "| 7 | 0.8 ± 0 | 0.6 ± 0 | 0.25 ± 0.071 | 0.25 ± 0.071 |" in text
     assert "| 13 | 0.5 | 0.3 | – | – |" in text
     assert "| L2S | 0.7 | 0.7 | 0.7 | 0.65 |" in text  # at MP-NODE's epochs, not the quarters of its own 12
+
+
+def test_messages_layout_compares_messages_on_and_off(cfg_factory, tmp_path):
+    root = tmp_path / "runs"
+    for seed in (0, 1):  # train loss is 10× the error (see _run)
+        errors = [3, 1, 0.8, 0.5, 0.2 + 0.1 * seed]
+        _run(root, f"on{seed}", system="pendulum2", seed=seed, zero_messages=False, errors=errors)
+    _run(root, "off", system="pendulum2", zero_messages=True, errors=[3, 1, 0.9, 0.9, 0.9])
+    _run(root, "old", system="pendulum2", seed=2, errors=[3, 1, 0.6, 0.4, 0.3])  # no flag recorded: messages on
+    _run(root, "l2s", system="pendulum2", model="L2S", message_size=None, errors=[3, 0.1, 0.1, 0.1, 0.1])  # not MP-NODE
+    _, out = _report(cfg_factory, tmp_path, "messages", root)
+    text = (out / "report.md").read_text()
+    assert "| on | 3 | 2.67 ± 0.58 | 0.267 ± 0.058 | 1.067 ± 0.23 |" in text  # 0.2, 0.3 and the old run's 0.3
+    assert "| off (`zero_messages=true`) | 1 | 9 | 0.9 | 1.8 |" in text
+    assert "Messages off / on: train loss 3.38×, test error 3.38× — messages lower both" in text
+    assert "| messages | by epoch 1 | by epoch 2 | by epoch 3 | by epoch 4 |" in text
+    assert "| on | 10 ± 0 | 7.33 ± 1.2 | 4.67 ± 0.58 | 2.67 ± 0.58 |" in text
+    assert "| off (`zero_messages=true`) | 10 | 9 | 9 | 9 |" in text
+    table = pd.read_csv(out / "report.csv")
+    assert list(table["messages"]) == ["on", "off"] and list(table["runs"]) == [3, 1]
+    assert (out / "messages.png").is_file()
+
+
+def test_messages_layout_says_when_messages_do_not_help(cfg_factory, tmp_path):
+    root = tmp_path / "runs"
+    _run(root, "on", system="kuramoto10_ba", zero_messages=False, errors=[3, 1, 0.9])
+    _run(root, "off", system="kuramoto10_ba", zero_messages=True, errors=[3, 1, 0.5])
+    _, out = _report(cfg_factory, tmp_path, "messages", root)
+    assert "test error 0.556× — messages do NOT lower both" in (out / "report.md").read_text()
 
 
 def test_the_settings_caption_says_where_the_runs_ran(cfg_factory, tmp_path):

@@ -5,7 +5,7 @@ sweep's table has one row per job and one column per swept key. Rows that differ
 aggregated as mean ± std. Runs that began training but wrote no summary.json (interrupted, or still training)
 are not in the table; report.md names each with the epoch it reached.
 
-`layout=table2|table1|curves|message_size` replaces the generic table by one of the MP-NODE paper's tables
+`layout=table2|table1|curves|message_size|messages` replaces the generic table by one of the MP-NODE paper's tables
 or figures (`mpsim.commands.report_layouts`), built from the same runs: report.md (with the settings the runs
 used as caption), report.csv (the layout's table, long format), runs.csv (every run) and PNG figures.
 """

@@ -17,6 +17,9 @@ training-set size, message size), never by where they lie. Every layout returns 
   every curve reaches.
 - ``message_size``: Figures 7 and 8, minimum test error against MP-NODE's message size per system, and the
   train-loss / test-error curves per message size; L2S runs on the same system are drawn as a reference.
+- ``messages``: Figures 3a and 4, MP-NODE with messages vs `model.zero_messages=true`: minimum train loss and
+  test error per arm, their ratio, the train loss by matched epochs, and the train-loss / test-error curves
+  (mean over seeds, min–max band).
 """
 
 from __future__ import annotations
@@ -85,6 +88,7 @@ def run_facts(run: Path, summary: dict[str, Any]) -> dict[str, Any]:
     return {
         "model_class": model.get("model"),
         "message_size": config.get("message_size"),
+        "zero_messages": config.get("zero_messages"),
         "n_train": data.get("train"),
         "n_times": data.get("n_times"),
         "best_val_error": summary.get("best_val_error"),
@@ -506,14 +510,16 @@ def _checkpoint_epochs(curves: Sequence[pd.DataFrame]) -> list[int]:
     return sorted({max(1, round(last * q / 4)) for q in (1, 2, 3, 4)}) if last >= 1 else []
 
 
-def _min_so_far(curve: pd.DataFrame, epochs: Sequence[int]) -> list[float]:
-    """The curve's minimum test error over epochs 1..e for each e (NaN where the run stopped before e)."""
-    trained = curve[curve["epoch"] >= 1].set_index("epoch")["test_error"].sort_index().cummin()
+def _min_so_far(curve: pd.DataFrame, epochs: Sequence[int], key: str = "test_error") -> list[float]:
+    """The curve's minimum `key` over epochs 1..e for each e (NaN where the run stopped before e)."""
+    trained = curve[curve["epoch"] >= 1].set_index("epoch")[key].sort_index().cummin()
     return [float(trained[trained.index <= e].iloc[-1]) if trained.index.max() >= e else math.nan for e in epochs]
 
 
-def _by_epoch_row(label: Any, curves: Sequence[pd.DataFrame], epochs: Sequence[int]) -> list[Any]:
-    values = pd.DataFrame([_min_so_far(c, epochs) for c in curves], columns=list(epochs))
+def _by_epoch_row(
+    label: Any, curves: Sequence[pd.DataFrame], epochs: Sequence[int], key: str = "test_error"
+) -> list[Any]:
+    values = pd.DataFrame([_min_so_far(c, epochs, key) for c in curves], columns=list(epochs))
     return [label] + ["–" if values[e].isna().any() else pm(*_stats(values[e])[:2], digits=3) for e in epochs]
 
 
@@ -607,15 +613,88 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
     return LayoutResult("\n\n".join(sections), pd.DataFrame(records), figures)
 
 
+# ---- messages on vs off (figures 3a, 4) --------------------------------------------------------------------
+def messages(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
+    """Figures 3a and 4: MP-NODE with messages vs `model.zero_messages=true` (each node an augmented NODE)."""
+    train = frame[(frame["task"] == "train") & (frame["model_class"] == "MPNODE")].copy()
+    if train.empty:
+        return LayoutResult("No MP-NODE training runs found.", pd.DataFrame(), [])
+    train["off"] = train["zero_messages"].map(lambda v: v is True)  # a config without the flag: messages on
+    systems = sorted(train["system"].unique(), key=_column_key)
+    width = max(6.0, 4.2 * len(systems))
+    fig, axes = subplots(2, len(systems), figsize=(width, 6.2), squeeze=False, layout="constrained")
+    records, sections = [], []
+    for k, system in enumerate(systems):
+        part = train[train["system"] == system]
+        curves = {r: c for r in part["run"] if (c := _curve(r)) is not None}  # each metrics.csv read once
+        epochs = _checkpoint_epochs(list(curves.values()))
+        rows, by_epoch, cell = [], [], {}
+        for off, runs in sorted(part.groupby("off"), key=lambda kv: bool(kv[0])):  # messages on first
+            label = "off (`zero_messages=true`)" if off else "on"
+            loaded = [curves[r] for r in runs["run"] if r in curves]
+            loss = _stats(pd.Series([float(c.loc[c["epoch"] >= 1, "train_loss"].min()) for c in loaded]))
+            err = _stats(runs["min_test_error"])
+            exm = _stats(runs["epochs_x_min_error"])
+            cell[bool(off)] = (loss[0], err[0])
+            records.append(
+                {
+                    "system": system,
+                    "messages": "off" if off else "on",
+                    "runs": err[2],
+                    "min_train_loss": loss[0],
+                    "min_train_loss_std": loss[1],
+                    "min_test_error": err[0],
+                    "min_test_error_std": err[1],
+                    "epochs_x_min_error": exm[0],
+                    "epochs_x_min_error_std": exm[1],
+                }
+            )
+            rows.append([label, err[2], pm(*loss[:2], digits=3), pm(*err[:2], digits=3), pm(*exm[:2], digits=4)])
+            if loaded and epochs:
+                by_epoch.append(_by_epoch_row(label, loaded, epochs, "train_loss"))
+            colour = "tab:blue" if off else "tab:red"  # the paper's Figure 3a: on red, off blue
+            for key, ax in (("train_loss", axes[0, k]), ("test_error", axes[1, k])):
+                if loaded:
+                    wide = pd.concat([c[c["epoch"] >= 1].set_index("epoch")[key] for c in loaded], axis=1)
+                    mean = wide.mean(axis=1)
+                    name = "messages off (zero_messages=true)" if off else "messages on"
+                    ax.plot(mean.index, mean.values, color=colour, label=f"{name} ({len(loaded)})")
+                    ax.fill_between(mean.index, wide.min(axis=1), wide.max(axis=1), color=colour, alpha=0.2)
+        axes[0, k].set(yscale="log", ylabel="train loss", title=system)
+        axes[1, k].set(yscale="log", xlabel="epoch", ylabel="test rollout RMSE")
+        axes[0, k].legend(fontsize=7)
+        text = f"**{system}**\n\n" + md_table(
+            ["messages", "runs", "min train loss", "min test error", "epochs_x_min_error"], rows
+        )
+        if True in cell and False in cell:
+            (loss_on, err_on), (loss_off, err_off) = cell[False], cell[True]
+            holds = loss_on < loss_off and err_on < err_off
+            text += (
+                f"\n\nMessages off / on: train loss {loss_off / loss_on:.3g}×, test error {err_off / err_on:.3g}× — "
+                f"messages {'lower' if holds else 'do NOT lower'} both (the paper's Figure 3a: lower training loss "
+                "with messages on)"
+            )
+        sections.append(text)
+        if by_epoch:  # is the order the same at every stage of training?
+            sections.append(
+                f"Minimum train loss so far, by epoch ({system}; – where a run stopped earlier):\n\n"
+                + md_table(["messages", *(f"by epoch {e}" for e in epochs)], by_epoch)
+            )
+    fig.suptitle("Messages on vs off (Figure 3a; Figure 4 for Kuramoto): mean over seeds, band min–max")
+    return LayoutResult("\n\n".join(sections), pd.DataFrame(records), [save_figure(fig, out_dir / "messages.png")])
+
+
 LAYOUT_FUNCS: dict[str, Callable[[pd.DataFrame, Path], LayoutResult]] = {
     "table2": table2,
     "table1": table1,
     "curves": curves,
     "message_size": message_size,
+    "messages": messages,
 }
 DEFAULT_TITLES = {
     "table2": "Table 2: MP-NODE finetuned vs from scratch vs L2S",
     "table1": "Table 1: zero-shot generalisation of MP-NODE (gene 4×4, trained on BA)",
     "curves": "Figure 5: finetuning vs training from scratch",
     "message_size": "Figures 7 and 8: effect of the message size",
+    "messages": "Figures 3a and 4: MP-NODE with messages vs without (`model.zero_messages=true`)",
 }
