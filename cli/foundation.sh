@@ -61,7 +61,8 @@ if [[ " $PARTS " == *" pendulum "* ]]; then
   # the paper's Figure 3a: train loss (and test error) per epoch, messages on vs off, and their ratio
   mpsim report layout=messages "runs=[$OUT/pendulum2]" "title='Figure 3a: pendulum2, messages on vs zero_messages'" \
     "${report[@]}"
-  mv "$OUT/report/report.md" "$OUT/figure3a.md"; mv "$OUT/report/messages.png" "$OUT/figure3a.png"
+  sed 's/(messages\.png)/(figure3a.png)/' "$OUT/report/report.md" > "$OUT/figure3a.md"
+  mv "$OUT/report/messages.png" "$OUT/figure3a.png"
   tables+=("$OUT/pendulum2.md")
 fi
 cat "${tables[@]}" > "$OUT/foundation.md"
