@@ -41,6 +41,7 @@ def test_epoch_time_refuses_bad_cases_and_keeps_paper_defaults():
     quads = EpochTimeBench(only=["quadrotors"]).cases
     assert len(quads) == 3 and all("quadrotors" in c["name"] for c in quads)
     assert len(EpochTimeBench(only="8×8").cases) == 2  # a single string from the command line
+    assert len(EpochTimeBench(only=["8x8"]).cases) == 2  # `×` cannot be typed unquoted on Hydra's command line
 
 
 def test_every_child_trains_on_the_bench_device(monkeypatch):

@@ -81,7 +81,8 @@ class EpochTimeBench(Suite):
     trainer: the trainer preset (the paper's: `paper`).
     threads: torch threads of each training process (`threads=` of `mpsim train`).
     timeout: seconds allowed per case (data simulation included).
-    only: keep the cases whose name contains one of these strings, e.g. `bench.only=[8×8,quadrotors]`.
+    only: keep the cases whose name contains one of these strings, case-insensitive, with `x` standing for `×`
+        (Hydra's command line does not take `×` unquoted), e.g. `bench.only=[8x8,quadrotors]`.
     device: where each training child runs: `cpu`, `cuda` or `auto` (`cuda` when one is available).
     """
 
@@ -109,7 +110,10 @@ class EpochTimeBench(Suite):
         if only is not None:
             if isinstance(only, str):
                 only = [only]
-            kept = [c for c in self.cases if any(str(o) in c["name"] for o in only)]
+            def plain(text: str) -> str:  # "8×8" is typed "8x8"
+                return text.replace("×", "x").lower()
+
+            kept = [c for c in self.cases if any(plain(str(o)) in plain(c["name"]) for o in only)]
             if not kept:
                 names = ", ".join(repr(c["name"]) for c in self.cases)
                 raise ConfigError(f"bench.only={list(only)} matches no case; the cases are: {names}.")
