@@ -110,6 +110,7 @@ class EpochTimeBench(Suite):
         if only is not None:
             if isinstance(only, str):
                 only = [only]
+
             def plain(text: str) -> str:  # "8×8" is typed "8x8"
                 return text.replace("×", "x").lower()
 
