@@ -4,6 +4,7 @@ tests/bench/test_epoch_time.py; the resumable-run helper is tests/test_recipe_li
 
 import shutil
 
+import numpy as np
 import pytest
 
 from tests.helpers import run_recipe
@@ -77,6 +78,52 @@ def test_foundation_parts_pendulum_trains_messages_on_and_off(tmp_path):
     assert (tmp_path / "foundation.sh" / "figure3a.md").is_file() and (
         tmp_path / "foundation.sh" / "figure3a.png"
     ).is_file()
+
+
+def _figure3b_inputs(out, zeroed_toward):
+    """A trained messages-on run and the four evaluations Figure 3b reads, with the zeroed model's prediction a
+    tenth of the way from the uncoupled truth towards `zeroed_toward` ("coupled" or "uncoupled" itself)."""
+    t = np.linspace(0, 1, 31)[None, :, None, None]  # [1, T, 1, 1]
+    coupled = np.ones((3, 31, 2, 2)) + t  # [B, T, N, D]
+    uncoupled = coupled + 2 * t  # the same initial states, parting over time
+    zeroed = coupled if zeroed_toward == "coupled" else uncoupled + 0.1 * (coupled - uncoupled)
+    (out / "pendulum2/s0-zero_messages_false/checkpoints").mkdir(parents=True)
+    (out / "pendulum2/s0-zero_messages_false/checkpoints/best.ckpt").touch()
+    for truth, x in (("coupled", coupled), ("uncoupled", uncoupled)):
+        for zero, pred in (("false", coupled), ("true", zeroed)):
+            d = out / "figure3b/s0" / f"{truth}_zero_messages_{zero}"
+            d.mkdir(parents=True)
+            np.savez(d / "test.npz", x=x)
+            np.savez(d / "test_model.npz", x=pred)
+
+
+@pytest.mark.parametrize(
+    ("zeroed_toward", "verdict"),
+    [
+        ("uncoupled", "the nodes behave like uncoupled pendulums"),
+        ("coupled", "the nodes do NOT behave like uncoupled pendulums"),
+    ],
+)
+def test_foundation_figure3b_says_whether_zeroed_messages_leave_uncoupled_pendulums(tmp_path, zeroed_toward, verdict):
+    _figure3b_inputs(tmp_path / "foundation.sh", zeroed_toward)
+    proc, calls = run_recipe("foundation.sh", tmp_path, SEEDS="0", PARTS="pendulum")
+    assert proc.returncode == 0, proc.stderr
+    assert not [c for c in calls if c[0] == "eval"]  # the evaluations that exist are kept
+    text = (tmp_path / "foundation.sh" / "figure3b.md").read_text()
+    assert f"With messages zeroed {verdict}" in text
+    if zeroed_toward == "uncoupled":
+        assert "| messages zeroed vs uncoupled, as a share of the two truths apart | 0.10 | 0.10 | 0.10 |" in text
+
+
+def test_foundation_figure3b_evaluates_each_trained_coupled_model_four_ways(tmp_path):
+    (tmp_path / "foundation.sh/pendulum2/s0-zero_messages_false/checkpoints").mkdir(parents=True)
+    (tmp_path / "foundation.sh/pendulum2/s0-zero_messages_false/checkpoints/best.ckpt").touch()
+    proc, calls = run_recipe("foundation.sh", tmp_path, SEEDS="0", PARTS="pendulum")
+    evals = sorted((_arg(c, "model.zero_messages"), "system.spring=0" in c) for c in calls if c[0] == "eval")
+    assert evals == [("false", False), ("false", True), ("true", False), ("true", True)]
+    assert all(
+        _arg(c, "init").endswith("s0-zero_messages_false/checkpoints/best.ckpt") for c in calls if c[0] == "eval"
+    )
 
 
 def test_diagnose_cases_refuses_an_unknown_case_before_simulating_anything(tmp_path):
