@@ -455,11 +455,9 @@ def curves(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
             loaded = [c for c in (_curve(r) for r in runs["run"]) if c is not None]
             if not loaded:
                 continue
-            wide = pd.concat([c.set_index("epoch")["test_error"] for c in loaded], axis=1)
+            wide = _mean_band(ax, loaded, "test_error", f"{row} ({len(loaded)})")
             mean = wide.mean(axis=1)
             means[row] = mean
-            ax.plot(mean.index, mean.values, label=f"{row} ({len(loaded)})")
-            ax.fill_between(mean.index, wide.min(axis=1), wide.max(axis=1), alpha=0.2)
             records += [
                 {
                     "system": system,
@@ -480,6 +478,15 @@ def curves(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
     fig.suptitle("Finetuned vs from scratch (mean over seeds, band: min–max)")
     figure = save_figure(fig, out_dir / "curves.png")
     return LayoutResult("\n\n".join(sections), pd.DataFrame(records), [figure])
+
+
+def _mean_band(ax: Any, curves: Sequence[pd.DataFrame], key: str, label: str, color: str | None = None) -> pd.DataFrame:
+    """Draw the mean of `key` per epoch over the runs' curves with a min–max band; return the runs side by side."""
+    wide = pd.concat([c.set_index("epoch")[key] for c in curves], axis=1)  # [epoch, run]
+    mean = wide.mean(axis=1)
+    (line,) = ax.plot(mean.index, mean.values, color=color, label=label)
+    ax.fill_between(mean.index, wide.min(axis=1), wide.max(axis=1), color=line.get_color(), alpha=0.2)
+    return wide
 
 
 def _reach_table(system: str, n_train: Any, means: dict[str, pd.Series]) -> str:
@@ -653,13 +660,10 @@ def messages(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
             if loaded and epochs:
                 by_epoch.append(_by_epoch_row(label, loaded, epochs, "train_loss"))
             colour = "tab:blue" if off else "tab:red"  # the paper's Figure 3a: on red, off blue
+            name = "messages off (zero_messages=true)" if off else "messages on"
             for key, ax in (("train_loss", axes[0, k]), ("test_error", axes[1, k])):
                 if loaded:
-                    wide = pd.concat([c[c["epoch"] >= 1].set_index("epoch")[key] for c in loaded], axis=1)
-                    mean = wide.mean(axis=1)
-                    name = "messages off (zero_messages=true)" if off else "messages on"
-                    ax.plot(mean.index, mean.values, color=colour, label=f"{name} ({len(loaded)})")
-                    ax.fill_between(mean.index, wide.min(axis=1), wide.max(axis=1), color=colour, alpha=0.2)
+                    _mean_band(ax, loaded, key, f"{name} ({len(loaded)})", colour)
         axes[0, k].set(yscale="log", ylabel="train loss", title=system)
         axes[1, k].set(yscale="log", xlabel="epoch", ylabel="test rollout RMSE")
         axes[0, k].legend(fontsize=7)
