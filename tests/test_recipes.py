@@ -2,7 +2,10 @@
 reports, and one clear refusal for a bad option. (That the PAPER=1 recipes train what `bench=epoch_time` times is
 tests/bench/test_epoch_time.py; the resumable-run helper is tests/test_recipe_lib.py.)"""
 
+import os
 import shutil
+import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -154,3 +157,23 @@ def test_table1_zero_shots_every_trained_model_not_only_the_ones_named(tmp_path)
     assert {_arg(c, "hydra.sweep.dir") for c in calls if "mode=zeroshot" in c} == {
         str(out / "zeroshot" / m / s) for m, s in [("l2s", "s0"), ("mpnode", "s0"), ("mpnode", "s1")]
     }
+
+
+@pytest.mark.slow  # nine real `mpsim simulate` runs, about a minute
+def test_meanfield_gene_simulates_the_mean_field_from_the_truths_states(tmp_path):
+    script = Path(__file__).resolve().parents[1] / "cli" / "meanfield_gene.sh"
+    env = {**os.environ, "OUT": str(tmp_path / "mf"), "N": "3", "CKPTS": ""}
+    proc = subprocess.run(["bash", str(script)], env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    rows = {
+        line.split(" | ")[0].lstrip("| "): line.split(" | ")[1:4]
+        for line in (tmp_path / "mf" / "meanfield_gene.md").read_text().splitlines()
+        if line.startswith("| closed-form")
+    }
+    k8, own = (
+        rows["closed-form mean field, k̄ = 8 (BA's, what a BA-trained model can know)"],
+        rows["closed-form mean field, each graph's own k̄"],
+    )
+    # BA(16, 8) and WS(16, 8) have mean degree 8 exactly, so both mean fields agree there; ER's k̄ is its own
+    assert k8[0] == own[0] and k8[2] == own[2] and k8[1] != own[1]
+    assert float(k8[0]) > 0.05  # BA's hubs: the mean field is far from the truth

@@ -83,3 +83,36 @@ def test_data_and_metadata():
     assert (traj.x >= 0).all() and math.isclose(float(traj.t[-1]), 2.5)
     assert traj.meta["params"]["graph_seeds"] == [1, 2, 3, 4, 5]
     assert torch.equal(traj.edge_index[5], traj.edge_index[0])  # trajectory 5 runs on graph 5 mod 5 = 0
+
+
+def test_mean_field_equals_the_graph_on_a_regular_graph_from_equal_states():
+    # a k-regular graph (WS with no rewiring is a ring lattice) from equal node states: every node's input is
+    # k·H(x) both ways, so the mean field reproduces the graph's trajectory exactly; on BA (hubs) it does not
+    kw = dict(n_nodes=16, graph="watts_strogatz", graph_params={"k": 4, "p": 0.0}, n_graphs=1)
+    graph, field = GeneRegulation(**kw), GeneRegulation(**kw, coupling="mean_field")
+    x0 = torch.linspace(1.0, 40.0, 3, dtype=torch.float64)[:, None, None].expand(3, 16, 1)  # [B, N, 1] equal nodes
+    t = torch.linspace(0.0, 2.0, 21, dtype=torch.float64)
+    assert torch.allclose(field.simulate(x0, t).x, graph.simulate(x0, t).x, rtol=1e-7, atol=1e-8)
+    ba = dict(n_nodes=16, graph="barabasi_albert", n_graphs=2)
+    hot = GeneRegulation(**ba).sample_initial_states(3, torch.Generator().manual_seed(0))
+    gap = GeneRegulation(**ba, coupling="mean_field").simulate(hot, t).x - GeneRegulation(**ba).simulate(hot, t).x
+    assert gap.abs().max() > 1.0
+
+
+@pytest.mark.parametrize("mean_degree", [None, 5.0])
+def test_mean_field_input_is_k_bar_times_the_mean_activation(mean_degree):
+    system = GeneRegulation(n_nodes=16, graph="erdos_renyi", n_graphs=3, coupling="mean_field", mean_degree=mean_degree)
+    drawn = GeneRegulation(n_nodes=16, graph="erdos_renyi", n_graphs=3).adjacency  # [G, N, N] the same graphs
+    k = drawn.sum(dim=(1, 2)) / 16 if mean_degree is None else torch.full((3,), mean_degree, dtype=torch.float64)
+    x = 5 * torch.rand(3, 16, 1, dtype=torch.float64)
+    act = x**2 / (1 + x**2)  # [B, N, 1]
+    expected = -x + k[:, None, None] * act.mean(dim=1, keepdim=True)
+    assert torch.allclose(system.rhs(torch.tensor(0.0), x), expected)
+    assert system.params()["coupling"] == "mean_field" and system.params()["mean_degree"] == pytest.approx(k.tolist())
+    assert GeneRegulation(n_nodes=16, n_graphs=1).params()["mean_degree"] is None
+
+
+@pytest.mark.parametrize("kw,match", [({"coupling": "mean"}, "system.coupling"), ({"mean_degree": 0.0}, "mean_degree")])
+def test_bad_coupling_settings_are_config_errors(kw, match):
+    with pytest.raises(ConfigError, match=match):
+        GeneRegulation(n_nodes=16, n_graphs=1, **kw)

@@ -10,6 +10,11 @@ graph parameters: ER G(n, p = 0.5), BA with n/2 edges per new node, WS with n/2 
 with probability 0.5. Datasets may span several graphs of one family (the paper trains on five BA
 adjacency matrices, seeds 1..5): trajectory b runs on graph b mod G and carries its own graph.
 
+``coupling=mean_field`` replaces every graph by its mean field, A_ij = k̄/n for all i, j (k̄: `mean_degree`, or
+each graph's own mean degree), so ẋ_i = −b·x_i^f + k̄·mean_j x_j^h/(1 + x_j^h): every node receives the same
+input, as in an MP-NODE whose messages are averaged over all nodes (``model.graph=full``). It is the closed-form
+baseline that shows what a model that cannot see the graph can reach; the data still carry the drawn graphs.
+
 Initial states (MPNODE.jl): ``uniform`` draws U(0, 50) per node; ``hotspot`` starts from zeros on the
 √n × √n grid and fills 3 random rectangles with a value U(30, 50) each (a later rectangle overwrites an
 earlier one), then flattens the grid column-major (node k sits at row k mod √n, column k div √n).
@@ -29,6 +34,7 @@ from mpsim.systems.base import System
 from mpsim.systems.graph_ensemble import GraphEnsembleSystem
 
 IC_KINDS = ("hotspot", "uniform")
+COUPLINGS = ("graph", "mean_field")
 
 
 def default_gene_graph_params(graph: str, n_nodes: int) -> dict[str, Any]:
@@ -87,6 +93,9 @@ class GeneRegulation(GraphEnsembleSystem, System):
         ic_range: range of the uniform initial states.
         hotspot_range: range of a hot spot's value.
         n_hotspots: hot spots per initial state.
+        coupling: ``graph`` (the drawn graphs) or ``mean_field`` (each graph replaced by its mean field).
+        mean_degree: k̄ of the mean field (None: each graph's own mean degree), e.g. the training family's
+            for a zero-shot comparison.
         effects: extra terms added to the dynamics.
     """
 
@@ -109,6 +118,8 @@ class GeneRegulation(GraphEnsembleSystem, System):
         ic_range: Sequence[float] = (0.0, 50.0),
         hotspot_range: Sequence[float] = (30.0, 50.0),
         n_hotspots: int = 3,
+        coupling: str = "graph",
+        mean_degree: float | None = None,
         effects: Sequence[Any] = (),
     ) -> None:
         if n_nodes < 2:
@@ -121,8 +132,17 @@ class GeneRegulation(GraphEnsembleSystem, System):
                 f"system.initial=hotspot lays the nodes on a square grid; n_nodes={n_nodes} is not a square "
                 "(use 16 or 64, or system.initial=uniform)."
             )
+        if coupling not in COUPLINGS:
+            raise ConfigError(f"system.coupling={coupling!r} is unknown; choose one of {', '.join(COUPLINGS)}.")
+        if mean_degree is not None and not mean_degree > 0:
+            raise ConfigError(f"system.mean_degree must be > 0 (or null: each graph's own); got {mean_degree}.")
         params = default_gene_graph_params(graph, n_nodes) if graph_params is None else graph_params
         first = self._init_graphs(n_nodes, graph, params, graph_seed, n_graphs)
+        self.coupling, self.mean_degree = coupling, None if mean_degree is None else float(mean_degree)
+        if coupling == "mean_field":
+            own = self.adjacency.sum(dim=(1, 2)) / n_nodes  # [G] each graph's mean degree
+            k = own if self.mean_degree is None else torch.full_like(own, self.mean_degree)  # [G]
+            self.adjacency = (k / n_nodes)[:, None, None].expand(-1, n_nodes, n_nodes).contiguous()  # [G, N, N]
         System.__init__(self, name, n_nodes, first, effects)
         self.b, self.f, self.h = float(b), float(f), float(h)
         self.initial, self.side = initial, side
@@ -141,6 +161,11 @@ class GeneRegulation(GraphEnsembleSystem, System):
             "ic_range": list(self.ic_range),
             "hotspot_range": list(self.hotspot_range),
             "n_hotspots": self.n_hotspots,
+            "coupling": self.coupling,
+            # the mean field's k̄ per graph (a list, so model=physics does not take it for a learnable constant)
+            "mean_degree": self.adjacency.sum(dim=(1, 2)).div(self.n_nodes).tolist()
+            if self.coupling != "graph"
+            else None,
         }
 
     def dynamics(
