@@ -22,8 +22,15 @@ EPOCHS=${EPOCHS:-150}
 L2S_EPOCHS=${L2S_EPOCHS:-$EPOCHS}
 SEEDS=${SEEDS:-"0 1 2"}
 TRAINER=${TRAINER:-default}
-RUNS=${RUNS:-"l2s/per_feature l2s/per_node mpnode/per_feature"}  # model/units of its training file
+RUNS=${RUNS-"l2s/per_feature l2s/per_node mpnode/per_feature"}  # model/units of its training file ("": none, only COMPARE)
 JOBS=${JOBS:-2}
+# name=checkpoint pairs trained elsewhere on the same system (e.g. Table 1's MP-NODE models), each evaluated on this
+# data's per-feature file and read both ways beside the runs, e.g.
+# COMPARE="table1_mpnode_s0=results/table1_paper/train/mpnode/s0/checkpoints/best.ckpt"
+COMPARE=${COMPARE:-}
+for pair in $COMPARE; do  # refused before anything is simulated or trained
+  [[ $pair == *=* && -f ${pair#*=} ]] || { echo "pernode_l2s.sh: COMPARE entry '$pair' is not name=<an existing checkpoint>" >&2; exit 2; }
+done
 mkdir -p "$OUT/data"
 if [ ! -f "$OUT/data/per_node.npz" ]; then
   mpsim simulate system=gene_ba_small n=$N seed=11 hydra.run.dir="$OUT/data/sim" > /dev/null
@@ -62,7 +69,16 @@ for seed in ${SEEDS//,/ }; do
       paths.output_root="$OUT" > /dev/null
   done
 done
-python - "$OUT" $RUNS <<'PY'
+rows=()
+for run in $RUNS; do rows+=("train/$run"); done
+for pair in $COMPARE; do
+  name=${pair%%=*} ckpt=${pair#*=}
+  dir=$OUT/compare/$name/per_feature/s0
+  [ -f "$dir/eval/test_model.npz" ] || mpsim eval "init=$ckpt" "data.path=$OUT/data/per_feature.npz" \
+    eval.save_predictions=true eval.plots=false hydra.run.dir="$dir/eval" paths.output_root="$OUT" > /dev/null
+  rows+=("compare/$name/per_feature")
+done
+python - "$OUT" "${rows[@]}" <<'PY'
 import sys
 from pathlib import Path
 
@@ -76,7 +92,7 @@ pooled = raw.reshape(-1, raw.shape[-1]).std(0)  # [D]
 rows = []
 for run in runs:
     per_feature, per_node = [], []
-    for seed_dir in sorted((out / "train" / run).glob("s*")):
+    for seed_dir in sorted((out / run).glob("s*")):
         with np.load(seed_dir / "eval" / "test.npz") as a, np.load(seed_dir / "eval" / "test_model.npz") as b:
             x, pred = a["x"], b["x"]  # [B, T, N, D] in the training file's units
         if run.endswith("per_node"):  # back to the simulated units
@@ -84,7 +100,7 @@ for run in runs:
         err = (pred - x)[:, 1:]
         per_feature.append(np.sqrt(((err / pooled) ** 2).mean()))
         per_node.append(np.sqrt(((err / node_std) ** 2).mean()))
-    model, units = run.split("/")
+    model, units = run.split("/")[-2:]
     f, n = np.array(per_feature), np.array(per_node)
     rows.append(f"| {model} | {units} | {len(f)} | {f.mean():.4f} ± {f.std():.4f} | {n.mean():.4f} ± {n.std():.4f} |")
 lines = [

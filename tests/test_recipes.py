@@ -177,3 +177,10 @@ def test_meanfield_gene_simulates_the_mean_field_from_the_truths_states(tmp_path
     # BA(16, 8) and WS(16, 8) have mean degree 8 exactly, so both mean fields agree there; ER's k̄ is its own
     assert k8[0] == own[0] and k8[2] == own[2] and k8[1] != own[1]
     assert float(k8[0]) > 0.05  # BA's hubs: the mean field is far from the truth
+
+
+@pytest.mark.parametrize("compare", ["table1=missing.ckpt", "no_equals_sign"])
+def test_pernode_l2s_refuses_a_bad_compare_entry_before_anything_runs(tmp_path, compare):
+    proc, calls = run_recipe("pernode_l2s.sh", tmp_path, COMPARE=compare)
+    assert proc.returncode == 2 and calls == []
+    assert f"COMPARE entry '{compare}' is not name=<an existing checkpoint>" in proc.stderr
