@@ -16,7 +16,7 @@ K=${K:-8}
 CKPTS=${CKPTS-"all-to-all=results/table1_full/train/mpnode/s0/checkpoints/best.ckpt system-graph=results/table1_paper/train/mpnode/s0/checkpoints/best.ckpt"}
 rm -rf "$OUT"
 for fam in ba er ws; do
-  sys=(system=gene_${fam}_small n=$N seed=7)
+  sys=(system=gene_${fam}_small n=$N data.seed=7)
   mpsim simulate "${sys[@]}" hydra.run.dir="$OUT/$fam/truth" > /dev/null
   mpsim simulate "${sys[@]}" system.coupling=mean_field system.mean_degree=$K hydra.run.dir="$OUT/$fam/mean_field_k$K" > /dev/null
   mpsim simulate "${sys[@]}" system.coupling=mean_field hydra.run.dir="$OUT/$fam/mean_field_own" > /dev/null

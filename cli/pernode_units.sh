@@ -11,7 +11,7 @@ N=${N:-200}
 CKPTS=${CKPTS:-"mpnode=results/table1_paper/train/mpnode/s0/checkpoints/best.ckpt l2s=results/table1_paper/train/l2s/s0/checkpoints/best.ckpt"}
 rm -rf "$OUT"
 for pair in $CKPTS; do
-  mpsim simulate system=gene_ba_small "init=${pair#*=}" n=$N seed=7 hydra.run.dir="$OUT/${pair%%=*}" > /dev/null
+  mpsim simulate system=gene_ba_small "init=${pair#*=}" n=$N data.seed=7 hydra.run.dir="$OUT/${pair%%=*}" > /dev/null
 done
 python - "$OUT" $CKPTS <<'EOF'
 import sys

@@ -26,7 +26,7 @@ import pytest
 import torch
 
 from mpsim.training.checkpoint import save_checkpoint
-from tests.helpers import TINY_TRAIN, run_mpsim
+from tests.helpers import TINY_TRAIN, run_mpsim, run_mpsim_ok
 
 EVAL = ["data.n_test=3", "data.horizon=5", "eval.plots=false"]
 NO_TORCH = "import sys; from mpsim.cli import main\n"
@@ -212,6 +212,7 @@ CASES: dict[str, Case] = {
         lambda w, d: ["train", *TINY_TRAIN[:-1], "eval.horizons=[1,5,50]"], 2, "[50] go beyond the record"
     ),
     "simulate_n_zero": Case(lambda w, d: ["simulate", "n=0"], 2, "n=0"),
+    "simulate_training_seed": Case(lambda w, d: ["simulate", "n=2", "seed=7"], 2, "Pass data.seed=7 instead"),
     "sweep_bad_value": Case(lambda w, d: ["train", "-m", *TINY_TRAIN, "data.n_train=4,-1"], 2, "data.n_train=-1"),
     "unknown_command": Case(lambda w, d: ["frobnicate"], 2, "unknown command 'frobnicate'"),
     # -- output locations that cannot be written: refused before any work
@@ -540,6 +541,34 @@ def test_a_moved_run_resumes_where_it_is_now_and_writes_where_it_is_told(ws, tmp
     assert not any(
         key in line.split(". A resumed")[0] for key in ("paths.ckpt_dir=", "trainer.progress", "log_every_s")
     )
+
+
+def test_a_run_on_a_data_file_resumes_with_the_file_moved_along_only_if_it_holds_the_same_bytes(ws, tmp_path):
+    """A results folder copied elsewhere carries its data file: `data.path` may then point at the copy, checked
+    against the SHA-256 the run recorded (data.json); other bytes are refused, and so is a file that cannot be
+    checked (no record, the original gone)."""
+    first = tmp_path / "first"
+    run_mpsim_ok(["simulate", "system=lorenz3", "n=12", "data.seed=3", f"hydra.run.dir={first}/sim"], tmp_path)
+    data = first / "data.npz"
+    shutil.move(first / "sim" / "trajectories.npz", data)
+    run_dir = first / "run"
+    run_mpsim_ok(["train", f"data.path={data}", *TINY_TRAIN, f"hydra.run.dir={run_dir}"], tmp_path)
+    record = json.loads((run_dir / "data.json").read_text())
+    assert record["path"] == str(data) and len(record["sha256"]) == 64
+    moved = tmp_path / "moved"
+    shutil.copytree(first, moved)
+    shutil.rmtree(first)  # the original data file is gone: only the recorded digest can vouch for the copy
+    resume = ["train", f"resume={moved / 'run'}", f"paths.output_root={moved}"]
+    res = run_mpsim([*resume, f"data.path={moved / 'data.npz'}"], tmp_path)
+    assert res.code == 0, res.err
+    run_mpsim_ok(["simulate", "system=lorenz3", "n=12", "data.seed=4", f"hydra.run.dir={tmp_path}/other"], tmp_path)
+    refused = run_mpsim([*resume, f"data.path={tmp_path / 'other' / 'trajectories.npz'}"], tmp_path)
+    assert refused.code == 2
+    assert "only if it holds the same bytes" in refused.err
+    (moved / "run" / "data.json").unlink()
+    unchecked = run_mpsim([*resume, f"data.path={moved / 'data.npz'}"], tmp_path)
+    assert unchecked.code == 2
+    assert "recorded no digest" in unchecked.err
 
 
 def test_resume_uses_the_runs_own_overrides_and_keeps_its_record(ws, tmp_path):

@@ -10,8 +10,10 @@ kind (`mpsim.errors`); anything else is a bug and keeps its traceback.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
+import re
 import shutil
 import sys
 from collections.abc import Callable
@@ -216,7 +218,9 @@ def _with_resume(args: list[str]) -> list[str]:
     run's own (other data, another learning rate, ...) are refused: they would silently change the run. Where it
     writes (`paths.*`) and how it shows its progress (`trainer.progress`, `trainer.log_every_s`) are not what it
     computes: those given now replace the run's own, so a run directory moved to another disk or machine resumes
-    there, and a run started with a bar can be resumed in the background without one.
+    there, and a run started with a bar can be resumed in the background without one. `data.path` may
+    differ too when the file holds the bytes the run trained on (the SHA-256 it recorded in `data.json`, or the
+    file at its own path): data moved along with its run.
     """
     values = [a.split("=", 1)[1] for a in args if a.startswith("resume=")]
     if not values or values[-1].lower() in {"false", "no", "0", "off", "null"}:
@@ -249,10 +253,19 @@ def _with_resume(args: list[str]) -> list[str]:
         own = _own(args)
     else:
         mine, theirs = dict(_split(a) for a in _own(args)), dict(_split(a) for a in _own(saved))
+        # the data file may have moved with the run (a copied results folder) if it holds the same bytes
+        data_moved = (
+            "data.path" in mine
+            and "data.path" in theirs
+            and mine["data.path"] != theirs["data.path"]
+            and _same_data(run, mine["data.path"], theirs["data.path"])
+        )
         differ = [
-            f"{k}={v} (the run has {k}={theirs[k]})" if k in theirs else f"{k}={v} (not set in the run)"
+            f"{k}={v} (the run has {k}={theirs[k]}{_data_hint(run, theirs[k]) if k == 'data.path' else ''})"
+            if k in theirs
+            else f"{k}={v} (not set in the run)"
             for k, v in mine.items()
-            if theirs.get(k) != v and not _may_change_on_resume(k)
+            if theirs.get(k) != v and not _may_change_on_resume(k) and not (k == "data.path" and data_moved)
         ]
         if differ:
             raise MpsimError(
@@ -260,11 +273,42 @@ def _with_resume(args: list[str]) -> list[str]:
                 f"({' '.join(_own(saved)) or 'no overrides'}); drop the differing overrides, or start a new run "
                 "without resume= (finetune from its checkpoint with init=<run>/checkpoints/best.ckpt)."
             )
-        moved = {k for k in mine if _may_change_on_resume(k)}
+        moved = {k for k in mine if _may_change_on_resume(k) or (k == "data.path" and data_moved)}
         own = [a for a in _own(saved) if _split(a)[0] not in moved] + [a for a in _own(args) if _split(a)[0] in moved]
     print(f"mpsim train: resuming {run}", file=sys.stderr)
     hydra_args = [a for a in args if _key(a).startswith("hydra")]
     return [*own, *hydra_args, f"resume={value}", f"hydra.run.dir={run.resolve()}", "hydra.output_subdir=null"]
+
+
+def _recorded_data_digest(run: Path) -> str | None:
+    """The SHA-256 of its data file that a run recorded in `<run>/data.json` (None if absent or malformed)."""
+    try:
+        record = json.loads((run / "data.json").read_text())
+    except (OSError, ValueError):
+        return None
+    digest = record.get("sha256") if isinstance(record, dict) else None
+    return digest if isinstance(digest, str) and re.fullmatch(r"[0-9a-f]{64}", digest) else None
+
+
+def _same_data(run: Path, new: str, old: str) -> bool:
+    """Whether the file `new` holds the bytes the run trained on: the digest it recorded or, for a run that
+    recorded none, the file at its own `data.path` if that is still there."""
+    from mpsim.files import file_sha256  # imports torch: only on this path
+
+    if not Path(new).is_file():
+        return False
+    recorded = _recorded_data_digest(run)
+    if recorded is None:
+        if not Path(old).is_file():
+            return False
+        recorded = file_sha256(old)
+    return file_sha256(new) == recorded
+
+
+def _data_hint(run: Path, old: str) -> str:
+    if _recorded_data_digest(run) is None and not Path(old).is_file():
+        return "; that file is gone and the run recorded no digest, so a moved copy cannot be checked"
+    return "; a data file may move with its run only if it holds the same bytes"
 
 
 def _may_change_on_resume(key: str) -> bool:

@@ -42,6 +42,12 @@ def run_simulate(cfg: DictConfig, output_dir: str | Path | None = None, override
         raise ConfigError(f"format={cfg.format!r} is unknown; choose one of {', '.join(FORMATS)}.")
     if cfg.n < 1:
         raise ConfigError(f"n must be >= 1; got {cfg.n}.")
+    if any(a.split("=", 1)[0].lstrip("+~") == "seed" for a in rt.overrides):
+        # `seed` is train's seed (weights, batches); the trajectories come from data.seed, as in train
+        raise ConfigError(
+            f"seed={cfg.seed} does not choose the trajectories of mpsim simulate: their initial states are drawn "
+            f"with data.seed (now {cfg.data.seed}), as train draws its dataset. Pass data.seed={cfg.seed} instead."
+        )
     system = build_system(cfg)
     check_simulation_memory(cfg, system, [cfg.n], int(cfg.data.horizon or system.horizon) + 1)
     truth = system.generate(

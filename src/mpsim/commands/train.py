@@ -23,7 +23,7 @@ from mpsim.commands.runtime import Runtime, describe_device, is_multirun, resolv
 from mpsim.commands.splits import check_training_memory, noisy_train
 from mpsim.config import check_target_node, plain_dict
 from mpsim.errors import CheckpointError, ConfigError, OutputError
-from mpsim.files import atomic_write, child_path, keep_previous, safe_name, write_json
+from mpsim.files import atomic_write, child_path, file_sha256, keep_previous, safe_name, write_json
 from mpsim.metrics import epochs_x_min_error
 from mpsim.training import distributed
 from mpsim.training.checkpoint import load_checkpoint
@@ -92,6 +92,9 @@ def _run(cfg: DictConfig, rt: Runtime, ctx: DistContext) -> dict:
         model, model_cfg, splits = model_and_data(cfg, rt, system, last, refit=False)
     if ctx.is_main:
         ctx.barrier()
+        if last is None and cfg.data.path:  # lets `resume=` accept the same file moved along with the run
+            data_file = resolve_path(cfg.data.path, rt.start_dir)
+            write_json(rt.output_dir / "data.json", {"path": str(data_file), "sha256": file_sha256(data_file)})
     init_path = last.get("init") if last is not None else (None if ckpt is None else ckpt["path"])
     if cfg.data.noise_std > 0:
         splits = noisy_train(splits, model.state_std.detach().cpu().double(), cfg.data.noise_std, cfg.data.seed)
