@@ -125,7 +125,8 @@ mean = {key: np.mean(v, axis=0) for key, v in rows.items()}
 for key, err in mean.items():
     print(f"| {key} | " + " | ".join(f"{err[k]:.3g}" for k in steps) + " |")
 off_c, off_u, apart = (mean[k] for k in list(rows)[1:3] + list(rows)[4:])
-share = off_u / apart  # [T] how much of the distance between the two truths the zeroed model is from uncoupled
+with np.errstate(divide="ignore", invalid="ignore"):  # step 0: both truths start from the same states
+    share = off_u / apart  # [T] how much of the distance between the two truths the zeroed model is from uncoupled
 print("| messages zeroed vs uncoupled, as a share of the two truths apart | " + " | ".join(f"{share[k]:.2f}" for k in steps) + " |")
 closer = sum(off_u[k] < off_c[k] for k in steps)
 later = [share[k] for k in steps[1:]] or [share[steps[0]]]  # after the first step, once the truths have parted

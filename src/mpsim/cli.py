@@ -312,8 +312,9 @@ def _data_hint(run: Path, old: str) -> str:
 
 
 def _may_change_on_resume(key: str) -> bool:
-    """`paths.*` (where a run writes) and the progress display: not what the run computes."""
-    return key == "paths" or key.startswith("paths.") or key in {"trainer.progress", "trainer.log_every_s"}
+    from mpsim.config import output_only
+
+    return output_only(key)
 
 
 def _split(arg: str) -> tuple[str, str]:

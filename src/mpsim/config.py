@@ -34,6 +34,12 @@ from mpsim.diagnose.params import DiagnoseParams
 from mpsim.errors import ConfigError
 
 
+def output_only(key: str) -> bool:
+    """An override that says where a run writes (`paths.*`) or how it shows progress, not what it computes: it
+    may change when a run resumes, and runs that differ only in it are the same experiment in a report."""
+    return key == "paths" or key.startswith("paths.") or key in {"trainer.progress", "trainer.log_every_s"}
+
+
 @dataclass
 class DataConf:
     path: str | None = None  # .npz or long .csv of measured trajectories (replaces simulation)

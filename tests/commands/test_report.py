@@ -102,3 +102,15 @@ def test_an_unfinished_run_is_named_with_the_time_it_has_left_at_its_recent_pace
     text = (tmp_path / "out" / "report.md").read_text()
     assert f"{slow} (epoch 300 of 4000, about 3.1 h left at its last epochs' pace)" in text
     assert f"{runs / 's2'} (epoch 195 of 4000)" in text  # no wall_time column: no estimate, and no guess
+
+
+def test_runs_that_differ_only_in_where_they_wrote_are_one_row(cfg_factory, tmp_path):
+    # seed 0 trained in one folder and seed 1 in a copy of it (a resumed recipe): the same experiment, one row
+    root = tmp_path / "runs"
+    for seed, where in [(0, "/old/place"), (1, "/new/place")]:
+        _finished(root / f"s{seed}", seed)
+        saved = root / f"s{seed}" / ".hydra" / "overrides.yaml"
+        saved.write_text(yaml.safe_dump([*yaml.safe_load(saved.read_text()), f"paths.output_root={where}"]))
+    table = run_report(cfg_factory("report", f"runs=[{root}]"), output_dir=tmp_path / "out")["table"]
+    assert len(table) == 1 and table["runs"].tolist() == [2]
+    assert "paths.output_root" not in table.columns

@@ -26,6 +26,7 @@ from omegaconf import DictConfig
 from mpsim.commands.console import markdown
 from mpsim.commands.report_layouts import DEFAULT_TITLES, LAYOUT_FUNCS, run_facts, settings_caption
 from mpsim.commands.runtime import locate, resolve_path
+from mpsim.config import output_only
 from mpsim.errors import ConfigError, DataError
 from mpsim.files import atomic_write
 from mpsim.metrics import first_epoch_below
@@ -279,9 +280,14 @@ def run_report(cfg: DictConfig, output_dir: str | Path | None = None, overrides:
     if cfg.target is not None:
         add_epochs_to_target(frame, cfg.target)
     fixed = {"run", "seed", "target_error", "status", *NUMERIC}
-    varying = [c for c in frame.columns if c not in fixed and frame[c].astype(str).nunique() > 1]
+    varying = [c for c in frame.columns if c not in fixed and not output_only(c) and frame[c].astype(str).nunique() > 1]
     group_by = list(cfg.group_by) or varying
-    table = aggregate(frame, group_by) if group_by else frame.drop(columns=["run"])
+    if group_by:
+        table = aggregate(frame, group_by)
+    elif len(frame) > 1:  # the runs differ only by seed (or where they wrote): one row, mean ± std
+        table = aggregate(frame.assign(all_runs=""), ["all_runs"]).drop(columns=["all_runs"])
+    else:
+        table = frame.drop(columns=["run"])
     if cfg.columns:
         order = [*group_by, *cfg.columns, "runs"]
         table = table[[c for c in order if c in table.columns]]
