@@ -1,8 +1,8 @@
 """`mpsim report runs='[<dir>, ...]'`: one table of every run's summary.json joined with its overrides.
 
 Each run directory holds `summary.json` and `.hydra/overrides.yaml`; the overrides become columns, so a
-sweep's table has one row per job and one column per swept key. Rows that differ only by `seed` are
-aggregated as mean ± std. Runs that began training but wrote no summary.json (interrupted, or still training)
+sweep's table has one row per job and one column per swept key. Rows that differ only by `seed` (or by
+where they wrote, `paths.*`) are aggregated as mean ± std. Runs that began training but wrote no summary.json (interrupted, or still training)
 are not in the table; report.md names each with the epoch it reached.
 
 `layout=table2|table1|curves|message_size|messages` replaces the generic table by one of the MP-NODE paper's tables
