@@ -93,7 +93,7 @@ pooled = raw.reshape(-1, raw.shape[-1]).std(0)  # [D]
 rows = []
 for run in runs:
     per_feature, per_node = [], []
-    for seed_dir in sorted((out / run).glob("s*")):
+    for seed_dir in sorted(d for d in (out / run).glob("s*") if d.is_dir()):  # not the runs' .lock files
         with np.load(seed_dir / "eval" / "test.npz") as a, np.load(seed_dir / "eval" / "test_model.npz") as b:
             x, pred = a["x"], b["x"]  # [B, T, N, D] in the training file's units
         if run.endswith("per_node"):  # back to the simulated units

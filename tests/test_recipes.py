@@ -184,3 +184,22 @@ def test_pernode_l2s_refuses_a_bad_compare_entry_before_anything_runs(tmp_path, 
     proc, calls = run_recipe("pernode_l2s.sh", tmp_path, COMPARE=compare)
     assert proc.returncode == 2 and calls == []
     assert f"COMPARE entry '{compare}' is not name=<an existing checkpoint>" in proc.stderr
+
+
+def test_pernode_l2s_reads_each_seed_folder_not_the_runs_lock_files(tmp_path):
+    out = tmp_path / "pernode_l2s.sh"
+    (out / "data").mkdir(parents=True)
+    x = np.arange(2 * 3 * 4, dtype=float).reshape(2, 3, 4, 1) + 1.0  # [B, T, N, D]
+    for name in ("per_feature", "per_node"):
+        np.savez(out / "data" / f"{name}.npz", x=x)
+    run = out / "compare" / "other" / "per_feature"
+    (run / "s0" / "eval").mkdir(parents=True)
+    np.savez(run / "s0" / "eval" / "test.npz", x=x)
+    np.savez(run / "s0" / "eval" / "test_model.npz", x=x + 0.5)
+    (run / "s0.lock").touch()  # train_once leaves one beside every run
+    ckpt = tmp_path / "other.ckpt"
+    ckpt.touch()
+    proc, calls = run_recipe("pernode_l2s.sh", tmp_path, RUNS="", COMPARE=f"other={ckpt}")
+    assert proc.returncode == 0, proc.stderr
+    assert calls == []  # nothing to train, and the evaluation is already there
+    assert "| other | per_feature | 1 |" in (out / "pernode_l2s.md").read_text()
