@@ -53,9 +53,10 @@ for label, files in preds.items():
     for f in fams:
         if len(files) == 2 and not np.array_equal(load(out / f / files[1]), truth[f]):
             sys.exit(f"meanfield_gene: {f}'s truth differs between runs; they must share system and seed")
-        if not np.allclose(load(out / f / files[0])[:, 0], truth[f][:, 0], rtol=1e-5, atol=1e-4):  # float32 rollouts
+        pred = load(out / f / files[0])  # [B, T, N, D]
+        if not np.allclose(pred[:, 0], truth[f][:, 0], rtol=1e-5, atol=1e-4):  # float32 rollouts
             sys.exit(f"meanfield_gene: {label} on {f} does not start from the truth's initial states")
-        err = (load(out / f / files[0]) - truth[f])[:, 1:] / std
+        err = (pred - truth[f])[:, 1:] / std
         rmse.append(float(np.sqrt((err**2).mean())))
     cells = " | ".join(f"{r:.4f}" for r in rmse)
     rows.append(f"| {label} | {cells} | {rmse[1] / rmse[0]:.2f} | {rmse[2] / rmse[0]:.2f} | "

@@ -565,6 +565,11 @@ def test_a_run_on_a_data_file_resumes_with_the_file_moved_along_only_if_it_holds
     refused = run_mpsim([*resume, f"data.path={tmp_path / 'other' / 'trajectories.npz'}"], tmp_path)
     assert refused.code == 2
     assert "only if it holds the same bytes" in refused.err
+    for bad in ("{not json", '{"sha256": "../../etc/passwd", "path": "/etc/passwd"}', "[1, 2]", ""):
+        (moved / "run" / "data.json").write_text(bad)  # a damaged or forged record vouches for nothing
+        unchecked = run_mpsim([*resume, f"data.path={moved / 'data.npz'}"], tmp_path)
+        assert unchecked.code == 2, bad
+        assert "recorded no digest" in unchecked.err
     (moved / "run" / "data.json").unlink()
     unchecked = run_mpsim([*resume, f"data.path={moved / 'data.npz'}"], tmp_path)
     assert unchecked.code == 2

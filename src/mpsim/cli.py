@@ -252,6 +252,8 @@ def _with_resume(args: list[str]) -> list[str]:
         )
         own = _own(args)
     else:
+        from mpsim.config import output_only  # where a run writes, how it shows progress: may change
+
         mine, theirs = dict(_split(a) for a in _own(args)), dict(_split(a) for a in _own(saved))
         # the data file may have moved with the run (a copied results folder) if it holds the same bytes
         data_moved = (
@@ -265,7 +267,7 @@ def _with_resume(args: list[str]) -> list[str]:
             if k in theirs
             else f"{k}={v} (not set in the run)"
             for k, v in mine.items()
-            if theirs.get(k) != v and not _may_change_on_resume(k) and not (k == "data.path" and data_moved)
+            if theirs.get(k) != v and not output_only(k) and not (k == "data.path" and data_moved)
         ]
         if differ:
             raise MpsimError(
@@ -273,7 +275,7 @@ def _with_resume(args: list[str]) -> list[str]:
                 f"({' '.join(_own(saved)) or 'no overrides'}); drop the differing overrides, or start a new run "
                 "without resume= (finetune from its checkpoint with init=<run>/checkpoints/best.ckpt)."
             )
-        moved = {k for k in mine if _may_change_on_resume(k) or (k == "data.path" and data_moved)}
+        moved = {k for k in mine if output_only(k) or (k == "data.path" and data_moved)}
         own = [a for a in _own(saved) if _split(a)[0] not in moved] + [a for a in _own(args) if _split(a)[0] in moved]
     print(f"mpsim train: resuming {run}", file=sys.stderr)
     hydra_args = [a for a in args if _key(a).startswith("hydra")]
@@ -309,12 +311,6 @@ def _data_hint(run: Path, old: str) -> str:
     if _recorded_data_digest(run) is None and not Path(old).is_file():
         return "; that file is gone and the run recorded no digest, so a moved copy cannot be checked"
     return "; a data file may move with its run only if it holds the same bytes"
-
-
-def _may_change_on_resume(key: str) -> bool:
-    from mpsim.config import output_only
-
-    return output_only(key)
 
 
 def _split(arg: str) -> tuple[str, str]:
