@@ -27,6 +27,7 @@ SEEDS=${SEEDS:-0,1}
 TRAINER=${TRAINER:-default}
 PEND_DATA=${PEND_DATA:-}   # pendulum2 data overrides (default: the system's 200 trajectories of 50 steps)
 PARTS=${PARTS:-"lorenz pendulum"}
+JOBS=${JOBS:-2}    # pendulum runs at once (JOBS=1 leaves a core for another recipe)
 check_parts foundation.sh lorenz pendulum
 CKPT=$OUT/checkpoints
 common=(paths.output_root=$OUT paths.ckpt_dir=$CKPT trainer=$TRAINER trainer.progress=false trainer.early_stop_patience=0)
@@ -55,7 +56,7 @@ if [[ " $PARTS " == *" pendulum "* ]]; then
       echo "train_once $OUT/pendulum2/s$seed-zero_messages_$zero system=pendulum2 seed=$seed \
         model.zero_messages=$zero trainer.max_epochs=$EP export=false $PEND_DATA ${common[*]}"
     done
-  done | parallel 2
+  done | parallel "$JOBS"
   mpsim report "runs=[$OUT/pendulum2]" "title='Pendulum2: messages on vs zero_messages'" \
     "columns=[initial_test_error,min_test_error,min_test_error_epoch,epochs_x_min_error]" "${report[@]}"
   mv "$OUT/report/report.md" "$OUT/pendulum2.md"

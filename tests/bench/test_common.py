@@ -6,6 +6,7 @@ import torch
 
 from mpsim.bench.common import peak_memory_mb, scaling_exponent, timeit
 from mpsim.bench.mpnode import MPNODEBench
+from mpsim.errors import ConfigError
 
 
 def test_scaling_exponent_recovers_powers():
@@ -37,3 +38,15 @@ def test_mpnode_suite_rows_and_summary():
     rows = suite.run()
     assert len(rows) == 4 and {"N", "B", "fwd_bwd_s"} <= set(rows[0])
     assert any("cheaper per node-trajectory" in line for line in suite.summarise(rows))
+    assert all(r["edge_list_fwd_bwd_s"] > 0 and r["dense_speedup"] > 0 for r in rows)
+    assert all(r["odeint_fwd_bwd_s"] > 0 and r["stacked_speedup"] > 0 for r in rows)
+    summary = suite.summarise(rows)
+    assert any("edge-list aggregation / dense adjacency product" in line for line in summary)
+    assert any("torchdiffeq's odeint as is / stacked outputs" in line for line in summary)
+
+
+def test_mpnode_suite_times_the_gene_graphs_and_refuses_an_unknown_graph():
+    (row,) = MPNODEBench(nodes=[8], batches=[2], graph="ba", steps=2, repeats=1).run()
+    assert row["E"] == 2 * (8 - 4) * 4  # BA(8, 4) as networkx draws it: m(n - m) = 16 edges, both ways
+    with pytest.raises(ConfigError, match="bench.graph"):
+        MPNODEBench(graph="grid")

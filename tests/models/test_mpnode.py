@@ -101,6 +101,27 @@ def test_sum_aggregation_sees_the_degree_and_mean_does_not():
         MPNODE(2, aggregation="max")
 
 
+@pytest.mark.parametrize("kw", [{}, {"aggregation": "sum"}, {"self_loops": True}, {"graph": "full"}])
+def test_dense_and_edge_list_aggregation_agree(kw):
+    # graphs of at most dense_max_nodes nodes aggregate with a dense adjacency product, larger ones over the edge
+    # list: the same rollouts and one-step predictions, with shared and per-trajectory graphs, and isolated nodes
+    # (nodes 2..4 of the first graph have no neighbours: their mean message is 0)
+    dense, sparse = _model(**kw), _model(dense_max_nodes=0, **kw)
+    x0 = torch.randn(2, 5, 2, dtype=torch.float64)
+    t = torch.linspace(0, 1, 4, dtype=torch.float64)
+    pair, ring = torch.tensor([[0, 1], [1, 0]]), complete(5)
+    padded = torch.full((2, 2, ring.shape[1]), -1)
+    padded[0, :, :2], padded[1] = pair, ring
+    for graph in (chain(5), pair, padded):
+        a, b = dense.rollout(x0, t, Inputs(graph)), sparse.rollout(x0, t, Inputs(graph))
+        assert torch.allclose(a, b, atol=1e-10)
+        x = torch.cat([a, a + 0.1], dim=0)  # [4, T, N, D]: an observed trajectory for one-step predictions
+        g = graph if graph.dim() == 2 else torch.cat([graph, graph])
+        assert torch.allclose(dense.one_step(x, t, Inputs(g)), sparse.one_step(x, t, Inputs(g)), atol=1e-10)
+    if kw.get("graph") != "full":  # the graph matters (graph=full ignores it by design)
+        assert not torch.allclose(dense.rollout(x0, t, Inputs(chain(5))), dense.rollout(x0, t, Inputs(ring)), atol=1e-4)
+
+
 def test_full_graph_ignores_the_datas_graph_like_mpnode_jl():
     # graph="full" (MPNODE.jl's shipped configs): messages go all-to-all with self-loops whatever graph the data
     # carries, so it equals the data-graph model run on the complete graph with self-loops

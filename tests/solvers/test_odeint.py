@@ -78,3 +78,64 @@ def test_adjoint_gradients_match_backprop():
         ODESolver("dopri5", rtol=1e-9, atol=1e-9, adjoint=adjoint)(Field(), y0, t).pow(2).sum().backward()
         grads.append(torch.cat([p.grad.flatten() for p in net.parameters()]))
     assert torch.allclose(grads[0], grads[1], rtol=1e-5, atol=1e-7)
+
+
+class _Field(nn.Module):  # a small learned field: dy/dt = W2 tanh(W1 y + b t)
+    def __init__(self):
+        super().__init__()
+        torch.manual_seed(0)
+        self.inner, self.outer = nn.Linear(3, 8).double(), nn.Linear(8, 3).double()
+
+    def forward(self, t, y):
+        return self.outer(torch.tanh(self.inner(y) + t))
+
+
+@pytest.mark.parametrize(
+    ("method", "options"),
+    [(m, {}) for m in ("dopri5", "dopri8", "bosh3", "fehlberg2", "adaptive_heun")]
+    + [(m, {}) for m in ("euler", "midpoint", "heun2", "heun3", "rk4", "explicit_adams", "implicit_adams")]
+    + [("rk4", {"step_size": 0.07}), ("euler", {"step_size": 0.03})],
+)
+@pytest.mark.parametrize("reverse", [False, True])
+def test_stacked_outputs_equal_torchdiffeqs_odeint_and_its_gradients(method, options, reverse):
+    # ODESolver collects the outputs in a list instead of writing them into one preallocated tensor (an O(T^2)
+    # copy in the backward): the same solver steps, so the same values, and the same gradients
+    from torchdiffeq import odeint
+
+    field = _Field()
+    y0 = torch.randn(4, 2, 3, dtype=torch.float64)
+    t = torch.linspace(0.0, 1.0, 11, dtype=torch.float64)
+    t = t.flip(0) if reverse else t
+    solver = ODESolver(method, rtol=1e-6, atol=1e-6, step_size=options.get("step_size"))
+
+    ours = solver(field, y0, t)
+    field.zero_grad()
+    ours.pow(2).sum().backward()
+    ours_grads = [p.grad.clone() for p in field.parameters()]
+    theirs = odeint(field, y0, t, rtol=1e-6, atol=1e-6, method=method, options=solver.options).movedim(0, 1)
+    field.zero_grad()
+    theirs.pow(2).sum().backward()
+
+    assert ours.shape == (4, 11, 2, 3)
+    assert torch.equal(ours, theirs)
+    for mine, ref in zip(ours_grads, (p.grad for p in field.parameters()), strict=True):
+        assert torch.allclose(mine, ref, rtol=1e-10, atol=1e-12)
+
+
+def test_stacked_outputs_keep_the_backward_linear_in_the_number_of_outputs():
+    # torchdiffeq's preallocated output makes autograd clone the whole [T, ...] gradient once per output; stacking
+    # does not: count the elements the backward copies for T outputs
+    from torch.profiler import ProfilerActivity, profile
+
+    field = _Field()
+    y0 = torch.randn(64, 3, dtype=torch.float64)
+
+    def copied(n_times):
+        t = torch.linspace(0.0, 1.0, n_times, dtype=torch.float64)
+        out = ODESolver("rk4")(field, y0, t)
+        with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+            out.pow(2).sum().backward()
+        sizes = [math.prod(s[0]) for e in prof.events() if e.name == "aten::copy_" for s in [e.input_shapes] if s]
+        return sum(sizes)
+
+    assert copied(81) < 3 * copied(41)  # quadratic growth would give 4x

@@ -2,10 +2,16 @@
 
 Shows that a rollout is batched over trajectories and nodes (time per node-trajectory falls as the batch
 grows; no Python loop over nodes or edges) and how the cost grows with N on a complete graph (E = N(N−1)).
+Beside each case, timed in the same run with the same weights: the messages aggregated over the edge list
+(`model.dense_max_nodes=0`) instead of by the dense adjacency product small graphs use (`graph=ba` is the gene
+systems' BA(N, N/2), half of all pairs connected), and the rollout through torchdiffeq's `odeint` as is
+(`solver.stacked=false`, whose backward copies the whole [T, ...] gradient once per output). Their ratios to the
+default are what each saves.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -14,16 +20,19 @@ import torch
 
 from mpsim.bench.common import Suite, scaling_exponent, timeit
 from mpsim.data.trajectories import Inputs
-from mpsim.graphs.topology import chain, complete
+from mpsim.errors import ConfigError
+from mpsim.graphs.topology import barabasi_albert, chain, complete
 from mpsim.models.mpnode import MPNODE
 from mpsim.solvers.odeint import ODESolver
+
+GRAPHS = {"chain": chain, "complete": complete, "ba": lambda n: barabasi_albert(n, max(1, n // 2))}
 
 
 class MPNODEBench(Suite):
     """Args:
     nodes: graph sizes N.
     batches: trajectories per batch B.
-    graph: complete or chain.
+    graph: chain, complete or ba (BA(N, N/2), the gene systems' graphs).
     steps: output steps T − 1 of the rollout (fixed-step rk4, one step per output, so every case does the
         same number of vector-field evaluations and times compare like for like).
     repeats: timing repeats per case.
@@ -39,6 +48,8 @@ class MPNODEBench(Suite):
         steps: int = 50,
         repeats: int = 3,
     ) -> None:
+        if graph not in GRAPHS:
+            raise ConfigError(f"bench.graph must be one of {sorted(GRAPHS)}; got {graph!r}.")
         self.nodes, self.batches, self.graph, self.steps, self.repeats = (
             list(nodes),
             list(batches),
@@ -50,10 +61,14 @@ class MPNODEBench(Suite):
     def run(self) -> list[dict[str, Any]]:
         torch.manual_seed(0)
         model = MPNODE(3, solver=ODESolver("rk4"))
+        edges = MPNODE(3, solver=ODESolver("rk4"), dense_max_nodes=0)  # the same weights, edge-list aggregation
+        plain = MPNODE(3, solver=ODESolver("rk4", stacked=False))  # the same weights, torchdiffeq's odeint as is
+        edges.load_state_dict(model.state_dict())
+        plain.load_state_dict(model.state_dict())
         t = torch.linspace(0, 0.05 * self.steps, self.steps + 1)
         rows = []
         for n in self.nodes:
-            inputs = Inputs(complete(n) if self.graph == "complete" else chain(n))
+            inputs = Inputs(GRAPHS[self.graph](n))
             for b in self.batches:
                 x0 = torch.randn(b, n, 3)
 
@@ -61,11 +76,13 @@ class MPNODEBench(Suite):
                     with torch.no_grad():
                         model.rollout(x0, t, inputs)
 
-                def backward(x0=x0, inputs=inputs):
+                def backward(x0=x0, inputs=inputs, model=model):
                     model.zero_grad()
                     model.rollout(x0, t, inputs).pow(2).mean().backward()
 
                 fwd, bwd = timeit(forward, self.repeats), timeit(backward, self.repeats)
+                listed = timeit(functools.partial(backward, x0, inputs, edges), self.repeats)
+                odeint = timeit(functools.partial(backward, x0, inputs, plain), self.repeats)
                 rows.append(
                     {
                         "graph": self.graph,
@@ -75,6 +92,10 @@ class MPNODEBench(Suite):
                         "steps": self.steps,
                         "forward_s": fwd["median_s"],
                         "fwd_bwd_s": bwd["median_s"],
+                        "edge_list_fwd_bwd_s": listed["median_s"],
+                        "dense_speedup": listed["median_s"] / bwd["median_s"],
+                        "odeint_fwd_bwd_s": odeint["median_s"],
+                        "stacked_speedup": odeint["median_s"] / bwd["median_s"],
                         "us_per_node_traj_step": 1e6 * bwd["median_s"] / (n * b * self.steps),
                     }
                 )
@@ -86,8 +107,20 @@ class MPNODEBench(Suite):
             sub = [r for r in rows if r["B"] == b]
             k = scaling_exponent([r["N"] for r in sub], [r["fwd_bwd_s"] for r in sub])
             lines.append(f"- B={b}: forward+backward time ∝ N^{k:.2f} over N = {sub[0]['N']}…{sub[-1]['N']}")
+        lines.append(
+            f"- {self.graph} graph, B={max(self.batches)}: edge-list aggregation / dense adjacency product, "
+            "forward+backward: "
+            + ", ".join(
+                f"N={r['N']} (E={r['E']}) {r['dense_speedup']:.2f}×" for r in rows if r["B"] == max(self.batches)
+            )
+        )
+        lines.append(
+            f"- {self.graph} graph, B={max(self.batches)}: torchdiffeq's odeint as is / stacked outputs, "
+            f"forward+backward over {self.steps} steps: "
+            + ", ".join(f"N={r['N']} {r['stacked_speedup']:.2f}×" for r in rows if r["B"] == max(self.batches))
+        )
         small, large = min(self.batches), max(self.batches)
-        for n in self.nodes:
+        for n in self.nodes if small < large else ():
             a = next(r for r in rows if r["N"] == n and r["B"] == small)
             c = next(r for r in rows if r["N"] == n and r["B"] == large)
             ratio = a["us_per_node_traj_step"] / c["us_per_node_traj_step"]

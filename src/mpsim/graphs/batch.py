@@ -121,6 +121,18 @@ def mean_aggregate(
     return (out * graph.inv_degree.to(values.dtype)).reshape(b, n, f)
 
 
+def dense_adjacency(graph: BatchedGraph, dtype: torch.dtype) -> torch.Tensor:
+    """[B, N, N] adjacency of a batched graph, A[b, i, j] = number of edges j → i (rows are receivers).
+
+    `A @ values` is `sum_aggregate(values, graph)` and `inv_degree`-scaled rows give `mean_aggregate`: on small,
+    dense graphs (gene 8×8 is BA(64, 32), half of all pairs connected) one batched product is several times
+    faster than a gather/scatter over the edge list."""
+    b, n = graph.n_graphs, graph.n_nodes
+    # node ids are b·N + i, so the flat index of (b, i, j) is (b·N + i)·N + j = dst·N + (src mod N)
+    flat = segment_sum(torch.ones_like(graph.dst, dtype=dtype), graph.dst * n + graph.src % n, b * n * n)
+    return flat.reshape(b, n, n)
+
+
 def sum_aggregate(
     values: torch.Tensor,  # [B, N, F] per-node values
     graph: BatchedGraph,

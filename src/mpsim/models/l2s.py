@@ -29,18 +29,10 @@ from torch import nn
 
 from mpsim.data.trajectories import Inputs
 from mpsim.effects import Effect
-from mpsim.graphs.batch import BatchedGraph, check_graph_mode, message_graph, segment_sum, sum_aggregate
+from mpsim.graphs.batch import BatchedGraph, check_graph_mode, dense_adjacency, message_graph, sum_aggregate
 from mpsim.models.controls import ControlledModel, ControlNormalisation, HeldField, integrate_held, zero_order_hold
 from mpsim.models.layers import ACTIVATIONS, dense
 from mpsim.solvers.odeint import ODESolver
-
-
-def dense_adjacency(graph: BatchedGraph, dtype: torch.dtype) -> torch.Tensor:
-    """[B, N, N] adjacency of a batched graph, A[b, i, j] = number of edges j → i (rows are receivers)."""
-    b, n = graph.n_graphs, graph.n_nodes
-    # node ids are b·N + i, so the flat index of (b, i, j) is (b·N + i)·N + j = dst·N + (src mod N)
-    flat = segment_sum(torch.ones_like(graph.dst, dtype=dtype), graph.dst * n + graph.src % n, b * n * n)
-    return flat.reshape(b, n, n)
 
 
 class _ProcessorStep(nn.Module):

@@ -11,6 +11,11 @@ Homogeneous Systems"; MPNODE.jl `EMPDynamicsModel`). Only x is supervised; messa
 node's own message is not an input unless `self_loops=true`. `graph="full"` ignores the data's graph and passes
 messages all-to-all with self-loops, as every config MPNODE.jl ships does (its `graph="full"`). Because f_θ does
 not depend on the number of nodes, a checkpoint trained on one graph runs on any other.
+
+Graphs of at most `dense_max_nodes` nodes aggregate with one batched product by a dense [B, N, N] adjacency
+(rows scaled by 1/degree for the mean), larger ones by a gather/scatter over the edge list: the same numbers to
+rounding, and on the paper's dense gene 8×8 graphs (BA(64, 32)) several times faster (`mpsim bench
+bench=epoch_time`, the `gene 8x8` cases with and without it).
 """
 
 from __future__ import annotations
@@ -22,7 +27,15 @@ from torch import nn
 
 from mpsim.data.trajectories import Inputs
 from mpsim.effects import Effect, EffectContext, total
-from mpsim.graphs.batch import BatchedGraph, batch_graph, check_graph_mode, mean_aggregate, message_graph, sum_aggregate
+from mpsim.graphs.batch import (
+    BatchedGraph,
+    batch_graph,
+    check_graph_mode,
+    dense_adjacency,
+    mean_aggregate,
+    message_graph,
+    sum_aggregate,
+)
 from mpsim.models.controls import ControlledModel, ControlNormalisation, HeldField, integrate_held, zero_order_hold
 from mpsim.models.layers import mlp
 from mpsim.solvers.odeint import ODESolver
@@ -44,10 +57,18 @@ class _MessagePassingField(HeldField):
         model: MPNODE | None = None,  # for its effects and normalisation
         effect_graph: BatchedGraph | None = None,  # the data's coupling graph (no self-loops) for effects
         aggregation: str = "mean",
+        dense_max_nodes: int = 128,
     ) -> None:
         super().__init__()
         self.net, self.graph, self.state_dim, self.zero_messages = net, graph, state_dim, zero_messages
         self.aggregate = AGGREGATIONS[aggregation]
+        # [B, N, N] the transposed adjacency, rows = senders, scaled by the receiver's 1/degree for the mean (None:
+        # the edge list): m' = A m is computed as (mᵀ Aᵀ)ᵀ, whose batched product is ~3.7× faster with M = 3 columns
+        self.adjacency_t = None
+        if graph.n_nodes <= dense_max_nodes and not zero_messages:
+            a = dense_adjacency(graph, t_grid.dtype)
+            scale = graph.inv_degree.to(a.dtype).reshape(graph.n_graphs, graph.n_nodes, 1)
+            self.adjacency_t = (a * scale if aggregation == "mean" else a).transpose(1, 2).contiguous()
         self.t_grid, self.u = t_grid, u
         self.held: int | None = None  # control sample fixed by an interval-by-interval solve
         self.model, self.effect_graph = model, effect_graph
@@ -58,7 +79,12 @@ class _MessagePassingField(HeldField):
 
     def forward(self, t: torch.Tensor, y: torch.Tensor, history=None) -> torch.Tensor:  # t: [], y: [B, N, D+M]
         x, m = y[..., : self.state_dim], y[..., self.state_dim :]
-        incoming = torch.zeros_like(m) if self.zero_messages else self.aggregate(m, self.graph)
+        if self.zero_messages:
+            incoming = torch.zeros_like(m)
+        elif self.adjacency_t is not None:
+            incoming = torch.bmm(m.transpose(1, 2), self.adjacency_t).transpose(1, 2)
+        else:
+            incoming = self.aggregate(m, self.graph)
         u = self.controls_at(t)
         inputs = [x, incoming] if u is None else [x, u, incoming]
         dy = self.net(torch.cat(inputs, dim=-1))
@@ -97,6 +123,8 @@ class MPNODE(ControlledModel):
             with self-loops whatever the data's graph (MPNODE.jl `graph="full"`; named effects still follow
             the data's graph).
         effects: named physical terms with learnable coefficients added to the node dynamics.
+        dense_max_nodes: graphs of at most this many nodes aggregate with a dense adjacency product (faster on
+            small graphs, the same numbers to rounding); larger ones over the edge list (0: always the list).
         solver: how the vector field is integrated (default: dopri5, rtol = atol = 1e-4).
     """
 
@@ -123,6 +151,7 @@ class MPNODE(ControlledModel):
         solver: ODESolver | None = None,
         aggregation: str = "mean",
         graph: str = "data",
+        dense_max_nodes: int = 128,
     ) -> None:
         super().__init__(state_dim, control_dim, effects)
         if aggregation not in AGGREGATIONS:
@@ -138,6 +167,7 @@ class MPNODE(ControlledModel):
             bool(zero_messages),
             bool(self_loops),
         )
+        self.dense_max_nodes = int(dense_max_nodes)
         self.solver = solver or ODESolver()
         width = state_dim + control_dim + message_size
         self.net = mlp(width, hidden, state_dim + message_size, n_hidden_layers, activation)
@@ -158,7 +188,16 @@ class MPNODE(ControlledModel):
         effect_graph = batch_graph(edge_index, b, n, dtype=x0.dtype) if len(self.effects) else None
         u = self.controls(inputs.u)
         field = _MessagePassingField(
-            self.net, graph, d, self.zero_messages, t.to(x0), u, self, effect_graph, self.aggregation
+            self.net,
+            graph,
+            d,
+            self.zero_messages,
+            t.to(x0),
+            u,
+            self,
+            effect_graph,
+            self.aggregation,
+            dense_max_nodes=self.dense_max_nodes,
         )
         # with controls, one solve per sample interval with the input held (see mpsim.models.controls)
         ys = integrate_held(lambda f, y, tt: self.integrate(f, y, tt, self.solver), field, y0, t)  # [B, T, N, D+M]
@@ -178,7 +217,16 @@ class MPNODE(ControlledModel):
         graph = message_graph(edge_index.to(x.device), b, n, self.graph, self.self_loops, x.dtype)
         effect_graph = batch_graph(edge_index.to(x.device), b, n, dtype=x.dtype) if len(self.effects) else None
         field = _MessagePassingField(
-            self.net, graph, d, self.zero_messages, t.to(x), self.controls(u), self, effect_graph, self.aggregation
+            self.net,
+            graph,
+            d,
+            self.zero_messages,
+            t.to(x),
+            self.controls(u),
+            self,
+            effect_graph,
+            self.aggregation,
+            dense_max_nodes=self.dense_max_nodes,
         )
         messages = x.new_zeros(b, n, self.message_size)
         preds = []
