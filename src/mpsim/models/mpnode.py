@@ -14,8 +14,8 @@ not depend on the number of nodes, a checkpoint trained on one graph runs on any
 
 Graphs of at most `dense_max_nodes` nodes aggregate with one batched product by a dense [B, N, N] adjacency
 (rows scaled by 1/degree for the mean), larger ones by a gather/scatter over the edge list: the same numbers to
-rounding, and on the paper's dense gene 8×8 graphs (BA(64, 32)) several times faster (`mpsim bench
-bench=epoch_time`, the `gene 8x8` cases with and without it).
+rounding, and on the paper's dense gene 8×8 graphs (BA(64, 32)) a 1.75× faster rollout and backward (`mpsim bench
+bench=mpnode bench.graph=ba`, which times both).
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ class _MessagePassingField(HeldField):
         self.net, self.graph, self.state_dim, self.zero_messages = net, graph, state_dim, zero_messages
         self.aggregate = AGGREGATIONS[aggregation]
         # [B, N, N] the transposed adjacency, rows = senders, scaled by the receiver's 1/degree for the mean (None:
-        # the edge list): m' = A m is computed as (mᵀ Aᵀ)ᵀ, whose batched product is ~3.7× faster with M = 3 columns
+        # the edge list): m' = A m is computed as (mᵀ Aᵀ)ᵀ, whose batched product is ~5× faster with M = 3 columns
         self.adjacency_t = None
         if graph.n_nodes <= dense_max_nodes and not zero_messages:
             a = dense_adjacency(graph, t_grid.dtype)

@@ -4,9 +4,10 @@ mpsim is batch-first; torchdiffeq is time-first. This is the only place that con
 
 torchdiffeq's `odeint` writes each output into a preallocated [T, ...] tensor. Autograd then clones the whole
 [T, ...] gradient once per write (the backward of an in-place slice assignment), an O(T²) copy that took 38 % of a
-gene 8×8 MP-NODE training step (50 outputs). `_odeint_stacked` runs the same torchdiffeq solver object step by step
-and stacks the outputs once: the same steps and the same numbers (tested against `odeint` for every method), a
-cheaper backward. It uses torchdiffeq's solver internals; if they are not there, `odeint` itself is used.
+gene 8×8 MP-NODE training step from fresh weights (50 outputs, few dopri5 steps per output). `_odeint_stacked`
+runs the same torchdiffeq solver object step by step and stacks the outputs once: the same steps and the same
+numbers (tested against `odeint` for every method), a cheaper backward. It uses torchdiffeq's solver internals;
+if they are not there, `odeint` itself is used.
 """
 
 from __future__ import annotations
