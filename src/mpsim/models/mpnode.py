@@ -175,6 +175,22 @@ class MPNODE(ControlledModel):
         # no buffers without controls, so control-free checkpoints are unchanged
         self.controls = ControlNormalisation(control_dim)
 
+    def _field(
+        self,
+        x: torch.Tensor,  # [B, ..., N, D] states of the batch (for its sizes, device and dtype)
+        t: torch.Tensor,  # [T] times
+        inputs: Inputs,  # graph [2, E] or [B, 2, E], controls [B, T, N, C]
+    ) -> _MessagePassingField:
+        """The vector field of one batch: its message graph, the data's graph for effects, controls."""
+        b, n, d = x.shape[0], x.shape[-2], x.shape[-1]
+        edge_index = inputs.edge_index.to(x.device)
+        graph = message_graph(edge_index, b, n, self.graph, self.self_loops, x.dtype)
+        effect_graph = batch_graph(edge_index, b, n, dtype=x.dtype) if len(self.effects) else None
+        return _MessagePassingField(
+            self.net, graph, d, self.zero_messages, t.to(x), self.controls(inputs.u), self, effect_graph,
+            self.aggregation, dense_max_nodes=self.dense_max_nodes,
+        )  # fmt: skip
+
     def rollout_aux(
         self,
         x0: torch.Tensor,  # [B, N, D] initial states (raw units)
@@ -182,23 +198,8 @@ class MPNODE(ControlledModel):
         inputs: Inputs,  # graph [2, E] or [B, 2, E], controls [B, T, N, C]; nodes are identical
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         b, n, d = x0.shape
-        edge_index = inputs.edge_index.to(x0.device)
-        graph = message_graph(edge_index, b, n, self.graph, self.self_loops, x0.dtype)
         y0 = torch.cat([self.normalise(x0), x0.new_zeros(b, n, self.message_size)], dim=-1)
-        effect_graph = batch_graph(edge_index, b, n, dtype=x0.dtype) if len(self.effects) else None
-        u = self.controls(inputs.u)
-        field = _MessagePassingField(
-            self.net,
-            graph,
-            d,
-            self.zero_messages,
-            t.to(x0),
-            u,
-            self,
-            effect_graph,
-            self.aggregation,
-            dense_max_nodes=self.dense_max_nodes,
-        )
+        field = self._field(x0, t, inputs)
         # with controls, one solve per sample interval with the input held (see mpsim.models.controls)
         ys = integrate_held(lambda f, y, tt: self.integrate(f, y, tt, self.solver), field, y0, t)  # [B, T, N, D+M]
         return self.denormalise(ys[..., :d]), {"messages": ys[..., d:]}
@@ -213,21 +214,8 @@ class MPNODE(ControlledModel):
         (starting at zero at t0, as in a rollout, and again every `latent_reset` steps if set), so each step
         sees the latent state a rollout would."""
         b, n_t, n, d = x.shape
-        edge_index, u = inputs.edge_index, inputs.u
-        graph = message_graph(edge_index.to(x.device), b, n, self.graph, self.self_loops, x.dtype)
-        effect_graph = batch_graph(edge_index.to(x.device), b, n, dtype=x.dtype) if len(self.effects) else None
-        field = _MessagePassingField(
-            self.net,
-            graph,
-            d,
-            self.zero_messages,
-            t.to(x),
-            self.controls(u),
-            self,
-            effect_graph,
-            self.aggregation,
-            dense_max_nodes=self.dense_max_nodes,
-        )
+        u = inputs.u
+        field = self._field(x, t, inputs)
         messages = x.new_zeros(b, n, self.message_size)
         preds = []
         for k in range(n_t - 1):  # sequential in time: the messages carry over
