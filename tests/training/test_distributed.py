@@ -9,13 +9,16 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pandas as pd
 import pytest
 import torch
 
 from mpsim.__main__ import worker_args
+from mpsim.commands import train as train_command
 from mpsim.commands.train import run_train
+from mpsim.training import distributed
 from mpsim.training.distributed import DistContext
 
 # float64 and fixed-step rk4: the 2-process run then differs from one process only by the summation order of
@@ -66,6 +69,39 @@ def test_non_zero_ranks_get_no_run_directory(monkeypatch):
     assert "hydra.run.dir=." not in resumed and "hydra.output_subdir=null" in resumed
 
 
+def test_ranks_leave_together_after_a_success_and_at_once_after_an_error(cfg_factory, monkeypatch):
+    """gloo: a barrier before leaving the group after a success; none after an error (a rank that failed between
+    collectives would leave the others waiting in it)."""
+    calls: list[str] = []
+    monkeypatch.setattr(distributed.torch_dist, "is_initialized", lambda: True)
+    monkeypatch.setattr(distributed.torch_dist, "monitored_barrier", lambda timeout: calls.append("barrier"))
+    monkeypatch.setattr(distributed.torch_dist, "destroy_process_group", lambda: calls.append("destroy"))
+    two = DistContext(rank=1, world_size=2, backend="gloo")
+    distributed.teardown(two)
+    assert calls == ["barrier", "destroy"]
+    calls.clear()
+    distributed.teardown(DistContext(rank=1, world_size=2, backend="nccl"))  # no gloo threads to wait for
+    assert calls == ["destroy"]
+    calls.clear()
+    distributed.teardown(two, together=False)
+    assert calls == ["destroy"]
+    distributed.teardown(DistContext())  # one process: no group to leave
+    assert calls == ["destroy"]
+
+    left: list[bool] = []
+    monkeypatch.setattr(distributed, "setup", lambda device: two)
+    monkeypatch.setattr(distributed, "teardown", lambda ctx, together=True: left.append(together))
+    monkeypatch.setattr(train_command, "_run", lambda cfg, rt, ctx: {"task": "train", "rank": ctx.rank})
+    run_train(cfg_factory("train", *TINY_DDP))
+    monkeypatch.setattr(train_command, "_run", lambda cfg, rt, ctx: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        run_train(cfg_factory("train", *TINY_DDP))
+    assert left == [True, False]
+
+
+PROBE = Path(__file__).with_name("ddp_exit_probe.py")  # `-m mpsim` that also records when each rank leaves
+
+
 def _torchrun(args: list[str]) -> list[str]:
     return [
         sys.executable,
@@ -73,20 +109,30 @@ def _torchrun(args: list[str]) -> list[str]:
         "torch.distributed.run",
         "--standalone",
         "--nproc_per_node=2",
-        "-m",
-        "mpsim",
+        str(PROBE),
         "train",
         *args,
     ]
 
 
-ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+def _env(tmp_path: Path) -> dict[str, str]:
+    (tmp_path / "exits").mkdir(exist_ok=True)
+    return {
+        **os.environ,
+        "OMP_NUM_THREADS": "1",
+        "PYTHONUNBUFFERED": "1",
+        "MPSIM_EXIT_TIMES": str(tmp_path / "exits"),
+    }
 
 
 def _check_follows(ws, reference, one: dict, epochs: int, backend: str = "gloo") -> None:
-    """`ws` holds exactly one 2-process run, and its curve is the 1-process run's (`reference`)."""
+    """`ws` holds exactly one 2-process run, and its curve is the 1-process run's (`reference`); its ranks left
+    together (`distributed.teardown`): rank 1, which has nothing to do after training, waited for rank 0 to
+    evaluate and write the run's files (the last is summary.json) before it went on to exit."""
     (run,) = (ws / "outputs" / "train").glob("*/*")  # rank 1 made no run directory of its own
     assert sorted(p.name for p in ws.iterdir()) == ["outputs"]  # nor any file where it started
+    exits = ws.parent / "exits"
+    assert float((exits / "rank1").read_text()) >= (run / "summary.json").stat().st_mtime
     summary = json.loads((run / "summary.json").read_text())
     assert summary["distributed"] == {"world_size": 2, "backend": backend}
     cols = ["epoch", "train_loss", "val_error", "test_error", "lr"]
@@ -106,7 +152,7 @@ def test_two_processes_follow_the_one_process_loss_curve(cfg_factory, tmp_path):
     proc = subprocess.run(
         _torchrun([*args, f"paths.cache_dir={tmp_path}/cache"]),
         cwd=ws,
-        env=ENV,
+        env=_env(tmp_path),
         capture_output=True,
         text=True,
         timeout=300,
@@ -125,7 +171,7 @@ def test_two_processes_resume_after_an_interrupt(cfg_factory, tmp_path):
     proc = subprocess.Popen(
         _torchrun(args),
         cwd=ws,
-        env=ENV,
+        env=_env(tmp_path),
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
@@ -144,7 +190,7 @@ def test_two_processes_resume_after_an_interrupt(cfg_factory, tmp_path):
     assert proc.returncode != 0, "the 2-process run finished before it could be interrupted"
     assert list((ws / "outputs").rglob("last.ckpt")), out
     resumed = subprocess.run(
-        _torchrun([*args, "resume=true"]), cwd=ws, env=ENV, capture_output=True, text=True, timeout=300
+        _torchrun([*args, "resume=true"]), cwd=ws, env=_env(tmp_path), capture_output=True, text=True, timeout=300
     )
     assert resumed.returncode == 0, resumed.stdout + resumed.stderr
     _check_follows(ws, tmp_path / "one", one, 8)
@@ -168,7 +214,7 @@ def test_two_gpus_follow_the_one_process_loss_curve(cfg_factory, tmp_path):
     proc = subprocess.run(
         _torchrun([*args, "device=cuda", f"paths.cache_dir={tmp_path}/cache"]),
         cwd=ws,
-        env=ENV,
+        env=_env(tmp_path),
         capture_output=True,
         text=True,
         timeout=300,

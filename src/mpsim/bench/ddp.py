@@ -206,7 +206,7 @@ def _worker(rank: int, world: int, spec: dict[str, Any], init: str, queue: Any) 
     """One process of a timed case: join the group (several processes), then time the trainer's step."""
     import torch.distributed as torch_dist
 
-    from mpsim.training.distributed import DistContext
+    from mpsim.training.distributed import DistContext, teardown
 
     torch.set_num_threads(int(spec["threads"]))
     device = torch.device(spec["device"])
@@ -251,5 +251,4 @@ def _worker(rank: int, world: int, spec: dict[str, Any], init: str, queue: Any) 
     (total,) = ctx.all_sum([loss * len(idx) if weight > 0 else 0.0])
     if rank == 0:
         queue.put({"seconds": seconds, "loss": total / len(data), "backend": backend if world > 1 else "none"})
-    if world > 1:
-        torch_dist.destroy_process_group()
+    teardown(ctx)

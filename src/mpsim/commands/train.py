@@ -70,10 +70,13 @@ def run_train(cfg: DictConfig, output_dir: str | Path | None = None, overrides: 
     rt = setup_runtime(cfg, output_dir, overrides)
     _check_objective(cfg.get("objective"))
     ctx = distributed.setup(rt.device)
+    done = False
     try:
-        return _run(cfg, replace(rt, device=ctx.device), ctx)
-    finally:
-        distributed.teardown(ctx)
+        summary = _run(cfg, replace(rt, device=ctx.device), ctx)
+        done = True
+        return summary
+    finally:  # after a success the ranks leave together (rank 1 waits for rank 0's evaluation); not after an error
+        distributed.teardown(ctx, together=done)
 
 
 def _run(cfg: DictConfig, rt: Runtime, ctx: DistContext) -> dict:

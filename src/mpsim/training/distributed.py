@@ -176,7 +176,28 @@ def setup(device: torch.device, timeout_s: float = 1800.0) -> DistContext:
     return DistContext(rank=rank, world_size=world, local_rank=local, backend=backend, device=device)
 
 
-def teardown(ctx: DistContext) -> None:
-    """Leave the process group (after the last collective of this process)."""
+LEAVE_TIMEOUT = datetime.timedelta(days=7)  # how long ranks wait in `teardown` for rank 0's final evaluation
+
+
+def teardown(ctx: DistContext, *, together: bool = True) -> None:
+    """Leave the process group (after the last collective of this process).
+
+    Args:
+        together: on gloo, first wait (a barrier) until every rank has got here. Pass it on the way out of a
+            job that succeeded; pass False on an error path, where a rank that failed between collectives would
+            otherwise leave the others waiting in the barrier.
+
+    Why gloo ranks leave together: gloo's worker threads free a finished collective's tensors a moment after
+    the caller has its result, and freeing a tensor Python created takes the GIL. A rank that went straight
+    on to exit (rank 1 does: rank 0 alone evaluates and writes) could reach interpreter shutdown while such
+    a thread still held or waited for the GIL, and the process aborted ("terminate called without an active
+    exception", SIGABRT; 4 of 116 two-process runs on 2 busy cores, a core dump shows the thread freeing an
+    all-gather's tensors). `destroy_process_group` does not stop those threads once a DDP wrapper has been
+    built (torch 2.13: the 3 extra threads of a gloo job outlive it). In the barrier the GIL is free until the
+    slowest rank arrives, so the threads are done before any rank goes on to exit. The barrier waits up to
+    `LEAVE_TIMEOUT` (rank 0's final evaluation may take longer than a collective's timeout).
+    """
     if ctx.enabled and torch_dist.is_initialized():
+        if together and ctx.backend == "gloo":
+            torch_dist.monitored_barrier(timeout=LEAVE_TIMEOUT)
         torch_dist.destroy_process_group()
