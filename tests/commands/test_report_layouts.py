@@ -27,6 +27,7 @@ def _run(
     overrides: list[str] = (),
     device: str | None = None,
     zero_messages: bool | None = None,
+    per_step: list[float] | None = None,
 ) -> Path:
     """A run directory as `mpsim train` (or a zero-shot run) leaves it: summary.json, metrics.csv, overrides."""
     run = root / name
@@ -66,6 +67,8 @@ def _run(
             "test": {"rmse": best_val},
             "test_error": best_val,
         }
+    if per_step is not None:  # test RMSE at each rollout step (index = step), as evaluation records it
+        summary["test"]["per_step_rmse"] = per_step
     (run / "summary.json").write_text(json.dumps(summary))
     return run
 
@@ -153,6 +156,34 @@ def test_table1_validation_test_and_zero_shot_columns(cfg_factory, tmp_path):
     assert "Test WS (unseen): 18× the error on BA test data — NOT the same order" in text
     assert "validation: MP-NODE 0.06 < L2S 0.25 — holds" in text
     assert "0.0051 ± 0.0001" in text and (out / "table1.png").is_file()
+    # runs that recorded no per-step errors (from before they were kept): no horizon section
+    assert "Zero-shot by rollout horizon" not in text and not (out / "table1_horizons.png").exists()
+
+
+def test_table1_zero_shot_ratio_by_rollout_step(cfg_factory, tmp_path):
+    root = tmp_path / "runs"
+    ba = [0.01 * k for k in range(11)]  # 10 steps: the listed steps are 1, 2, 5, 10
+    er = [e * (0.8 if k <= 2 else 2.0) for k, e in enumerate(ba)]  # easier early, harder late
+    for seed in (0, 1):
+        _run(root, f"mp{seed}", system="gene_ba_small", seed=seed, errors=[1.0, 0.1, 0.05], per_step=ba)
+        _run(root, f"er{seed}", system="gene_er_small", trained_on="gene_ba_small", best_val=0.1, per_step=er)
+        _run(
+            root,
+            f"ws{seed}",
+            system="gene_ws_small",
+            trained_on="gene_ba_small",
+            best_val=0.02,
+            per_step=[0.8 * e for e in ba],
+        )
+    _, out = _report(cfg_factory, tmp_path, "table1", root)
+    text = (out / "report.md").read_text()
+    assert "| ratio by rollout step | 1 | 2 | 5 | 10 | paper (full horizon) |" in text
+    assert "| MP-NODE: BA test RMSE | 0.01 | 0.02 | 0.05 | 0.1 |  |" in text
+    assert "| MP-NODE: ER / BA | 0.80 | 0.80 | 2.00 | 2.00 | 0.58 |" in text
+    assert "| MP-NODE: WS / BA | 0.80 | 0.80 | 0.80 | 0.80 | 0.51 |" in text
+    assert "- MP-NODE on ER (unseen): easier than BA at steps 1–2, harder at steps 5–10" in text
+    assert "- MP-NODE on WS (unseen): easier than BA at every listed step (the paper's direction)" in text
+    assert (out / "table1_horizons.png").is_file()
 
 
 def test_curves_overlay_finetune_and_scratch(cfg_factory, tmp_path, table2_runs):

@@ -11,7 +11,8 @@ training-set size, message size), never by where they lie. Every layout returns 
   mean ± std over seeds. The paper's numbers and the orderings it claims are printed beside it.
 - ``table1``: the paper's Table 1 (gene 4×4 trained on BA, zero-shot on unseen ER and WS). Rows are model
   classes; columns are validation and test error on the training system and test error of the zero-shot runs
-  on every other system.
+  on every other system. Where the runs recorded per-step errors, the ratio of each unseen system's test error
+  to the training system's at rollout steps 1, 2, 5, 10, ... (`table1_horizons.png`).
 - ``curves``: Figure 5, test error per epoch of finetuned vs scratch runs (mean over seeds, min–max band), one
   panel per target system and training-set size, and the epochs each curve needs to reach the best error that
   every curve reaches.
@@ -96,7 +97,24 @@ def run_facts(run: Path, summary: dict[str, Any]) -> dict[str, Any]:
         "trained_on": summary.get("trained_on"),
         "seed_": summary.get("seed"),
         "device": summary.get("device"),  # "cpu (N threads)" / "cuda:0 (name)"; runs from before it was kept: None
+        **_step_errors(test.get("per_step_rmse")),
     }
+
+
+#: rollout steps at which `run_facts` keeps the test RMSE (`test_rmse_step<k>`), where the trajectories are that long
+STEPS = (1, 2, 5, 10, 20, 30, 40, 50, 100, 200, 500, 1000)
+
+
+def _step_errors(per_step: Any) -> dict[str, float]:
+    """{"test_rmse_step<k>": RMSE after k rollout steps} from a summary's ``per_step_rmse`` (index = step)."""
+    if not isinstance(per_step, list):
+        return {}
+    out = {}
+    for k in STEPS:
+        value = per_step[k] if k < len(per_step) else None
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            out[f"test_rmse_step{k}"] = float(value)
+    return out
 
 
 def _section(parent: dict[str, Any], key: str) -> dict[str, Any]:
@@ -402,17 +420,92 @@ def table1(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
             f"- validation: MP-NODE {val_mp['mean']:.3g} {'<' if holds else '≥'} L2S {val_l2s['mean']:.3g} "
             f"— {'holds' if holds else 'does NOT hold'}"
         )
+    by_step, figures = _zero_shot_by_step(train[train["system"] == home], unseen, fam, out_dir), []
+    parts = [
+        f"Trained on `{home}`; errors are normalised rollout RMSE over the full horizon (validation: the best "
+        "epoch's; test: the best checkpoint's), mean ± std over seeds:",
+        ours,
+        "The paper's Table 1 (its own error units, likely a squared error; compare orders and ratios, not values):",
+        paper,
+        "Checks:\n" + ("\n".join(checks) if checks else "- nothing to compare"),
+    ]
+    if by_step is not None:
+        parts.append(by_step[0])
+        figures.append(by_step[1])
+    figures.insert(0, _error_bars(table, columns, rows, out_dir / "table1.png"))
+    return LayoutResult("\n\n".join(parts), table, figures)
+
+
+def _crossing(steps: list[int], ratio: list[float], fam: str) -> str:
+    """In words, at which of the listed steps a ratio to the training graph's error is below 1 and where not:
+    "easier than BA at steps 1–2, harder at 5–10, easier at 20–50"."""
+    easier = [r < 1 for r in ratio]
+    if all(easier):
+        return f"easier than {fam} at every listed step (the paper's direction)"
+    if not any(easier):
+        return f"harder than {fam} at every listed step"
+    spans: list[list[int]] = []  # runs of consecutive listed steps on the same side of 1
+    for i, e in enumerate(easier):
+        if i and e == easier[i - 1]:
+            spans[-1].append(steps[i])
+        else:
+            spans.append([steps[i]])
+    words: list[str] = []
+    side = easier[0]
+    for span in spans:
+        at = f"step {span[0]}" if len(span) == 1 else f"steps {span[0]}–{span[-1]}"
+        words.append(f"{'easier' if side else 'harder'} {'than ' + fam + ' ' if not words else ''}at {at}")
+        side = not side
+    return ", ".join(words)
+
+
+#: the paper's Table 1 ratios of the unseen graphs' test error to BA's (MP-NODE): ER 0.0026 / 0.0045, WS 0.0023 / 0.0045
+PAPER_TABLE1_RATIOS = {"ER": 0.0026 / 0.0045, "WS": 0.0023 / 0.0045}
+
+
+def _zero_shot_by_step(home: pd.DataFrame, unseen: pd.DataFrame, fam: str, out_dir: Path) -> tuple[str, Path] | None:
+    """The zero-shot ratios (unseen graph's test RMSE / the training graph's, means over seeds) after k rollout
+    steps, per model: whether the unseen graphs are easier than the training graph depends on how far the
+    rollout has run. None when the runs recorded no per-step errors."""
+    steps = [k for k in STEPS if f"test_rmse_step{k}" in home and f"test_rmse_step{k}" in unseen]
+    steps = [
+        k for k in steps if home[f"test_rmse_step{k}"].notna().any() and unseen[f"test_rmse_step{k}"].notna().any()
+    ]
+    if not steps or unseen.empty:
+        return None
+    rows, checks, curves = [], [], {}
+    for cls, part in home.groupby("model_class"):
+        name = MODEL_NAMES.get(str(cls), str(cls))
+        base = [_stats(part[f"test_rmse_step{k}"])[0] for k in steps]
+        rows.append([f"{name}: {fam} test RMSE", *[f"{b:.3g}" for b in base], ""])
+        for system, zpart in unseen[unseen["model_class"] == cls].groupby("system"):
+            g = graph_family(str(system))
+            ratio = [
+                _stats(zpart[f"test_rmse_step{k}"])[0] / b if b > 0 else math.nan
+                for k, b in zip(steps, base, strict=True)
+            ]
+            paper = PAPER_TABLE1_RATIOS.get(g) if name == "MP-NODE" else None
+            rows.append([f"{name}: {g} / {fam}", *[f"{r:.2f}" for r in ratio], "" if paper is None else f"{paper:.2f}"])
+            curves[f"{name} {g} / {fam}"] = ratio
+            checks.append(f"- {name} on {g} (unseen): {_crossing(steps, ratio, fam)}")
+    header = ["ratio by rollout step", *map(str, steps), "paper (full horizon)"]
     text = "\n\n".join(
         [
-            f"Trained on `{home}`; errors are normalised rollout RMSE over the full horizon (validation: the best "
-            "epoch's; test: the best checkpoint's), mean ± std over seeds:",
-            ours,
-            "The paper's Table 1 (its own error units, likely a squared error; compare orders and ratios, not values):",
-            paper,
-            "Checks:\n" + ("\n".join(checks) if checks else "- nothing to compare"),
+            "Zero-shot by rollout horizon: the unseen graph's test RMSE at rollout step k over the training graph's "
+            "(ratio of the means over seeds; below 1: the unseen graph is easier, as the paper found at the full horizon):",
+            md_table(header, rows),
+            "\n".join(checks),
         ]
     )
-    return LayoutResult(text, table, [_error_bars(table, columns, rows, out_dir / "table1.png")])
+    fig, ax = subplots(figsize=(5.6, 3.6))
+    for label, ratio in curves.items():
+        ax.plot(steps, ratio, marker="o", label=label)
+    for g, r in PAPER_TABLE1_RATIOS.items():
+        ax.plot([steps[-1]], [r], marker="*", markersize=11, linestyle="none", label=f"paper MP-NODE {g} / {fam}")
+    ax.axhline(1.0, color="grey", linewidth=0.8, linestyle="--")
+    ax.set(xscale="log", xlabel="rollout step", ylabel=f"test RMSE / {fam} test RMSE", title="Zero-shot by horizon")
+    ax.legend(fontsize=7)
+    return text, save_figure(fig, out_dir / "table1_horizons.png")
 
 
 def _named_stats(values: pd.Series) -> dict[str, float]:
