@@ -5,7 +5,7 @@
 # 50 steps, mean ± std over seeds.
 # CPU-sized by default (about 15 minutes on 2 free cores): EPOCHS=150 epochs on N_TRAIN=200 trajectories, 3 seeds
 # (paper: 4000 epochs, 700 trajectories). Paper-sized: PAPER=1 cli/table1.sh.
-# Table: $OUT/table1.md (with table1.png).
+# Table: $OUT/table1.md (with table1.png and table1_horizons.png, the zero-shot ratios by rollout step).
 # Resumable: run it again with the same settings and finished runs are kept, interrupted ones resumed
 # (cli/lib.sh); FRESH=1 starts over.
 set -euo pipefail
@@ -47,4 +47,6 @@ done
 mpsim report layout=table1 "title='Table 1: zero-shot generalisation on gene 4×4 ($SIZE)'" \
   "runs=[$OUT/train,$OUT/zeroshot]" hydra.run.dir=$OUT/report paths.output_root=$OUT
 cp "$OUT/report/report.md" "$OUT/table1.md"; cp "$OUT/report/table1.png" "$OUT/table1.png"
+# the zero-shot ratios by rollout step (when the runs recorded per-step errors), which table1.md links to
+[ ! -f "$OUT/report/table1_horizons.png" ] || cp "$OUT/report/table1_horizons.png" "$OUT/table1_horizons.png"
 echo "table: $OUT/table1.md"
