@@ -184,6 +184,13 @@ def test_table1_zero_shot_ratio_by_rollout_step(cfg_factory, tmp_path):
     assert "- MP-NODE on ER (unseen): easier than BA at steps 1–2, harder at steps 5–10" in text
     assert "- MP-NODE on WS (unseen): easier than BA at every listed step (the paper's direction)" in text
     assert (out / "table1_horizons.png").is_file()
+    # a model whose training runs recorded no per-step errors gets no ratio rows (not ratios of nothing)
+    _run(root, "l2s", system="gene_ba_small", model="L2S", message_size=None, errors=[1.0, 0.3, 0.2])
+    _run(root, "l2s_er", system="gene_er_small", model="L2S", trained_on="gene_ba_small", best_val=0.3, per_step=er)
+    _, out = _report(cfg_factory, tmp_path / "again", "table1", root)
+    text = (out / "report.md").read_text()
+    assert "| MP-NODE: ER / BA | 0.80 | 0.80 | 2.00 | 2.00 | 0.58 |" in text
+    assert "L2S: ER / BA" not in text and "L2S: BA test RMSE" not in text
 
 
 def test_curves_overlay_finetune_and_scratch(cfg_factory, tmp_path, table2_runs):

@@ -473,21 +473,31 @@ def _zero_shot_by_step(home: pd.DataFrame, unseen: pd.DataFrame, fam: str, out_d
     ]
     if not steps or unseen.empty:
         return None
-    rows, checks, curves = [], [], {}
+    rows: list[list[str]] = []
+    checks: list[str] = []
+    curves: dict[str, tuple[list[int], list[float]]] = {}
     for cls, part in home.groupby("model_class"):
         name = MODEL_NAMES.get(str(cls), str(cls))
         base = [_stats(part[f"test_rmse_step{k}"])[0] for k in steps]
-        rows.append([f"{name}: {fam} test RMSE", *[f"{b:.3g}" for b in base], ""])
+        if not any(b > 0 for b in base):  # this model's training runs recorded no per-step errors
+            continue
+        rows.append([f"{name}: {fam} test RMSE", *[f"{b:.3g}" if b > 0 else "–" for b in base], ""])
         for system, zpart in unseen[unseen["model_class"] == cls].groupby("system"):
             g = graph_family(str(system))
             ratio = [
                 _stats(zpart[f"test_rmse_step{k}"])[0] / b if b > 0 else math.nan
                 for k, b in zip(steps, base, strict=True)
             ]
+            known = [(k, r) for k, r in zip(steps, ratio, strict=True) if math.isfinite(r)]
+            if not known:
+                continue
             paper = PAPER_TABLE1_RATIOS.get(g) if name == "MP-NODE" else None
-            rows.append([f"{name}: {g} / {fam}", *[f"{r:.2f}" for r in ratio], "" if paper is None else f"{paper:.2f}"])
-            curves[f"{name} {g} / {fam}"] = ratio
-            checks.append(f"- {name} on {g} (unseen): {_crossing(steps, ratio, fam)}")
+            cells = [f"{r:.2f}" if math.isfinite(r) else "–" for r in ratio]
+            rows.append([f"{name}: {g} / {fam}", *cells, "" if paper is None else f"{paper:.2f}"])
+            curves[f"{name} {g} / {fam}"] = ([k for k, _ in known], [r for _, r in known])
+            checks.append(f"- {name} on {g} (unseen): {_crossing([k for k, _ in known], [r for _, r in known], fam)}")
+    if not rows:
+        return None
     header = ["ratio by rollout step", *map(str, steps), "paper (full horizon)"]
     text = "\n\n".join(
         [
@@ -498,8 +508,8 @@ def _zero_shot_by_step(home: pd.DataFrame, unseen: pd.DataFrame, fam: str, out_d
         ]
     )
     fig, ax = subplots(figsize=(5.6, 3.6))
-    for label, ratio in curves.items():
-        ax.plot(steps, ratio, marker="o", label=label)
+    for label, (at, ratio) in curves.items():
+        ax.plot(at, ratio, marker="o", label=label)
     for g, r in PAPER_TABLE1_RATIOS.items():
         ax.plot([steps[-1]], [r], marker="*", markersize=11, linestyle="none", label=f"paper MP-NODE {g} / {fam}")
     ax.axhline(1.0, color="grey", linewidth=0.8, linestyle="--")
