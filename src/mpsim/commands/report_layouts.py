@@ -420,7 +420,8 @@ def table1(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
             f"- validation: MP-NODE {val_mp['mean']:.3g} {'<' if holds else '≥'} L2S {val_l2s['mean']:.3g} "
             f"— {'holds' if holds else 'does NOT hold'}"
         )
-    by_step, figures = _zero_shot_by_step(train[train["system"] == home], unseen, fam, out_dir), []
+    figures = [_error_bars(table, columns, rows, out_dir / "table1.png")]
+    by_step = _zero_shot_by_step(train[train["system"] == home], unseen, fam, out_dir)
     parts = [
         f"Trained on `{home}`; errors are normalised rollout RMSE over the full horizon (validation: the best "
         "epoch's; test: the best checkpoint's), mean ± std over seeds:",
@@ -432,7 +433,6 @@ def table1(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
     if by_step is not None:
         parts.append(by_step[0])
         figures.append(by_step[1])
-    figures.insert(0, _error_bars(table, columns, rows, out_dir / "table1.png"))
     return LayoutResult("\n\n".join(parts), table, figures)
 
 
