@@ -43,6 +43,26 @@ def test_mpnode_suite_rows_and_summary():
     summary = suite.summarise(rows)
     assert any("edge-list aggregation / dense adjacency product" in line for line in summary)
     assert any("torchdiffeq's odeint as is / stacked outputs" in line for line in summary)
+    assert all(r["torch_tanh_fwd_bwd_s"] > 0 and r["tanh_speedup"] > 0 for r in rows)
+    assert any("torch's nn.Tanh / layers.Tanh" in line for line in summary)
+
+
+def test_the_torch_tanh_copy_swaps_every_tanh_and_keeps_the_weights_and_the_values():
+    from torch import nn
+
+    from mpsim.bench.mpnode import with_torch_tanh
+    from mpsim.models.layers import Tanh
+    from mpsim.models.mpnode import MPNODE
+
+    model = MPNODE(3)
+    clone = with_torch_tanh(model)
+    assert sum(isinstance(m, Tanh) for m in model.modules()) == 2  # the paper's MLP: two hidden layers
+    assert not any(isinstance(m, Tanh) for m in clone.modules())
+    assert sum(type(m) is nn.Tanh for m in clone.modules()) == 2
+    x = torch.randn(5, 3 + 3)
+    assert torch.allclose(model.net(x), clone.net(x), atol=1e-6)
+    ours, theirs = model.state_dict(), clone.state_dict()
+    assert ours.keys() == theirs.keys() and all(torch.equal(ours[k], theirs[k]) for k in ours)
 
 
 def test_mpnode_suite_times_the_gene_graphs_and_refuses_an_unknown_graph():

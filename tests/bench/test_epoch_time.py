@@ -25,6 +25,7 @@ def test_epoch_time_rows_come_from_a_real_training_run():
     (row,) = bench.run()
     # epoch 0 (evaluation) and the warm-up dropped
     assert row["case"] == "tiny" and row["device"] == "cpu" and row["epochs_timed"] == 2
+    assert row["source"] == "this checkout"
     assert 0 < row["train_pass_s"] <= row["epoch_with_eval_s"]
     assert row["paper_budget_h"] == pytest.approx(4000 * row["epoch_with_eval_s"] / 3600, abs=0.006)
     assert f"{row['paper_budget_h']:.1f} h" in bench.summarise([row])[0]
@@ -70,6 +71,21 @@ def test_a_failing_case_names_its_command():
     bench = EpochTimeBench(cases=[{"name": "bad", "overrides": ["system=no_such_system"]}], epochs=2)
     with pytest.raises(RuntimeError, match="system=no_such_system"):
         bench.run()
+
+
+def test_a_case_with_a_source_trains_with_that_checkouts_code(tmp_path):
+    """`source` puts another checkout's mpsim first on the child's path (the code before a change, timed beside it)."""
+    before = tmp_path / "before" / "src"
+    (before / "mpsim").mkdir(parents=True)
+    (before / "mpsim" / "__init__.py").write_text("")
+    (before / "mpsim" / "__main__.py").write_text("raise SystemExit('the code before ran')\n")
+    case = {"name": "tiny", "overrides": ["system=pendulum2", "data.n_train=8", "data.horizon=10"]}
+    bench = EpochTimeBench(cases=[{**case, "source": str(before)}], epochs=2)
+    assert bench.cases[0]["source"] == str(before.resolve())
+    with pytest.raises(RuntimeError, match="the code before ran"):
+        bench.run()
+    with pytest.raises(ConfigError, match="src folder of an mpsim checkout"):
+        EpochTimeBench(cases=[{**case, "source": str(tmp_path)}])
 
 
 def test_trained_cases_pair_fresh_and_kept_checkpoints():

@@ -13,6 +13,7 @@ the GPU), never on whatever `mpsim train`'s `device=auto` would pick.
 from __future__ import annotations
 
 import csv
+import os
 import statistics
 import subprocess
 import sys
@@ -76,7 +77,9 @@ PAPER_CASES: tuple[dict[str, Any], ...] = (
 
 class EpochTimeBench(Suite):
     """Args:
-    cases: list of {name, overrides (mpsim train arguments), paper_epochs}; default: `PAPER_CASES`.
+    cases: list of {name, overrides (mpsim train arguments), paper_epochs, and optionally source: the `src`
+        folder of another mpsim checkout, e.g. the commit before a change, whose code then trains that case:
+        the same case with and without `source` times a change side by side}; default: `PAPER_CASES`.
     epochs: epochs run per case (the first is dropped as warm-up).
     trainer: the trainer preset (the paper's: `paper`).
     threads: torch threads of each training process (`threads=` of `mpsim train`).
@@ -106,7 +109,17 @@ class EpochTimeBench(Suite):
             overrides = c.get("overrides")
             if not isinstance(c.get("name"), str) or isinstance(overrides, str) or not isinstance(overrides, Sequence):
                 raise ConfigError(f"bench.cases: each case needs a name and a list of overrides; got {c!r}.")
-            self.cases.append({**dict(c), "overrides": [str(o) for o in overrides]})
+            case = {**dict(c), "overrides": [str(o) for o in overrides]}
+            if case.get("source") is not None:
+                source = Path(str(case["source"])).expanduser().resolve()
+                if not (source / "mpsim" / "__init__.py").is_file():
+                    raise ConfigError(
+                        f"bench.cases: the source of case {case['name']!r} must be the src folder of an mpsim "
+                        f"checkout (holding mpsim/__init__.py); {source} is not. Make one with e.g. "
+                        "`git worktree add /tmp/before HEAD~1` and pass source=/tmp/before/src."
+                    )
+                case["source"] = str(source)
+            self.cases.append(case)
         if only is not None:
             if isinstance(only, str):
                 only = [only]
@@ -121,7 +134,7 @@ class EpochTimeBench(Suite):
             self.cases = kept
         self.epochs, self.trainer, self.threads, self.timeout = int(epochs), trainer, int(threads), float(timeout)
 
-    def _train(self, overrides: list[str], run_dir: Path) -> list[dict[str, float]]:
+    def _train(self, overrides: list[str], run_dir: Path, source: str | None = None) -> list[dict[str, float]]:
         cmd = [
             sys.executable,
             "-m",
@@ -138,7 +151,10 @@ class EpochTimeBench(Suite):
             f"device={self.device}",
             f"hydra.run.dir={run_dir}",
         ]
-        done = subprocess.run(cmd, capture_output=True, text=True, timeout=self.timeout)
+        env = None
+        if source is not None:  # that checkout's mpsim first on the path, ahead of the installed one
+            env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (source, os.environ.get("PYTHONPATH")) if p)}
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=self.timeout, env=env)
         if done.returncode != 0:
             tail = (done.stderr or done.stdout).strip().splitlines()[-3:]
             raise RuntimeError(f"`mpsim train {' '.join(overrides)}` failed: {' | '.join(tail)}")
@@ -149,7 +165,7 @@ class EpochTimeBench(Suite):
         rows = []
         with tempfile.TemporaryDirectory(prefix="mpsim-epoch-time-") as tmp:
             for i, case in enumerate(self.cases):
-                metrics = self._train(list(case["overrides"]), Path(tmp) / f"case{i}")
+                metrics = self._train(list(case["overrides"]), Path(tmp) / f"case{i}", case.get("source"))
                 # row 0 is the evaluation before training, row 1 the warm-up epoch: both dropped
                 timed = [m for m in metrics if m["epoch"] >= 2]
                 train = [m["epoch_time"] for m in timed]
@@ -165,6 +181,7 @@ class EpochTimeBench(Suite):
                         "case": case["name"],
                         "device": self.device,
                         "overrides": " ".join(case["overrides"]),
+                        "source": case.get("source") or "this checkout",
                         "epochs_timed": len(train),
                         "train_pass_s": round(epoch_s, 4),
                         "epoch_with_eval_s": round(wall_s, 4),

@@ -10,10 +10,40 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import torch
 from torch import nn
 
+
+class _SigmoidTanh(torch.autograd.Function):
+    """tanh(x) = 2σ(2x) − 1, with tanh's own backward 1 − y² from the output."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor) -> torch.Tensor:  # x: [...] any shape
+        y = torch.sigmoid(x * 2).mul_(2).sub_(1)
+        ctx.save_for_backward(y)
+        return y
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> torch.Tensor:  # grad: [...] as x
+        (y,) = ctx.saved_tensors
+        return torch.ops.aten.tanh_backward(grad, y)
+
+
+class Tanh(nn.Tanh):
+    """nn.Tanh, computed on the CPU as 2σ(2x) − 1: torch's CPU tanh kernel is 3–4× slower than its sigmoid
+    (forward and backward of a [8192, 32] float32 activation, one thread: 0.89 ms against 0.32), and tanh is the
+    MP-NODE paper's activation, evaluated twice per vector-field call. The same function to rounding (at most
+    2e-7 from tanh in float32, where torch's own is 3e-8 off); differentiable twice (tanh_backward has its own
+    derivative); on other devices torch's tanh as is."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:  # x: [...] any shape
+        if x.device.type != "cpu":
+            return torch.tanh(x)
+        return _SigmoidTanh.apply(x)
+
+
 ACTIVATIONS: dict[str, type[nn.Module]] = {
-    "tanh": nn.Tanh,
+    "tanh": Tanh,
     "relu": nn.ReLU,
     "softplus": nn.Softplus,
     "silu": nn.SiLU,
