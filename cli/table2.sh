@@ -53,6 +53,8 @@ pretrain() {  # name system [overrides...]: one scratch run that exports <system
   if [ "$REUSE" = 1 ] && [ -f "$CKPT/$system.ckpt" ]; then echo "reusing $CKPT/$system.ckpt"; return; fi
   train_once "$OUT/$name" system=$system data.n_train=$PRE_N trainer.max_epochs=$PRE_EPOCHS "${common[@]}" "$@"
 }
+# target and l2s print one line per run; a column's lines go to one pool of $JOBS, so a core freed by a finished
+# run takes the next one (L2S does not wait for the slowest MP-NODE run)
 target() {  # name system init sizes [overrides...]: finetune (init) and scratch runs over seeds and dataset sizes
   local name=$1 system=$2 init=$3 sizes=$4; shift 4
   for ds in ${sizes//,/ }; do
@@ -63,32 +65,31 @@ target() {  # name system init sizes [overrides...]: finetune (init) and scratch
           mode.refit_normalisation=$REFIT trainer.max_epochs=$EPOCHS export=false ${common[*]} $*"
       done
     done
-  done | parallel "$JOBS"
+  done
 }
 l2s() {  # name system size [overrides...]: L2S from scratch over seeds
   local name=$1 system=$2 ds=$3; shift 3
   for seed in ${SEEDS//,/ }; do
     echo "train_once $OUT/$name/s$seed system=$system model=l2s seed=$seed data.n_train=$ds \
       trainer.max_epochs=$L2S_EPOCHS export=false ${common[*]} $*"
-  done | parallel "$JOBS"
+  done
 }
 
 for column in $PARTS; do
   case $column in
     lorenz)
       pretrain lorenz3_pre lorenz3
-      target lorenz10 lorenz10 lorenz3.ckpt "$DS" ;;
+      target lorenz10 lorenz10 lorenz3.ckpt "$DS" | parallel "$JOBS" ;;
     kuramoto)
       pretrain kuramoto_pre kuramoto10_ba
-      target kuramoto kuramoto10_er kuramoto10_ba.ckpt "$DS" ;;
+      target kuramoto kuramoto10_er kuramoto10_ba.ckpt "$DS" | parallel "$JOBS" ;;
     gene)
       pretrain gene_pre gene_ba_small
-      target gene gene_ba_large gene_ba_small.ckpt "$G_DS"
-      l2s gene_l2s gene_ba_large "$G_DS" ;;
+      { target gene gene_ba_large gene_ba_small.ckpt "$G_DS"; l2s gene_l2s gene_ba_large "$G_DS"; } | parallel "$JOBS" ;;
     quad)
       pretrain quad_pre quad3 model.message_size=$MSG "${quad[@]}"
-      target quad quad6 quad3.ckpt "$Q_DS" model.message_size=$MSG "${quad[@]}"
-      l2s quad_l2s quad6 "$Q_DS" "${quad[@]}" ;;
+      { target quad quad6 quad3.ckpt "$Q_DS" model.message_size=$MSG "${quad[@]}"
+        l2s quad_l2s quad6 "$Q_DS" "${quad[@]}"; } | parallel "$JOBS" ;;
   esac
 done
 

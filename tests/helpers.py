@@ -184,6 +184,8 @@ for a in "$@"; do
   esac
 done
 if [ -n "$ckpt_dir" ] && [ -n "$system" ] && [[ $system != *,* ]]; then mkdir -p "$ckpt_dir" && : > "$ckpt_dir/$system.ckpt"; fi
+# STUB_SLOW=<text>: a call whose arguments hold <text> takes STUB_SLOW_S seconds and logs "finished ..." at its end
+if [ -n "${STUB_SLOW:-}" ] && [[ " $* " == *"$STUB_SLOW"* ]]; then sleep "${STUB_SLOW_S:-4}"; echo "finished $*" >> "$STUB_LOG"; fi
 """
 
 

@@ -54,6 +54,20 @@ def test_table2_parts_runs_only_the_columns_named(tmp_path, option):
     assert trains == [("kuramoto10_ba", "-"), ("kuramoto10_er", "kuramoto10_ba.ckpt"), ("kuramoto10_er", "null")]
 
 
+def test_table2_starts_l2s_on_the_core_the_first_finished_mpnode_run_frees(tmp_path):
+    """A column's finetune, scratch and L2S runs share one pool: L2S does not wait for the slowest MP-NODE run."""
+    slow = "init=gene_ba_small.ckpt"  # the finetune
+    proc, calls = run_recipe("table2.sh", tmp_path, PARTS="gene", SEEDS="0", JOBS="2", STUB_SLOW=slow)
+    assert proc.returncode == 0, proc.stderr
+    order = [
+        ("finished" if c[0] == "finished" else _arg(c, "model") if "model=l2s" in c else _arg(c, "init"))
+        for c in calls
+        if c[0] in ("train", "finished") and _arg(c, "system") == "gene_ba_large"
+    ]
+    assert sorted(order) == sorted(["gene_ba_small.ckpt", "null", "l2s", "finished"])
+    assert order.index("l2s") < order.index("finished")  # L2S began while the finetune was still training
+
+
 @pytest.mark.parametrize(
     ("recipe", "parts", "bad"),
     [
