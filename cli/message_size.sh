@@ -8,6 +8,9 @@
 # Figure 8 (PARTS=quad only Figure 7); the report covers whatever runs have finished under $OUT.
 # Resumable: run it again with the same settings and finished runs are kept, interrupted ones resumed
 # (cli/lib.sh); FRESH=1 starts over.
+# At PAPER=1, Figure 7's 3-quadrotor m = 13 seed-0 run is cli/table2.sh's quadrotor pre-training (PAPER=1: the same
+# data, model, trainer and seed; checked to train identically, every metric to the last digit): copy a finished
+# <table2 OUT>/quad_pre to $OUT/quad/quad3_m13_s0 and it is kept, not trained again (one 4000-epoch run saved).
 set -euo pipefail
 source "$(dirname "$0")/lib.sh"
 OUT=${OUT:-outputs/message_size}
