@@ -116,7 +116,7 @@ def dopri5(
                 ks.append(func(at(t1, True) if C[i] == 1.0 else at(t0 + C[i] * dt), y_i))
             y1 = y_i  # the 5th-order solution is stage 6's input
             with torch.no_grad():
-                error = _combine(torch.zeros_like(y), ks, ERROR, dt)
+                error = _combine(None, ks, ERROR, dt)
                 ratio = _rms(error / (atol + rtol * torch.maximum(y.abs(), y1.abs())))
             if not math.isfinite(ratio):
                 raise StepFailure("non-finite values in the state or its error estimate")
@@ -159,7 +159,7 @@ def _initial_step(func, t0: float, y0: torch.Tensor, f0: torch.Tensor, rtol: flo
 
 
 def _combine(
-    y: torch.Tensor,  # [B, ...] the step's start
+    y: torch.Tensor | None,  # [B, ...] the step's start (None: the sum alone)
     ks: list[torch.Tensor],  # stages, each [B, ...]
     weights: tuple[float, ...] | list[float],
     dt: float,
@@ -167,9 +167,15 @@ def _combine(
     """[B, ...] y + dt Σ_j weights[j] ks[j] over the stages given (zero weights skipped)."""
     out = None
     for k, w in zip(ks, weights, strict=False):
-        if w != 0.0:
-            out = torch.add(y, k, alpha=w * dt) if out is None else out.add_(k, alpha=w * dt)
-    return y.clone() if out is None else out
+        if w == 0.0:
+            continue
+        if out is None:
+            out = k * (w * dt) if y is None else torch.add(y, k, alpha=w * dt)
+        else:
+            out.add_(k, alpha=w * dt)
+    if out is None:
+        return torch.zeros_like(ks[0]) if y is None else y.clone()
+    return out
 
 
 def _dense_weights(x: float) -> list[float]:

@@ -99,12 +99,13 @@ class ODESolver:
             DivergenceError: the state became NaN/inf or the adaptive step size underflowed.
         """
         t = t.to(device=y0.device, dtype=y0.dtype)
-        solve = odeint_adjoint if self.adjoint else _odeint_stacked if self.stacked and SOLVERS is not None else odeint
         own = self.method == "dopri5" and self.implementation == "mpsim" and self.stacked and not self.adjoint
         try:
             if own:
                 ys = dopri5(func, y0, t, self.rtol, self.atol, self.max_num_steps)
             else:
+                stacked = self.stacked and SOLVERS is not None
+                solve = odeint_adjoint if self.adjoint else _odeint_stacked if stacked else odeint
                 ys = solve(func, y0, t, rtol=self.rtol, atol=self.atol, method=self.method, options=self.options)
         except (AssertionError, StepFailure) as err:  # torchdiffeq reports numerical failure with assert
             text = str(err).split(":")[0]
