@@ -1,9 +1,12 @@
+import json
+import math
+
 import pytest
 import torch
 
 from mpsim.errors import CheckpointError
 from mpsim.models import MPNODE
-from mpsim.training.checkpoint import load_checkpoint, save_checkpoint
+from mpsim.training.checkpoint import history_row, history_text, load_checkpoint, save_checkpoint
 
 
 def _payload(model):
@@ -126,3 +129,48 @@ def test_a_model_config_is_required_only_to_build_a_model(tmp_path):
     assert load_checkpoint(path)["model"]["state_dim"] == 2
     with pytest.raises(CheckpointError, match="lacks 'model.config'"):
         load_checkpoint(path, need_config=True)
+
+
+def _rows(n):
+    return [{"epoch": i, "train_loss": math.nan if i == 0 else 1.0 / (i + 3), "lr": 1e-3} for i in range(n)]
+
+
+def test_history_is_stored_as_text_and_read_back_as_rows(tmp_path):
+    rows = _rows(50)
+    payload = _payload(MPNODE(2))
+    payload["trainer"]["history_json"] = history_text(list(rows[0]), [history_row(r, list(rows[0])) for r in rows])
+    back = load_checkpoint(save_checkpoint(tmp_path / "a.ckpt", payload))["trainer"]
+    assert "history_json" not in back and len(back["history"]) == 50
+    assert back["history"][1:] == rows[1:] and math.isnan(back["history"][0]["train_loss"])
+    assert type(back["history"][7]["epoch"]) is int  # epochs stay integers (metrics.csv prints them so)
+
+
+def test_a_row_with_other_keys_is_stored_whole():
+    assert json.loads(history_row({"epoch": 1, "extra": 2.5}, ["epoch"])) == {"epoch": 1, "extra": 2.5}
+    assert json.loads(history_row({"epoch": 1}, ["epoch"])) == [1]
+
+
+def test_older_checkpoints_with_a_list_of_rows_still_load(tmp_path):
+    payload = _payload(MPNODE(2))
+    payload["trainer"]["history"] = _rows(3)
+    back = load_checkpoint(save_checkpoint(tmp_path / "a.ckpt", payload))["trainer"]
+    assert back["history"][1:] == _rows(3)[1:]
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "not json",
+        '{"columns": ["epoch"], "rows": [[1, 2]]}',
+        '{"columns": ["epoch"]}',
+        "[1, 2]",
+        '{"columns": [1], "rows": [[1]]}',
+        7,
+    ],
+)
+def test_a_damaged_history_is_one_clear_error(tmp_path, text):
+    payload = _payload(MPNODE(2))
+    payload["trainer"]["history_json"] = text  # written with a valid checksum: damaged before it was saved
+    path = save_checkpoint(tmp_path / "a.ckpt", payload)
+    with pytest.raises(CheckpointError, match="history_json.*damaged.*without resume"):
+        load_checkpoint(path)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import csv
+import io
 import math
 
 import pandas as pd
@@ -9,6 +11,7 @@ import pytest
 
 from mpsim.commands.train import run_train
 from mpsim.errors import ConfigError
+from mpsim.files import atomic_write
 from mpsim.training.loggers import CSVLogger, LoggerGroup, flatten, scalars
 from tests.helpers import TINY_TRAIN
 
@@ -18,6 +21,28 @@ def test_csv_logger_rewrites_the_history_it_resumes_from(tmp_path):
     log.start(tmp_path, {}, [{"epoch": 0, "train_loss": math.nan}, {"epoch": 1, "train_loss": 2.0}])
     log.log_epoch({"epoch": 2, "train_loss": 1.0})
     assert pd.read_csv(tmp_path / "metrics.csv")["epoch"].tolist() == [0, 1, 2]
+
+
+def test_csv_logger_writes_what_one_full_rewrite_would(tmp_path):
+    # each row is formatted once and kept: after a resume and more epochs the file is the whole table, byte for
+    # byte what csv.DictWriter writes for every row at once (the format before rows were kept)
+    rows = [{"epoch": i, "train_loss": math.nan if i == 0 else 1 / (i + 3), "lr": 1e-3} for i in range(7)]
+    log = CSVLogger()
+    log.start(tmp_path, {}, rows[:3])
+    for row in rows[3:]:
+        log.log_epoch(row)
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(rows[0]))
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write(tmp_path / "expected.csv", lambda f: f.write(buf.getvalue()), mode="w")
+    assert (tmp_path / "metrics.csv").read_bytes() == (tmp_path / "expected.csv").read_bytes()
+    with pytest.raises(ValueError, match="not in fieldnames"):
+        log.log_epoch({"epoch": 8, "unknown": 1.0})
+    log.start(tmp_path / "again", {}, [])  # a logger started again forgets the earlier run's rows
+    (tmp_path / "again").mkdir()
+    log.log_epoch({"step": 1})
+    assert (tmp_path / "again" / "metrics.csv").read_text().splitlines() == ["step", "1"]
 
 
 def test_flatten_and_scalars():

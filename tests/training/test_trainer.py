@@ -55,6 +55,8 @@ def test_resume_gives_the_same_result_as_an_uninterrupted_run(tmp_path):
     keys = ("epoch", "train_loss", "val_error", "test_error", "lr")
     rows = lambda h: [[None if r[k] != r[k] else r[k] for k in keys] for r in h]  # noqa: E731 (NaN-safe)
     assert rows(resumed.history_) == rows(full.history_)
+    stored = torch.load(tmp_path / "part" / "checkpoints" / "last.ckpt", weights_only=True)["trainer"]
+    assert isinstance(stored["history_json"], str) and "history" not in stored  # the rows as one text
     resumed_last = load_checkpoint(tmp_path / "part" / "checkpoints" / "last.ckpt")
     for k, v in full_state["model"]["state_dict"].items():
         assert torch.equal(v, resumed_last["model"]["state_dict"][k]), k

@@ -20,9 +20,10 @@ from __future__ import annotations
 import hashlib
 import importlib
 import inspect
+import json
 import logging
 import re
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -112,10 +113,55 @@ def load_checkpoint(path: str | Path, allowed_targets: Iterable[str] = (), need_
     check_structure(payload, path, need_config)
     _verify_checksum(payload, path)
     _check_finite(payload, path)
+    _read_history(payload, path)
     if "config" in payload["model"]:
         check_config_targets(payload["model"]["config"], f"{path}: model.config", allowed_targets)
     payload["path"] = str(path)
     return payload
+
+
+def history_row(row: dict[str, Any], columns: Sequence[str]) -> str:
+    """One metric row as JSON text for `history_text`: its values in `columns` order when it has exactly those
+    keys (the trainer's rows do), otherwise the whole mapping."""
+    if list(row) == list(columns):
+        return json.dumps(list(row.values()))
+    return json.dumps(row)
+
+
+def history_text(columns: Sequence[str], rows: Sequence[str]) -> str:
+    """A trainer state's `history_json`: the column names and every row's `history_row` text as one JSON object.
+
+    `last.ckpt` is rewritten after every epoch and holds every row so far; as text dumped once per row, its
+    checksum and save stay small over long runs (a list of dicts, hashed value by value, took 0.12 s of a
+    0.16 s save at 5950 epochs)."""
+    return '{"columns": ' + json.dumps(list(columns)) + ', "rows": [' + ",".join(rows) + "]}"
+
+
+def _read_history(payload: dict[str, Any], path: str | Path) -> None:
+    """Parse a trainer state's `history_json` into `history`, the list of metric rows callers read (older
+    checkpoints store that list directly)."""
+    trainer = payload.get("trainer")
+    if not isinstance(trainer, dict) or "history_json" not in trainer:
+        return
+    text = trainer.pop("history_json")
+    rows = None
+    try:
+        parsed = json.loads(text) if isinstance(text, str) else None
+        if (
+            isinstance(parsed, dict)
+            and isinstance(parsed.get("columns"), list)
+            and isinstance(parsed.get("rows"), list)
+        ):
+            columns = parsed["columns"]
+            rows = [dict(zip(columns, r, strict=True)) if isinstance(r, list) else r for r in parsed["rows"]]
+    except (ValueError, RecursionError, TypeError):
+        rows = None
+    if rows is None or not all(isinstance(r, dict) and all(isinstance(k, str) for k in r) for r in rows):
+        raise CheckpointError(
+            f"{path}: 'trainer.history_json' is not the table of metric rows a trainer writes; the file is "
+            "damaged. Use another copy, or start the run again without resume."
+        )
+    trainer["history"] = rows
 
 
 def check_structure(payload: dict[str, Any], path: str | Path, need_config: bool = True) -> None:

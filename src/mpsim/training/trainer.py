@@ -23,7 +23,7 @@ from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError, DivergenceError
 from mpsim.metrics import LOSSES, rollout_metrics
 from mpsim.models.base import Model
-from mpsim.training.checkpoint import save_checkpoint
+from mpsim.training.checkpoint import history_row, history_text, save_checkpoint
 from mpsim.training.distributed import SINGLE, DistContext
 from mpsim.training.loggers import CSVLogger
 
@@ -213,6 +213,7 @@ class Trainer:
         )
         shuffle = torch.Generator().manual_seed(int(seed))
         self.history_: list[dict[str, Any]] = []
+        self._history_json: list[str] = []  # each row of history_ as JSON text, for last.ckpt (`history_text`)
         self.best_val_, self.best_epoch_, self.status_, self.divergence_ = math.inf, 0, "complete", None
         self.best_state_ = copy.deepcopy(model.state_dict())
         since_best, wall_before, start_epoch = 0, 0.0, 1
@@ -223,6 +224,7 @@ class Trainer:
             sched.load_state_dict(resume_state["scheduler"])
             shuffle.set_state(resume_state["shuffle_rng"])
             self.history_ = list(resume_state["history"])
+            self._history_json = [history_row(row, self._columns()) for row in self.history_]
             self.best_val_, self.best_epoch_ = resume_state["best_val"], resume_state["best_epoch"]
             self.best_state_ = resume_state["best_state"]
             since_best = resume_state["since_best"]
@@ -377,8 +379,13 @@ class Trainer:
     # ---- records -------------------------------------------------------------------------------------
     def _record(self, row: dict[str, Any], on_epoch) -> None:
         self.history_.append(row)
+        self._history_json.append(history_row(row, self._columns()))
         if on_epoch is not None:
             on_epoch(row)
+
+    def _columns(self) -> list[str]:
+        """The metric names of the history's rows (the first row's keys)."""
+        return list(self.history_[0]) if self.history_ else []
 
     def _payload(self, model: Model, **extra: Any) -> dict[str, Any]:
         """A complete checkpoint: the static base plus the model's current weights and normalisation."""
@@ -413,7 +420,7 @@ class Trainer:
             "optimizer": opt.state_dict(),
             "scheduler": sched.state_dict(),
             "shuffle_rng": shuffle.get_state(),
-            "history": self.history_,
+            "history_json": history_text(self._columns(), self._history_json),
             "best_val": self.best_val_,
             "best_epoch": self.best_epoch_,
             "best_state": self.best_state_,
