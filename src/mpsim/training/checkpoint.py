@@ -132,8 +132,8 @@ def history_text(columns: Sequence[str], rows: Sequence[str]) -> str:
     """A trainer state's `history_json`: the column names and every row's `history_row` text as one JSON object.
 
     `last.ckpt` is rewritten after every epoch and holds every row so far; as text dumped once per row, its
-    checksum and save stay small over long runs (a list of dicts, hashed value by value, took 0.12 s of a
-    0.16 s save at 5950 epochs)."""
+    checksum and save stay small over long runs (a list of dicts, hashed value by value, made a save take
+    0.14 s at 4000 epochs and 0.23–0.26 s at 10000; as text 0.016–0.028 s)."""
     return '{"columns": ' + json.dumps(list(columns)) + ', "rows": [' + ",".join(rows) + "]}"
 
 
