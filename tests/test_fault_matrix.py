@@ -179,6 +179,11 @@ def _replace_export(ws, d):
     return ["train", *TINY_TRAIN, "eval.plots=false"]
 
 
+def _damaged_history(p: dict) -> None:
+    """A trainer state whose history rows are longer than its columns."""
+    p["trainer"] = {"history_json": '{"columns": ["epoch"], "rows": [[1, 2]]}'}
+
+
 CASES: dict[str, Case] = {
     # -- config: typos get a did-you-mean in every group, never Hydra's "+key" advice
     "typo_system_key": Case(lambda w, d: ["train", "system.n_node=4"], 2, "Did you mean system.n_nodes?", ("+system",)),
@@ -251,6 +256,11 @@ CASES: dict[str, Case] = {
     "ckpt_no_state_dim": Case(_no_state_dim, 2, "lacks 'model.state_dim'"),
     "ckpt_bytes_flipped": Case(_bytes_flipped, 2, "does not match the checksum"),
     "ckpt_nan_weight": Case(_nan_weight, 2, "holds NaN/inf"),
+    "ckpt_history_damaged": Case(  # a last.ckpt's metric history that is not the table a trainer writes
+        lambda w, d: ["eval", f"init={altered(w, d, _damaged_history)}", *EVAL],
+        2,
+        "'trainer.history_json' is not the table of metric rows",
+    ),
     "ckpt_malicious_effect": Case(_malicious, 2, "'pathlib.Path.write_text' is not an mpsim class"),
     "ckpt_os_system": Case(_os_system, 2, "'os.system' is not an mpsim class"),
     "ckpt_mpsim_function": Case(
