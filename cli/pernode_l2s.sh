@@ -9,11 +9,17 @@
 # CPU-sized by default (EPOCHS=150, N=300 → 210 training trajectories, 3 seeds: about an hour of one core).
 # Paper-sized: PAPER=1 (MPNODE.jl's trainer, 4000 epochs, L2S 10000, N=1000 → 700 training trajectories, seed 0;
 # about 4 h a run here, see bench=epoch_time_trained).
+# Another gene system: SYSTEM=gene_ba_large (8×8, Table 2's gene column), with DATA_SEED=<n> for a draw that shares
+# nothing with the runs COMPARE names (default 0, the draw the kept 4×4 runs were read on).
 #   cli/pernode_l2s.sh                         → $OUT/pernode_l2s.md
 # Resumable (cli/lib.sh): run it again and finished runs are kept.
 set -euo pipefail
 source "$(dirname "$0")/lib.sh"
 OUT=${OUT:-outputs/pernode_l2s}
+SYSTEM=${SYSTEM:-gene_ba_small}
+DATA_SEED=${DATA_SEED:-0}
+[[ $SYSTEM == gene_* ]] || { echo "pernode_l2s.sh: SYSTEM='$SYSTEM' is not a gene system (gene_ba_small, gene_ba_large, ...)" >&2; exit 2; }
+[[ $DATA_SEED =~ ^[0-9]+$ ]] || { echo "pernode_l2s.sh: DATA_SEED='$DATA_SEED' is not a non-negative integer" >&2; exit 2; }
 if [ "${PAPER:-0}" = 1 ]; then
   N=${N:-1000}; EPOCHS=${EPOCHS:-4000}; L2S_EPOCHS=${L2S_EPOCHS:-10000}; SEEDS=${SEEDS:-0}; TRAINER=${TRAINER:-paper}
 fi
@@ -34,7 +40,7 @@ done
 mkdir -p "$OUT/data"
 if [ ! -f "$OUT/data/per_node.npz" ]; then
   # data.seed 0, the default (the kept paper-budget runs trained on this draw)
-  mpsim simulate system=gene_ba_small n=$N hydra.run.dir="$OUT/data/sim" > /dev/null
+  mpsim simulate system=$SYSTEM n=$N data.seed=$DATA_SEED hydra.run.dir="$OUT/data/sim" > /dev/null
   python - "$OUT/data" <<'PY'
 import shutil
 import sys
@@ -79,13 +85,13 @@ for pair in $COMPARE; do
     eval.save_predictions=true eval.plots=false hydra.run.dir="$dir/eval" paths.output_root="$OUT" > /dev/null
   rows+=("compare/$name/per_feature")
 done
-python - "$OUT" "${rows[@]}" <<'PY'
+python - "$OUT" "$SYSTEM" "$DATA_SEED" "${rows[@]}" <<'PY'
 import sys
 from pathlib import Path
 
 import numpy as np
 
-out, runs = Path(sys.argv[1]), sys.argv[2:]
+out, system, data_seed, runs = Path(sys.argv[1]), sys.argv[2], sys.argv[3], sys.argv[4:]
 with np.load(out / "data" / "per_feature.npz") as z:
     raw = z["x"]  # [B, T, N, D] as simulated
 mean, node_std = raw.mean(axis=(0, 1)), raw.std(axis=(0, 1))  # [N, D] the per-node file's transform
@@ -105,7 +111,7 @@ for run in runs:
     f, n = np.array(per_feature), np.array(per_node)
     rows.append(f"| {model} | {units} | {len(f)} | {f.mean():.4f} ± {f.std():.4f} | {n.mean():.4f} ± {n.std():.4f} |")
 lines = [
-    "# Gene 4×4 BA trained on data z-scored per feature vs per node (MPNODE.jl's L2S normaliser)",
+    f"# {system} (data.seed {data_seed}) trained on data z-scored per feature vs per node (MPNODE.jl's L2S normaliser)",
     "",
     f"Per-node std {node_std.min():.2f}..{node_std.max():.2f}, per-node mean {mean.min():.2f}..{mean.max():.2f}, "
     f"pooled std {pooled[0]:.2f}. Test rollout RMSE of each best checkpoint, mean ± std over seeds, read both ways:",

@@ -218,3 +218,26 @@ def test_pernode_l2s_reads_each_seed_folder_not_the_runs_lock_files(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert calls == []  # nothing to train, and the evaluation is already there
     assert "| other | per_feature | 1 |" in (out / "pernode_l2s.md").read_text()
+
+
+def test_pernode_l2s_simulates_the_system_and_draw_it_is_given(tmp_path):
+    out = tmp_path / "pernode_l2s.sh"
+    (out / "data" / "sim").mkdir(parents=True)
+    x = np.arange(2 * 3 * 4, dtype=float).reshape(2, 3, 4, 1) + 1.0  # [B, T, N, D]
+    np.savez(out / "data" / "sim" / "trajectories.npz", x=x)  # what the stub's simulate would have written
+    proc, calls = run_recipe("pernode_l2s.sh", tmp_path, RUNS="", SYSTEM="gene_ba_large", DATA_SEED="7")
+    assert proc.returncode == 0, proc.stderr
+    (sim,) = calls
+    assert sim[0] == "simulate" and _arg(sim, "system") == "gene_ba_large" and _arg(sim, "data.seed") == "7"
+    with np.load(out / "data" / "per_node.npz") as z:
+        per_node = z["x"]  # [B, T, N, D] z-scored node by node
+    np.testing.assert_allclose(per_node.mean(axis=(0, 1)), 0.0, atol=1e-12)
+    np.testing.assert_allclose(per_node.std(axis=(0, 1)), 1.0)
+    assert (out / "pernode_l2s.md").read_text().startswith("# gene_ba_large (data.seed 7) trained")
+
+
+@pytest.mark.parametrize(("option", "value"), [("SYSTEM", "lorenz10"), ("DATA_SEED", "-1")])
+def test_pernode_l2s_refuses_a_bad_system_or_draw_before_anything_runs(tmp_path, option, value):
+    proc, calls = run_recipe("pernode_l2s.sh", tmp_path, **{option: value})
+    assert proc.returncode == 2 and calls == []
+    assert f"{option}='{value}'" in proc.stderr
