@@ -39,7 +39,7 @@ for pair in $COMPARE; do  # refused before anything is simulated or trained
 done
 mkdir -p "$OUT/data"
 if [ ! -f "$OUT/data/per_node.npz" ]; then
-  # data.seed 0, the default (the kept paper-budget runs trained on this draw)
+  # data.seed $DATA_SEED (default 0: the draw the kept gene 4×4 runs were read on)
   mpsim simulate system=$SYSTEM n=$N data.seed=$DATA_SEED hydra.run.dir="$OUT/data/sim" > /dev/null
   python - "$OUT/data" <<'PY'
 import shutil
