@@ -37,8 +37,15 @@ COMPARE=${COMPARE:-}
 for pair in $COMPARE; do  # refused before anything is simulated or trained
   [[ $pair == *=* && -f ${pair#*=} ]] || { echo "pernode_l2s.sh: COMPARE entry '$pair' is not name=<an existing checkpoint>" >&2; exit 2; }
 done
+draw="system=$SYSTEM data.seed=$DATA_SEED"
+if [ -f "$OUT/data/per_node.npz" ]; then  # kept data must be the draw asked for (runs resume on it)
+  # before SYSTEM= and DATA_SEED= the recipe drew only gene_ba_small with data.seed 0, and wrote no draw.txt
+  held=$(cat "$OUT/data/draw.txt" 2>/dev/null || echo "system=gene_ba_small data.seed=0")
+  [ "$held" = "$draw" ] || { echo "pernode_l2s.sh: $OUT/data holds the draw '$held', not '$draw'; use another OUT or remove $OUT/data" >&2; exit 2; }
+fi
 mkdir -p "$OUT/data"
 if [ ! -f "$OUT/data/per_node.npz" ]; then
+  echo "$draw" > "$OUT/data/draw.txt"
   # data.seed $DATA_SEED (default 0: the draw the kept gene 4×4 runs were read on)
   mpsim simulate system=$SYSTEM n=$N data.seed=$DATA_SEED hydra.run.dir="$OUT/data/sim" > /dev/null
   python - "$OUT/data" <<'PY'

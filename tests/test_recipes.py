@@ -234,6 +234,7 @@ def test_pernode_l2s_simulates_the_system_and_draw_it_is_given(tmp_path):
     np.testing.assert_allclose(per_node.mean(axis=(0, 1)), 0.0, atol=1e-12)
     np.testing.assert_allclose(per_node.std(axis=(0, 1)), 1.0)
     assert (out / "pernode_l2s.md").read_text().startswith("# gene_ba_large (data.seed 7) trained")
+    assert (out / "data" / "draw.txt").read_text() == "system=gene_ba_large data.seed=7\n"  # what a resume checks
 
 
 @pytest.mark.parametrize(("option", "value"), [("SYSTEM", "lorenz10"), ("DATA_SEED", "-1")])
@@ -241,3 +242,16 @@ def test_pernode_l2s_refuses_a_bad_system_or_draw_before_anything_runs(tmp_path,
     proc, calls = run_recipe("pernode_l2s.sh", tmp_path, **{option: value})
     assert proc.returncode == 2 and calls == []
     assert f"{option}='{value}'" in proc.stderr
+
+
+@pytest.mark.parametrize("held", ["system=gene_ba_large data.seed=7", None])  # None: data kept before draw.txt
+def test_pernode_l2s_refuses_kept_data_of_another_draw(tmp_path, held):
+    data = tmp_path / "pernode_l2s.sh" / "data"
+    data.mkdir(parents=True)
+    np.savez(data / "per_node.npz", x=np.zeros((1, 2, 3, 1)))
+    if held is not None:
+        (data / "draw.txt").write_text(held + "\n")
+    proc, calls = run_recipe("pernode_l2s.sh", tmp_path, SYSTEM="gene_ba_large", DATA_SEED="3")
+    assert proc.returncode == 2 and calls == []
+    expected = held or "system=gene_ba_small data.seed=0"
+    assert f"holds the draw '{expected}', not 'system=gene_ba_large data.seed=3'" in proc.stderr
