@@ -3,7 +3,7 @@
 # 3 and 6 quadrotors with m = 7, 13, 20 next to L2S (Figure 7), each trained from scratch over seeds.
 # CPU-sized by default (about an hour on 2 free cores): K_EPOCHS=100 Kuramoto epochs on 100 trajectories,
 # Q_EPOCHS=40 quadrotor epochs on 100 trajectories of QH=60 steps (one RK4 step per sample: QSOLVER=rk4), 2 seeds
-# (paper: 4000 epochs).
+# (paper: 4000 epochs; L2S 10000).
 # Paper-sized: PAPER=1 cli/message_size.sh. Figures and tables: $OUT/message_size.md. PARTS=kuramoto runs only
 # Figure 8 (PARTS=quad only Figure 7); the report covers whatever runs have finished under $OUT.
 # Resumable: run it again with the same settings and finished runs are kept, interrupted ones resumed
@@ -16,11 +16,11 @@ source "$(dirname "$0")/lib.sh"
 OUT=${OUT:-outputs/message_size}
 PAPER=${PAPER:-0}
 if [ "$PAPER" = 1 ]; then
-  K_EPOCHS=${K_EPOCHS:-4000}; Q_EPOCHS=${Q_EPOCHS:-4000}; N_TRAIN=${N_TRAIN:-700}; TRAINER=${TRAINER:-paper}
+  K_EPOCHS=${K_EPOCHS:-4000}; Q_EPOCHS=${Q_EPOCHS:-4000}; L2S_EPOCHS=${L2S_EPOCHS:-10000}; N_TRAIN=${N_TRAIN:-700}; TRAINER=${TRAINER:-paper}
   SEEDS=${SEEDS:-0,1,2}; QH=${QH:-50}; QSOLVER=${QSOLVER:-dopri5}
-  SIZE="paper-sized: MPNODE.jl trainer, $K_EPOCHS epochs, $N_TRAIN trajectories"
+  SIZE="paper-sized: MPNODE.jl trainer, $K_EPOCHS epochs ($L2S_EPOCHS for L2S), $N_TRAIN trajectories"
 else
-  K_EPOCHS=${K_EPOCHS:-100}; Q_EPOCHS=${Q_EPOCHS:-40}; N_TRAIN=${N_TRAIN:-100}; TRAINER=${TRAINER:-default}
+  K_EPOCHS=${K_EPOCHS:-100}; Q_EPOCHS=${Q_EPOCHS:-40}; L2S_EPOCHS=${L2S_EPOCHS:-$Q_EPOCHS}; N_TRAIN=${N_TRAIN:-100}; TRAINER=${TRAINER:-default}
   SEEDS=${SEEDS:-0,1}; QH=${QH:-60}; QSOLVER=${QSOLVER:-rk4}
   SIZE="CPU-sized: Kuramoto $K_EPOCHS epochs, quadrotors $Q_EPOCHS epochs on $N_TRAIN trajectories of $QH steps, integrated with $QSOLVER (paper: 4000 epochs)"
 fi
@@ -31,7 +31,7 @@ PARTS=${PARTS:-"kuramoto quad"}
 check_parts message_size.sh kuramoto quad
 common=(paths.output_root=$OUT trainer=$TRAINER trainer.progress=false trainer.early_stop_patience=0 eval.plots=false
         export=false data.n_train=$N_TRAIN)
-quad=(data.horizon=$QH data.n_val=30 data.n_test=30 trainer.max_epochs=$Q_EPOCHS solver=$QSOLVER)
+quad=(data.horizon=$QH data.n_val=30 data.n_test=30 solver=$QSOLVER)
 
 [ "${FRESH:-0}" = 1 ] && rm -rf "$OUT"
 rm -rf "$OUT/report"
@@ -45,9 +45,11 @@ for seed in ${SEEDS//,/ }; do
   if [[ " $PARTS " == *" quad "* ]]; then
     for system in quad3 quad6; do
       for m in ${Q_MSG//,/ }; do
-        echo "train_once $OUT/quad/${system}_m${m}_s$seed system=$system model.message_size=$m seed=$seed ${quad[*]} ${common[*]}"
+        echo "train_once $OUT/quad/${system}_m${m}_s$seed system=$system model.message_size=$m seed=$seed trainer.max_epochs=$Q_EPOCHS \
+          ${quad[*]} ${common[*]}"
       done
-      echo "train_once $OUT/quad_l2s/${system}_s$seed system=$system model=l2s seed=$seed ${quad[*]} ${common[*]}"
+      echo "train_once $OUT/quad_l2s/${system}_s$seed system=$system model=l2s seed=$seed trainer.max_epochs=$L2S_EPOCHS \
+        ${quad[*]} ${common[*]}"
     done
   fi
 done | parallel "$JOBS"

@@ -42,6 +42,21 @@ def test_message_size_default_runs_both_figures(tmp_path):
     assert _arg(report, "runs").count(",") == 2  # kuramoto, quad, quad_l2s
 
 
+@pytest.mark.parametrize(
+    ("env", "mpnode", "l2s"),
+    [({"PAPER": "1"}, 4000, 10000), ({}, 40, 40), ({"PAPER": "1", "L2S_EPOCHS": "7"}, 4000, 7)],
+)
+def test_message_size_trains_l2s_for_its_own_budget(tmp_path, env, mpnode, l2s):
+    # MPNODE.jl trains L2S for 10000 epochs and MP-NODE for 4000 (mpnode_reference.md), as table1.sh and table2.sh do
+    proc, calls = run_recipe("message_size.sh", tmp_path, SEEDS="0", PARTS="quad", **env)
+    assert proc.returncode == 0, proc.stderr
+    epochs = {
+        ("l2s" if "model=l2s" in c else "mpnode", int(_arg(c, "trainer.max_epochs"))) for c in calls if c[0] == "train"
+    }
+    assert epochs == {("mpnode", mpnode), ("l2s", l2s)}
+    assert sum(c[0] == "train" for c in calls) == 8  # 3 and 6 quadrotors: m = 7, 13, 20 and L2S each
+
+
 @pytest.mark.parametrize("option", ["PARTS", "COLS"])  # COLS: table2.sh's older name for PARTS
 def test_table2_parts_runs_only_the_columns_named(tmp_path, option):
     proc, calls = run_recipe("table2.sh", tmp_path, SEEDS="0", DS="50", **{option: "kuramoto"})
