@@ -57,6 +57,23 @@ def test_message_size_trains_l2s_for_its_own_budget(tmp_path, env, mpnode, l2s):
     assert sum(c[0] == "train" for c in calls) == 8  # 3 and 6 quadrotors: m = 7, 13, 20 and L2S each
 
 
+@pytest.mark.parametrize(
+    ("env", "sizes"),
+    [
+        ({"PAPER": "1"}, {"quad3": 700, "quad6": 500}),
+        ({}, {"quad3": 100, "quad6": 100}),
+        ({"PAPER": "1", "Q6_N": "300"}, {"quad3": 700, "quad6": 300}),
+    ],
+)
+def test_message_size_trains_six_quadrotors_on_table2s_target_size(tmp_path, env, sizes):
+    # at PAPER=1 Figure 7's 6-quadrotor m = 13 and L2S runs are then table2.sh's scratch and L2S runs (one setting each)
+    proc, calls = run_recipe("message_size.sh", tmp_path, SEEDS="0", PARTS="quad", **env)
+    assert proc.returncode == 0, proc.stderr
+    trains = [c for c in calls if c[0] == "train"]
+    assert {(_arg(c, "system"), int(_arg(c, "data.n_train"))) for c in trains} == set(sizes.items())
+    assert all(sum(a.startswith("data.n_train=") for a in c) == 1 for c in trains)  # one value, no Hydra clash
+
+
 @pytest.mark.parametrize("option", ["PARTS", "COLS"])  # COLS: table2.sh's older name for PARTS
 def test_table2_parts_runs_only_the_columns_named(tmp_path, option):
     proc, calls = run_recipe("table2.sh", tmp_path, SEEDS="0", DS="50", **{option: "kuramoto"})
