@@ -74,6 +74,14 @@ def test_message_size_trains_six_quadrotors_on_table2s_target_size(tmp_path, env
     assert all(sum(a.startswith("data.n_train=") for a in c) == 1 for c in trains)  # one value, no Hydra clash
 
 
+@pytest.mark.parametrize(("option", "value"), [("Q6_N", "5OO"), ("L2S_EPOCHS", "1e4"), ("Q_EPOCHS", "0")])
+def test_message_size_refuses_a_size_that_is_not_a_positive_integer_before_anything_trains(tmp_path, option, value):
+    proc, calls = run_recipe("message_size.sh", tmp_path, SEEDS="0", PAPER="1", **{option: value})
+    assert proc.returncode == 2
+    assert f"message_size.sh: {option}='{value}' is not a positive integer" in proc.stderr
+    assert calls == []
+
+
 @pytest.mark.parametrize("option", ["PARTS", "COLS"])  # COLS: table2.sh's older name for PARTS
 def test_table2_parts_runs_only_the_columns_named(tmp_path, option):
     proc, calls = run_recipe("table2.sh", tmp_path, SEEDS="0", DS="50", **{option: "kuramoto"})
