@@ -13,6 +13,8 @@
 #                                        holds a value not in VALUE..., before anything trains: a typo must
 #                                        not cost the hours the parts before it take
 #   check_parts RECIPE PART...         → check_choices RECIPE PARTS PART...
+#   check_counts RECIPE NAME...        → stops (exit 2, one message) if a variable NAME (a number, or a list with
+#                                        commas or spaces) holds anything but positive integers: sizes and epochs
 #
 # So an interrupted recipe is continued by running it again with the same settings; FRESH=1 starts over.
 train_once() {
@@ -54,3 +56,12 @@ check_choices() {  # RECIPE NAME ALLOWED...: the list in $NAME (commas or spaces
 }
 
 check_parts() { local recipe=$1; shift; check_choices "$recipe" PARTS "$@"; }
+
+check_counts() {  # RECIPE NAME...: each $NAME holds positive integers only (a typo must not surface hours in)
+  local recipe=$1 name value; shift
+  for name in "$@"; do
+    for value in ${!name//,/ }; do
+      [[ $value =~ ^[1-9][0-9]*$ ]] || { echo "$recipe: $name='${!name}' is not a positive integer" >&2; exit 2; }
+    done
+  done
+}

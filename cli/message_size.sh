@@ -32,9 +32,7 @@ Q_MSG=${Q_MSG:-7,13,20}
 JOBS=${JOBS:-2}
 PARTS=${PARTS:-"kuramoto quad"}
 check_parts message_size.sh kuramoto quad
-for v in K_EPOCHS Q_EPOCHS L2S_EPOCHS N_TRAIN Q6_N QH; do  # a typo in a size must not surface hours into the sweep
-  [[ ${!v} =~ ^[1-9][0-9]*$ ]] || { echo "message_size.sh: $v='${!v}' is not a positive integer" >&2; exit 2; }
-done
+check_counts message_size.sh K_EPOCHS Q_EPOCHS L2S_EPOCHS N_TRAIN Q6_N QH
 common=(paths.output_root=$OUT trainer=$TRAINER trainer.progress=false trainer.early_stop_patience=0 eval.plots=false
         export=false)
 quad=(data.horizon=$QH data.n_val=30 data.n_test=30 solver=$QSOLVER)

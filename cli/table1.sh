@@ -22,6 +22,7 @@ fi
 SEEDS=${SEEDS:-"0 1 2"}
 MODELS=${MODELS:-"mpnode l2s"}   # add node for the monolithic baseline (same 16 nodes, so it can run zero-shot)
 JOBS=${JOBS:-2}
+check_counts table1.sh EPOCHS L2S_EPOCHS N_TRAIN JOBS
 EXTRA=${EXTRA:-}                 # extra train overrides for an ablation, e.g. EXTRA=model.aggregation=sum OUT=outputs/table1_sum
 ZS_EXTRA=${ZS_EXTRA:-}           # extra zero-shot overrides (model.* come from the checkpoint), e.g. for EXTRA=system.initial=uniform: ZS_EXTRA=++system.initial=uniform
 common=(paths.output_root=$OUT trainer=$TRAINER trainer.progress=false trainer.early_stop_patience=0 eval.plots=false)

@@ -40,6 +40,7 @@ MSG=${MSG:-13}              # quadrotor message size
 JOBS=${JOBS:-2}             # parallel jobs per sweep
 PARTS=${PARTS:-${COLS:-"lorenz kuramoto gene quad"}}  # the columns to run; COLS is its older name
 check_parts table2.sh lorenz kuramoto gene quad
+check_counts table2.sh EPOCHS L2S_EPOCHS PRE_EPOCHS PRE_N QH Q_DS G_DS DS MSG JOBS
 CKPT=$OUT/checkpoints
 common=(paths.output_root=$OUT paths.ckpt_dir=$CKPT trainer=$TRAINER trainer.progress=false
         trainer.early_stop_patience=0 eval.plots=false)

@@ -74,11 +74,22 @@ def test_message_size_trains_six_quadrotors_on_table2s_target_size(tmp_path, env
     assert all(sum(a.startswith("data.n_train=") for a in c) == 1 for c in trains)  # one value, no Hydra clash
 
 
-@pytest.mark.parametrize(("option", "value"), [("Q6_N", "5OO"), ("L2S_EPOCHS", "1e4"), ("Q_EPOCHS", "0")])
-def test_message_size_refuses_a_size_that_is_not_a_positive_integer_before_anything_trains(tmp_path, option, value):
-    proc, calls = run_recipe("message_size.sh", tmp_path, SEEDS="0", PAPER="1", **{option: value})
+@pytest.mark.parametrize(
+    ("recipe", "option", "value"),
+    [
+        ("message_size.sh", "Q6_N", "5OO"),
+        ("message_size.sh", "L2S_EPOCHS", "1e4"),
+        ("message_size.sh", "Q_EPOCHS", "0"),
+        ("table2.sh", "DS", "50,l00"),
+        ("table2.sh", "L2S_EPOCHS", "-1"),
+        ("table1.sh", "N_TRAIN", "seven"),
+    ],
+)
+def test_a_size_that_is_not_a_positive_integer_stops_the_recipe_before_anything_trains(tmp_path, recipe, option, value):
+    # cli/lib.sh's check_counts: a typo in a size must not surface hours into a sweep
+    proc, calls = run_recipe(recipe, tmp_path, SEEDS="0", PAPER="1", **{option: value})
     assert proc.returncode == 2
-    assert f"message_size.sh: {option}='{value}' is not a positive integer" in proc.stderr
+    assert f"{recipe}: {option}='{value}' is not a positive integer" in proc.stderr
     assert calls == []
 
 
