@@ -33,7 +33,7 @@ from typing import Any
 
 import pandas as pd
 
-from mpsim.plotting import save_figure, subplots
+from mpsim.plotting import at_least_a_factor, save_figure, subplots
 
 #: the paper's Table 2 (epochs to the minimum test error × that error; N/A where the paper has none)
 PAPER_TABLE2: dict[str, dict[str, float]] = {
@@ -614,15 +614,6 @@ def _reach_table(system: str, n_train: Any, means: dict[str, pd.Series]) -> str:
 
 
 # ---- message size (figures 7, 8) ---------------------------------------------------------------------------
-def at_least_a_factor(ax: Any, factor: float) -> None:
-    """Widen a log-scale y axis to span at least `factor` (about the middle of its data): autoscaled, three
-    errors 4 % apart fill the panel and read as a large effect."""
-    lo, hi = ax.get_ylim()
-    if lo > 0 and hi / lo < factor:
-        mid = math.sqrt(lo * hi)
-        ax.set_ylim(mid / math.sqrt(factor), mid * math.sqrt(factor))
-
-
 def _checkpoint_epochs(curves: Sequence[pd.DataFrame]) -> list[int]:
     """The quarters of the longest run (1000/2000/3000/4000 for 4000 epochs): where runs are compared."""
     last = max((int(c["epoch"].max()) for c in curves), default=0)
