@@ -553,6 +553,30 @@ def test_a_moved_run_resumes_where_it_is_now_and_writes_where_it_is_told(ws, tmp
     )
 
 
+def test_a_run_moved_from_a_gpu_machine_resumes_on_the_cpu_when_told_to(ws, tmp_path):
+    """The hardware a run computes on (device, threads) is not what it computes: a run whose record says
+    device=cuda (started on a GPU machine, its folder copied here, where there is no CUDA) is refused with the
+    fix named, then resumes with device=cpu and says so; what it computes still may not change."""
+    run_dir = tmp_path / "from_gpu"
+    shutil.copytree(lorenz_run(ws), run_dir)
+    record = run_dir / ".hydra" / "overrides.yaml"
+    record.write_text(record.read_text() + "- device=cuda\n- threads=4\n")  # as the GPU machine recorded it
+    if not torch.cuda.is_available():
+        as_recorded = run_mpsim(["train", f"resume={run_dir}"], tmp_path)
+        assert as_recorded.code == 2, as_recorded.err
+        (line,) = as_recorded.error_lines()
+        assert "device=cuda" in line and "use device=cpu" in line
+    res = run_mpsim(["train", f"resume={run_dir}", "device=cpu", "threads=1"], tmp_path)
+    refused = run_mpsim(["train", f"resume={run_dir}", "device=cpu", "dtype=float64"], tmp_path)
+    assert refused.code == 2, refused.err
+    assert "dtype=float64 (not set in the run)" in refused.err and "device=cpu (" not in refused.err
+    assert res.code == 0, res.err
+    assert "resuming with device=cpu (the run has device=cuda)" in res.err
+    assert "resuming with threads=1 (the run has threads=4)" in res.err
+    assert "resuming after epoch" in res.err  # it went on from last.ckpt
+    assert record.read_text().endswith("- device=cuda\n- threads=4\n")  # the record keeps what it was
+
+
 def test_a_run_on_a_data_file_resumes_with_the_file_moved_along_only_if_it_holds_the_same_bytes(ws, tmp_path):
     """A results folder copied elsewhere carries its data file: `data.path` may then point at the copy, checked
     against the SHA-256 the run recorded (data.json); other bytes are refused, and so is a file that cannot be

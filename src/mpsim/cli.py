@@ -218,7 +218,8 @@ def _with_resume(args: list[str]) -> list[str]:
     run's own (other data, another learning rate, ...) are refused: they would silently change the run. Where it
     writes (`paths.*`) and how it shows its progress (`trainer.progress`, `trainer.log_every_s`) are not what it
     computes: those given now replace the run's own, so a run directory moved to another disk or machine resumes
-    there, and a run started with a bar can be resumed in the background without one. `data.path` may
+    there, and a run started with a bar can be resumed in the background without one. Nor is the hardware it
+    computes on (`device`, `threads`): a run started on a GPU resumes on a CPU with device=cpu. `data.path` may
     differ too when the file holds the bytes the run trained on (the SHA-256 it recorded in `data.json`, or the
     file at its own path): data moved along with its run.
     """
@@ -252,7 +253,7 @@ def _with_resume(args: list[str]) -> list[str]:
         )
         own = _own(args)
     else:
-        from mpsim.config import output_only  # where a run writes, how it shows progress: may change
+        from mpsim.config import host_only, output_only  # where it writes and runs, how it shows progress
 
         mine, theirs = dict(_split(a) for a in _own(args)), dict(_split(a) for a in _own(saved))
         # the data file may have moved with the run (a copied results folder) if it holds the same bytes
@@ -267,7 +268,7 @@ def _with_resume(args: list[str]) -> list[str]:
             if k in theirs
             else f"{k}={v} (not set in the run)"
             for k, v in mine.items()
-            if theirs.get(k) != v and not output_only(k) and not (k == "data.path" and data_moved)
+            if theirs.get(k) != v and not output_only(k) and not host_only(k) and not (k == "data.path" and data_moved)
         ]
         if differ:
             raise MpsimError(
@@ -275,7 +276,13 @@ def _with_resume(args: list[str]) -> list[str]:
                 f"({' '.join(_own(saved)) or 'no overrides'}); drop the differing overrides, or start a new run "
                 "without resume= (finetune from its checkpoint with init=<run>/checkpoints/best.ckpt)."
             )
-        moved = {k for k in mine if output_only(k) or (k == "data.path" and data_moved)}
+        moved = {k for k in mine if output_only(k) or host_only(k) or (k == "data.path" and data_moved)}
+        for k in sorted(k for k in moved if host_only(k) and theirs.get(k, "its default") != mine[k]):
+            print(
+                f"mpsim train: resuming with {k}={mine[k]} (the run has {k}={theirs.get(k, 'its default')}): "
+                "the same model, data and optimiser on other hardware; the curve continues, rounded differently.",
+                file=sys.stderr,
+            )
         own = [a for a in _own(saved) if _split(a)[0] not in moved] + [a for a in _own(args) if _split(a)[0] in moved]
     print(f"mpsim train: resuming {run}", file=sys.stderr)
     hydra_args = [a for a in args if _key(a).startswith("hydra")]

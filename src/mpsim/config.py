@@ -40,6 +40,13 @@ def output_only(key: str) -> bool:
     return key == "paths" or key.startswith("paths.") or key in {"trainer.progress", "trainer.log_every_s"}
 
 
+def host_only(key: str) -> bool:
+    """An override that says which hardware a run computes on (`device`, `threads`), not what it computes: the
+    same model, data and optimiser, rounded by other arithmetic. A run started on a GPU may resume on a CPU
+    (and back) with it; its curve then continues, but not bitwise as one device alone would have made it."""
+    return key in {"device", "threads"}
+
+
 @dataclass
 class DataConf:
     path: str | None = None  # .npz or long .csv of measured trajectories (replaces simulation)
