@@ -5,6 +5,8 @@
 #     DIR/summary.json exists          → the run finished: kept, not rerun
 #     DIR/checkpoints/last.ckpt exists → the run was interrupted: resumed with resume=DIR (same arguments)
 #     otherwise                        → a fresh run in DIR
+#     DEVICE=cpu|cuda|auto (unset: the run's own or mpsim's default) is added as device=$DEVICE to both, so a
+#     run begun on a GPU machine resumes on a CPU with the recipe itself (a resumed run may change its device).
 #     Each run holds the lock DIR.lock while it trains, so two recipes (or a recipe and a hand-started
 #     train_once) that reach the same run never train it twice at once: the second waits, then keeps or
 #     resumes what the first left.
@@ -30,9 +32,9 @@ train_once() {
     echo "kept (finished): $dir"
   elif [ -f "$dir/checkpoints/last.ckpt" ]; then
     echo "resuming: $dir"
-    mpsim train "$@" resume="$dir"
+    mpsim train "$@" ${DEVICE:+"device=$DEVICE"} resume="$dir"
   else
-    mpsim train "$@" hydra.run.dir="$dir"
+    mpsim train "$@" ${DEVICE:+"device=$DEVICE"} hydra.run.dir="$dir"
   fi
   local rc=$?
   exec {lock}>&-

@@ -72,6 +72,21 @@ def test_interrupted_run_is_resumed(env, tmp_path):
     assert rc == 0 and "resuming" in out and calls(log) == [f"train seed=1 resume={run}"]
 
 
+def test_device_is_passed_to_fresh_and_resumed_runs_only_when_set(env, tmp_path):
+    environ, log = env
+    cut = tmp_path / "cut"
+    (cut / "checkpoints").mkdir(parents=True)
+    (cut / "checkpoints" / "last.ckpt").write_bytes(b"x")
+    assert train_once({**environ, "DEVICE": "cpu"}, cut, "seed=1")[0] == 0  # begun on a GPU, resumed here
+    assert train_once({**environ, "DEVICE": "cpu"}, tmp_path / "new", "seed=2")[0] == 0
+    assert train_once(environ, tmp_path / "plain", "seed=3")[0] == 0
+    assert calls(log) == [
+        f"train seed=1 device=cpu resume={cut}",
+        f"train seed=2 device=cpu hydra.run.dir={tmp_path / 'new'}",
+        f"train seed=3 hydra.run.dir={tmp_path / 'plain'}",
+    ]
+
+
 def test_failure_is_passed_on(env, tmp_path):
     environ, log = env
     rc, _ = train_once({**environ, "STUB_RC": "3"}, tmp_path / "a", "seed=0")
