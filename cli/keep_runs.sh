@@ -33,11 +33,13 @@ trap 'rm -rf "$tmp"' EXIT
 if [ "${FINISHED_LAST:-0}" != 1 ]; then
   refs=("$here")
   case "$results/" in "$here"/*) ;; *) refs+=("$results") ;; esac
+  # every results/<name>/.../last.ckpt that a bench or a note names, read once
+  named=$(grep -rhoE --include='*.md' --include='*.sh' --include='*.py' --include='*.yaml' --exclude-dir='.keep.*' \
+    --exclude-dir=.git --exclude-dir='.venv*' --exclude-dir=node_modules \
+    "results/${name//./\\.}/[A-Za-z0-9_./=-]*checkpoints/last\.ckpt" "${refs[@]}" | sort -u || true)
   (cd "$tmp" && find . -path '*/checkpoints/last.ckpt' -printf '%P\n') | sort | while IFS= read -r f; do
     [ -f "$tmp/${f%/checkpoints/last.ckpt}/summary.json" ] || continue  # unfinished: resumable, kept
-    grep -rqF --include='*.md' --include='*.sh' --include='*.py' --include='*.yaml' --exclude-dir='.keep.*' \
-      --exclude-dir=.git --exclude-dir='.venv*' --exclude-dir=node_modules \
-      "results/$name/$f" "${refs[@]}" && continue  # named by a bench or a note: kept
+    grep -qxF "results/$name/$f" <<< "$named" && continue                # named by a bench or a note: kept
     rm "$tmp/$f" && echo "left out (finished run, not resumed): $f"
   done
 fi
