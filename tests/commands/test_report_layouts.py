@@ -28,6 +28,8 @@ def _run(
     device: str | None = None,
     zero_messages: bool | None = None,
     per_step: list[float] | None = None,
+    resolved: dict | None = None,
+    model_config: dict | None = None,
 ) -> Path:
     """A run directory as `mpsim train` (or a zero-shot run) leaves it: summary.json, metrics.csv, overrides."""
     run = root / name
@@ -35,6 +37,9 @@ def _run(
     (run / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump([f"seed={seed}", *overrides]))
     config = {"_target_": f"mpsim.models.{model}"} | ({"message_size": message_size} if message_size else {})
     config |= {} if zero_messages is None else {"zero_messages": zero_messages}
+    config |= model_config or {}
+    if resolved is not None:  # the resolved config, as Hydra keeps it
+        (run / ".hydra" / "config.yaml").write_text(yaml.safe_dump({"seed": seed} | resolved))
     summary = {
         "task": "train",
         "mode": mode,
@@ -300,6 +305,65 @@ def test_the_settings_caption_says_where_the_runs_ran(cfg_factory, tmp_path):
         "seeds 0, 1, 2, 3, on cpu (1 thread) ×2 / cuda:0 (NVIDIA H100 80GB HBM3) ×1 (device not recorded for 1)" in text
     )
     assert "- `lorenz10`: 1 run, 100 training trajectories, 50 steps, up to 2 epochs, seed 0\n" in text
+
+
+def test_runs_with_other_settings_are_kept_apart_not_averaged_as_seeds(cfg_factory, tmp_path):
+    root = tmp_path / "runs"
+    for seed in (0, 1):  # two seeds of the refitted finetune, placed and shown differently (incidental keys)
+        incidental = {
+            "paths": {"output_root": f"/elsewhere/{seed}"},
+            "device": ["cpu", "cuda"][seed],
+            "threads": 1 + seed,
+            "init": f"/pre/s{seed}.ckpt",
+            "eval": {"plots": bool(seed)},
+            "data": {"seed": seed, "n_val": 20},
+        }
+        config = incidental | {"mode": {"name": "finetune", "refit_normalisation": True}}
+        _run(root, f"f{seed}", system="gene_ba_large", mode="finetune", seed=seed, errors=[1.0, 0.4], resolved=config)
+    no_refit = {"mode": {"name": "finetune", "refit_normalisation": False}, "data": {"n_val": 20}}
+    _run(root, "nr", system="gene_ba_large", mode="finetune", errors=[1.0, 0.1], resolved=no_refit)
+    # a key an older mpsim did not write counts only where the runs that have it disagree
+    _run(root, "s0", system="gene_ba_large", errors=[2.0, 0.8], resolved={"trainer": {"lr": 1e-3}})
+    _run(root, "s1", system="gene_ba_large", seed=1, errors=[2.0, 0.6])
+    _, out = _report(cfg_factory, tmp_path, "table2", root)
+    text = (out / "report.md").read_text()
+    assert "| MP-NODE finetuned (mode.refit_normalisation=true) | 0.4 ± 0 |" in text
+    assert "| MP-NODE finetuned (mode.refit_normalisation=false) | 0.1 |" in text
+    assert "| MP-NODE scratch | 0.7 ± 0.14 |" in text  # averaged: the seeds agree where both say
+    assert (
+        "- 3 runs (system gene_ba_large, model_class MPNODE, mode finetune, n_train 100) differ in "
+        "`mode.refit_normalisation`: kept apart, not averaged as seeds" in text
+    )
+    table = pd.read_csv(out / "report.csv")
+    assert sorted(table["runs"]) == [1, 2, 2]
+    _, out = _report(cfg_factory, tmp_path / "curves", "curves", root)
+    assert "| MP-NODE finetuned (mode.refit_normalisation=false) |" in (out / "report.md").read_text()
+
+
+def test_table1_keeps_a_model_variant_apart_in_every_column(cfg_factory, tmp_path):
+    # Table 1 with the self-loop ablation beside it: the zero-shot runs know their model from the checkpoint,
+    # as summary.json records it, so its unseen columns (and its ratios by rollout step) follow its own row
+    root = tmp_path / "runs"
+    for loops, ba, er, seeds in ((False, 0.1, 0.3, (0, 1)), (True, 0.05, 0.6, (0,))):
+        for seed in seeds:
+            model = {"model_config": {"self_loops": loops}, "seed": seed}
+            _run(root, f"ba{loops}{seed}", system="gene_ba_small", errors=[1.0, ba], per_step=[0, ba, ba], **model)
+            _run(
+                root,
+                f"er{loops}{seed}",
+                system="gene_er_small",
+                trained_on="gene_ba_small",
+                best_val=er,
+                per_step=[0, er, er],
+                **model,
+            )
+    _, out = _report(cfg_factory, tmp_path, "table1", root)
+    text = (out / "report.md").read_text()
+    assert "| MP-NODE (model.self_loops=false) | 0.1 ± 0 | 0.1 ± 0 | 0.3 ± 0 |" in text
+    assert "| MP-NODE (model.self_loops=true) | 0.05 | 0.05 | 0.6 |" in text
+    assert "- MP-NODE (model.self_loops=true), Test ER (unseen): 12× the error on BA test data" in text
+    assert "| MP-NODE (model.self_loops=false): ER / BA | 3.00 | 3.00 | 0.58 |" in text
+    assert "| MP-NODE (model.self_loops=true): ER / BA | 12.00 | 12.00 | 0.58 |" in text
 
 
 def test_unknown_layout_is_refused(cfg_factory, tmp_path, table2_runs):

@@ -24,7 +24,14 @@ import yaml
 from omegaconf import DictConfig
 
 from mpsim.commands.console import markdown
-from mpsim.commands.report_layouts import DEFAULT_TITLES, LAYOUT_FUNCS, run_facts, settings_caption
+from mpsim.commands.report_layouts import (
+    DEFAULT_TITLES,
+    LAYOUT_FUNCS,
+    mark_variants,
+    run_facts,
+    run_settings,
+    settings_caption,
+)
 from mpsim.commands.runtime import locate, resolve_path
 from mpsim.config import output_only
 from mpsim.errors import ConfigError, DataError
@@ -207,6 +214,7 @@ def _row(run: Path, facts: bool = False) -> dict[str, Any]:
         row["test_error"] = summary["test"].get("rmse", row.get("test_error"))
     if facts:
         row.update(run_facts(run, summary))
+        row["settings"] = run_settings(run, summary)
     return row
 
 
@@ -302,16 +310,25 @@ def run_report(cfg: DictConfig, output_dir: str | Path | None = None, overrides:
     return {"n_runs": len(frame), "report": str(out_dir / "report.md"), "table": table, "unfinished": pending}
 
 
+def _split_note(split: list[str]) -> str:
+    if not split:
+        return ""
+    return "Runs in the same place with different settings (each its own row, named by what differs):\n\n" + (
+        "\n".join(split) + "\n\n"
+    )
+
+
 def _run_layout(
     cfg: DictConfig, layout: str, frame: pd.DataFrame, roots: list[Path], out_dir: Path, pending: list[dict[str, Any]]
 ) -> dict:
     """Write one built-in layout: report.md, report.csv (its table), runs.csv (every run) and its figures."""
+    frame, split = mark_variants(frame)  # runs with other settings are kept apart, not averaged as seeds
     result = LAYOUT_FUNCS[layout](frame, out_dir)
     title = cfg.title if cfg.title != "mpsim report" else DEFAULT_TITLES[layout]
     figures = "".join(f"\n\n![{p.stem}]({p.name})" for p in result.figures)
     text = (
         f"# {title}\n\n{len(frame)} runs under {', '.join(map(str, roots))}. Settings of the runs:\n\n"
-        f"{settings_caption(frame)}\n\n{unfinished_note(pending)}{result.markdown}{figures}\n"
+        f"{settings_caption(frame)}\n\n{_split_note(split)}{unfinished_note(pending)}{result.markdown}{figures}\n"
     )
     atomic_write(out_dir / "report.md", lambda f: f.write(text), mode="w")
     atomic_write(out_dir / "report.csv", lambda f: result.table.to_csv(f, index=False), mode="w")

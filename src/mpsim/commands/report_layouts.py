@@ -21,6 +21,12 @@ training-set size, message size), never by where they lie. Every layout returns 
 - ``messages``: Figures 3a and 4, MP-NODE with messages vs `model.zero_messages=true`: minimum train loss and
   test error per arm, their ratio, the train loss by matched epochs, and the train-loss / test-error curves
   (mean over seeds, min–max band).
+
+Runs that share a layout's place (system, model class, mode, training-set size, message size, ...) are averaged as
+seeds only when they were run with the same settings: where their resolved configs (`.hydra/config.yaml`, the
+model's config as summary.json records it) differ in anything but seeds, places on disk, hardware or what is
+written out, `mark_variants` keeps them apart, and every layout's row says how they differ, e.g.
+"MP-NODE (model.self_loops=true)".
 """
 
 from __future__ import annotations
@@ -32,7 +38,9 @@ from pathlib import Path
 from typing import Any
 
 import pandas as pd
+import yaml
 
+from mpsim.config import host_only, output_only
 from mpsim.plotting import at_least_a_factor, save_figure, subplots
 
 #: the paper's Table 2 (epochs to the minimum test error × that error; N/A where the paper has none)
@@ -123,12 +131,132 @@ def _section(parent: dict[str, Any], key: str) -> dict[str, Any]:
     return value if isinstance(value, dict) else {}
 
 
-def row_label(model_class: Any, mode: Any) -> str:
-    """Table 2 row of a run: "MP-NODE finetuned", "MP-NODE scratch", "L2S", ..."""
+#: the facts that place a run in a layout's rows and columns: runs that share them are one experiment's seeds,
+#: unless their settings differ (`mark_variants`)
+PLACE = ("task", "mode", "system", "trained_on", "model_class", "n_train", "message_size", "zero_messages")
+#: resolved-config keys that do not change what a run computes, besides `output_only` and `host_only` ones (and
+#: any key named like a seed): what it is, where it started from, what it writes and how it shows progress
+INCIDENTAL = {
+    "task", "init", "resume", "export", "objective", "memory_check", "mode.name", "system.name", "data.cache",
+    "trainer.eval_batch_size",
+}  # fmt: skip
+INCIDENTAL_PREFIXES = ("eval.", "logger.", "hydra.")
+
+
+def _incidental(key: str) -> bool:
+    last = key.rsplit(".", 1)[-1]
+    return (
+        "seed" in last or output_only(key) or host_only(key) or key in INCIDENTAL or key.startswith(INCIDENTAL_PREFIXES)
+    )
+
+
+def _flat(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            out |= _flat(value, f"{prefix}{key}.")
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def _text(value: Any) -> str:
+    """A setting's value as an override would write it (true, 0.001, [0.0, 50.0], mean)."""
+    return (
+        value
+        if isinstance(value, str)
+        else yaml.safe_dump(value, default_flow_style=True).strip().removesuffix("\n...")
+    )
+
+
+def run_settings(run: Path, summary: dict[str, Any]) -> dict[str, str]:
+    """What a run computed with, as key → value text: its resolved Hydra config (`.hydra/config.yaml`; its
+    overrides where a run kept no config) with the model's config as summary.json records it (for a zero-shot
+    run, the checkpoint's model), less the incidental keys, and less the trainer's for a run that trained
+    nothing (zero-shot, evaluation). Unreadable files give what could be read."""
+    tree: Any = None
+    config_path = run / ".hydra" / "config.yaml"
+    if config_path.is_file():
+        try:
+            tree = yaml.safe_load(config_path.read_text())
+        except yaml.YAMLError:
+            tree = None
+    if isinstance(tree, dict):
+        flat = _flat(tree)
+    else:
+        flat = {}
+        overrides_path = run / ".hydra" / "overrides.yaml"
+        try:
+            saved = yaml.safe_load(overrides_path.read_text()) if overrides_path.is_file() else None
+        except yaml.YAMLError:
+            saved = None
+        for item in saved if isinstance(saved, list) else []:
+            key, _, value = str(item).partition("=")
+            flat[key.lstrip("+~")] = value
+    flat = {k: v for k, v in flat.items() if not k.startswith("model.") and k != "model"}
+    if summary.get("mode") == "zeroshot" or summary.get("task") != "train":  # it trained nothing: how it would have
+        flat = {k: v for k, v in flat.items() if not k.startswith(("trainer.", "mode."))}
+    model_config = _section(_section(summary, "model"), "config")
+    flat |= _flat({k: v for k, v in model_config.items() if k != "_target_"}, "model.")
+    return {k: _text(v) for k, v in flat.items() if not _incidental(k)}
+
+
+def _fact(value: Any) -> str:
+    return str(int(value)) if isinstance(value, float) and value.is_integer() else str(value)
+
+
+def mark_variants(frame: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
+    """Add `variant` to a frame of runs (with a `settings` column from `run_settings`, which this drops): among
+    runs that share a place (`PLACE`), the settings in which they differ, as " (key=value, ...)", so a layout
+    keeps them apart instead of averaging them as seeds; "" where they agree. A key some runs lack (written by an
+    older mpsim) counts only if the runs that have it disagree. Also returns one note per place so split."""
+    frame = frame.copy()
+    frame["variant"] = ""
+    notes: list[str] = []
+    if "settings" not in frame:
+        return frame, notes
+    place = [c for c in PLACE if c in frame]
+    keyed = frame[place].map(str)  # one text per fact, a missing one included ("nan", "None")
+    for _, index in keyed.groupby(place, sort=False, dropna=False).groups.items():
+        if len(index) < 2:
+            continue
+        settings = [s if isinstance(s, dict) else {} for s in frame.loc[index, "settings"]]
+        keys = sorted({k for s in settings for k in s})
+        differ = [k for k in keys if len({s[k] for s in settings if k in s}) > 1]
+        if not differ:
+            continue
+        for i, s in zip(index, settings, strict=True):
+            frame.at[i, "variant"] = " (" + ", ".join(f"{k}={s.get(k, '?')}" for k in differ) + ")"
+        first = frame.loc[index[0]]
+        where = ", ".join(
+            f"{c} {_fact(first[c])}"
+            for c in ("system", "model_class", "mode", "n_train", "trained_on")
+            if c in first and pd.notna(first[c])
+        )
+        notes.append(
+            f"- {len(index)} runs ({where}) differ in {', '.join(f'`{k}`' for k in differ)}: kept apart, not "
+            "averaged as seeds"
+        )
+    return frame.drop(columns="settings"), notes
+
+
+def _variants(frame: pd.DataFrame) -> list[str]:
+    """The frame's `variant` column ("" for every run where `mark_variants` did not run)."""
+    return list(frame["variant"]) if "variant" in frame else [""] * len(frame)
+
+
+def model_name(model_class: Any, variant: Any = "") -> str:
+    """A model's name in a layout's rows ("MP-NODE", "L2S", ...) with its variant, if any."""
+    return MODEL_NAMES.get(str(model_class), str(model_class)) + (variant if isinstance(variant, str) else "")
+
+
+def row_label(model_class: Any, mode: Any, variant: Any = "") -> str:
+    """Table 2 row of a run: "MP-NODE finetuned", "MP-NODE scratch", "L2S", ... (with its variant, if any)."""
     name = MODEL_NAMES.get(str(model_class), str(model_class))
+    tail = variant if isinstance(variant, str) else ""
     if name == "MP-NODE":
-        return f"MP-NODE {'finetuned' if mode == 'finetune' else 'scratch'}"
-    return f"{name} finetuned" if mode == "finetune" else name
+        return f"MP-NODE {'finetuned' if mode == 'finetune' else 'scratch'}{tail}"
+    return (f"{name} finetuned" if mode == "finetune" else name) + tail
 
 
 def family(system: str) -> str:
@@ -235,7 +363,7 @@ def table2(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
         labels[s] + (f" ds={int(n)}" if sizes[s] > 1 else "")
         for s, n in zip(train["system"], train["n_train"], strict=True)
     ]
-    train["row"] = [row_label(c, m) for c, m in zip(train["model_class"], train["mode"], strict=True)]
+    train["row"] = [row_label(*k) for k in zip(train["model_class"], train["mode"], _variants(train), strict=True)]
     records = []
     for (row, column), part in train.groupby(["row", "column"], sort=False):
         mean, std, n = _stats(part["epochs_x_min_error"])
@@ -375,13 +503,13 @@ def table1(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
         home = zero["trained_on"].dropna().mode().iloc[0] if zero["trained_on"].notna().any() else home
     fam = graph_family(home)
     records = []
-    for cls, part in train[train["system"] == home].groupby("model_class"):
-        name = MODEL_NAMES.get(str(cls), str(cls))
+    for (cls, variant), part in train[train["system"] == home].groupby(["model_class", "variant"]):
+        name = model_name(cls, variant)
         for column, values in ((f"Validation {fam}", part["best_val_error"]), (f"Test {fam}", part["test_rmse"])):
             records.append({"row": name, "column": column, "system": home, **_named_stats(values)})
     unseen = zero[(zero["trained_on"] == home) & (zero["system"] != home)]
-    for (cls, system), part in unseen.groupby(["model_class", "system"]):
-        name = MODEL_NAMES.get(str(cls), str(cls))
+    for (cls, variant, system), part in unseen.groupby(["model_class", "variant", "system"]):
+        name = model_name(cls, variant)
         records.append(
             {
                 "row": name,
@@ -392,7 +520,7 @@ def table1(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
         )
     table = pd.DataFrame(records)
     columns = list(dict.fromkeys(table["column"]))
-    rows = sorted(table["row"].unique(), key=lambda r: (r != "MP-NODE", r))
+    rows = sorted(table["row"].unique(), key=lambda r: (not r.startswith("MP-NODE"), r))
     cell = {(r["row"], r["column"]): r for r in records}
     ours = md_table(
         ["model", *columns],
@@ -406,20 +534,25 @@ def table1(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
         ["model", *paper_cols], [[r, *[v.get(c, "N/A") for c in paper_cols]] for r, v in PAPER_TABLE1.items()]
     )
     checks = []
-    base = cell.get(("MP-NODE", f"Test {fam}"))
-    for c in columns:
-        z = cell.get(("MP-NODE", c))
-        if base and z and "unseen" in c:
-            ratio = z["mean"] / base["mean"]
-            verdict = "same order" if 0.1 <= ratio <= 10 else "NOT the same order"
-            checks.append(f"- {c}: {ratio:.2g}× the error on {fam} test data — {verdict} of magnitude")
-    val_mp, val_l2s = cell.get(("MP-NODE", f"Validation {fam}")), cell.get(("L2S", f"Validation {fam}"))
-    if val_mp and val_l2s:
-        holds = val_mp["mean"] < val_l2s["mean"]
-        checks.append(
-            f"- validation: MP-NODE {val_mp['mean']:.3g} {'<' if holds else '≥'} L2S {val_l2s['mean']:.3g} "
-            f"— {'holds' if holds else 'does NOT hold'}"
-        )
+    mp_rows = [r for r in rows if r.startswith("MP-NODE")]
+    for mp in mp_rows:
+        base = cell.get((mp, f"Test {fam}"))
+        for c in columns:
+            z = cell.get((mp, c))
+            if base and z and "unseen" in c:
+                ratio = z["mean"] / base["mean"]
+                verdict = "same order" if 0.1 <= ratio <= 10 else "NOT the same order"
+                who = f"{mp}, " if len(mp_rows) > 1 else ""
+                checks.append(f"- {who}{c}: {ratio:.2g}× the error on {fam} test data — {verdict} of magnitude")
+    for mp in mp_rows:
+        for l2s in (r for r in rows if r.startswith("L2S")):
+            val_mp, val_l2s = cell.get((mp, f"Validation {fam}")), cell.get((l2s, f"Validation {fam}"))
+            if val_mp and val_l2s:
+                holds = val_mp["mean"] < val_l2s["mean"]
+                checks.append(
+                    f"- validation: {mp} {val_mp['mean']:.3g} {'<' if holds else '≥'} {l2s} {val_l2s['mean']:.3g} "
+                    f"— {'holds' if holds else 'does NOT hold'}"
+                )
     figures = [_error_bars(table, columns, rows, out_dir / "table1.png")]
     by_step = _zero_shot_by_step(train[train["system"] == home], unseen, fam, out_dir)
     parts = [
@@ -476,13 +609,14 @@ def _zero_shot_by_step(home: pd.DataFrame, unseen: pd.DataFrame, fam: str, out_d
     rows: list[list[str]] = []
     checks: list[str] = []
     curves: dict[str, tuple[list[int], list[float]]] = {}
-    for cls, part in home.groupby("model_class"):
-        name = MODEL_NAMES.get(str(cls), str(cls))
+    for (cls, variant), part in home.groupby(["model_class", "variant"]):
+        name = model_name(cls, variant)
         base = [_stats(part[f"test_rmse_step{k}"])[0] for k in steps]
         if not any(b > 0 for b in base):  # this model's training runs recorded no per-step errors
             continue
         rows.append([f"{name}: {fam} test RMSE", *[f"{b:.3g}" if b > 0 else "–" for b in base], ""])
-        for system, zpart in unseen[unseen["model_class"] == cls].groupby("system"):
+        mine = unseen[(unseen["model_class"] == cls) & (unseen["variant"] == variant)]
+        for system, zpart in mine.groupby("system"):
             g = graph_family(str(system))
             ratio = [
                 _stats(zpart[f"test_rmse_step{k}"])[0] / b if b > 0 else math.nan
@@ -491,7 +625,7 @@ def _zero_shot_by_step(home: pd.DataFrame, unseen: pd.DataFrame, fam: str, out_d
             known = [(k, r) for k, r in zip(steps, ratio, strict=True) if math.isfinite(r)]
             if not known:
                 continue
-            paper = PAPER_TABLE1_RATIOS.get(g) if name == "MP-NODE" else None
+            paper = PAPER_TABLE1_RATIOS.get(g) if name.startswith("MP-NODE") else None
             cells = [f"{r:.2f}" if math.isfinite(r) else "–" for r in ratio]
             rows.append([f"{name}: {g} / {fam}", *cells, "" if paper is None else f"{paper:.2f}"])
             curves[f"{name} {g} / {fam}"] = ([k for k, _ in known], [r for _, r in known])
@@ -545,7 +679,7 @@ def curves(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
     if train.empty:
         return LayoutResult("No training runs found.", pd.DataFrame(), [])
     train = train[train["system"].isin(_targets(train))].copy()
-    train["row"] = [row_label(c, m) for c, m in zip(train["model_class"], train["mode"], strict=True)]
+    train["row"] = [row_label(*k) for k in zip(train["model_class"], train["mode"], _variants(train), strict=True)]
     panels = sorted(train.groupby(["system", "n_train"]).groups, key=lambda k: (_column_key(k[0]), k[1]))
     n_col = min(3, len(panels))
     n_row = math.ceil(len(panels) / n_col)
@@ -649,15 +783,19 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
         # compared at the quarters of the longest MP-NODE run (L2S may run longer: 10000 epochs against 4000)
         curves = {r: c for r in part["run"] if (c := _curve(r)) is not None}  # each metrics.csv read once
         epochs = _checkpoint_epochs(list(curves.values()))
-        for m, runs in sorted(part.groupby("message_size"), key=lambda kv: int(kv[0])):
+        for (m, variant), runs in sorted(
+            part.groupby(["message_size", "variant"]), key=lambda kv: (int(kv[0][0]), kv[0][1])
+        ):
             err, err_sd, n = _stats(runs["min_test_error"])
             exm, exm_sd, _ = _stats(runs["epochs_x_min_error"])
             loaded = [curves[r] for r in runs["run"] if r in curves]
             final_loss = _stats(pd.Series([float(c["train_loss"].iloc[-1]) for c in loaded]))
+            label = f"{int(m)}{variant}"
             records.append(
                 {
                     "system": system,
                     "message_size": int(m),
+                    "variant": variant.strip(" ()"),
                     "runs": n,
                     "min_test_error": err,
                     "min_test_error_std": err_sd,
@@ -667,42 +805,44 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
                     "final_train_loss_std": final_loss[1],
                 }
             )
-            rows.append([int(m), n, pm(err, err_sd, 3), pm(final_loss[0], final_loss[1], 3), pm(exm, exm_sd, 4)])
+            rows.append([label, n, pm(err, err_sd, 3), pm(final_loss[0], final_loss[1], 3), pm(exm, exm_sd, 4)])
             if loaded and epochs:
-                by_epoch.append(_by_epoch_row(int(m), loaded, epochs))
+                by_epoch.append(_by_epoch_row(label, loaded, epochs))
             for key, ax in (("train_loss", caxes[0, k]), ("test_error", caxes[1, k])):
                 if loaded:
                     mean = pd.concat([c.set_index("epoch")[key] for c in loaded], axis=1).mean(axis=1).dropna()
-                    ax.plot(mean.index, mean.values, label=f"m={int(m)}")
+                    ax.plot(mean.index, mean.values, label=f"m={label}")
         table = pd.DataFrame([r for r in records if r["system"] == system])
-        axes[0, k].errorbar(
-            table["message_size"],
-            table["min_test_error"],
-            yerr=table["min_test_error_std"].fillna(0.0),
-            marker="o",
-            capsize=3,
-            label="MP-NODE",
-        )
-        l2s = train[(train["system"] == system) & (train["model_class"] == "L2S")]
-        if len(l2s):
+        for variant, vt in table.groupby("variant", sort=False):
+            axes[0, k].errorbar(
+                vt["message_size"],
+                vt["min_test_error"],
+                yerr=vt["min_test_error_std"].fillna(0.0),
+                marker="o",
+                capsize=3,
+                label=f"MP-NODE ({variant})" if variant else "MP-NODE",
+            )
+        l2s_all = train[(train["system"] == system) & (train["model_class"] == "L2S")]
+        for variant, l2s in l2s_all.groupby("variant", sort=False):
+            name = f"L2S{variant}"
             ref, ref_sd, n = _stats(l2s["min_test_error"])
-            axes[0, k].axhline(ref, color="tab:red", linestyle="--", label="L2S")
+            axes[0, k].axhline(ref, color="tab:red", linestyle="--", label=name)
             records.append(
                 {
                     "system": system,
                     "message_size": None,
-                    "model": "L2S",
+                    "model": name,
                     "runs": n,
                     "min_test_error": ref,
                     "min_test_error_std": ref_sd,
                 }
             )
-            rows.append(["L2S", n, pm(ref, ref_sd, 3), "", ""])
+            rows.append([name, n, pm(ref, ref_sd, 3), "", ""])
             l2s_curves = [c for c in (_curve(r) for r in l2s["run"]) if c is not None]
             for c in l2s_curves:
                 caxes[1, k].plot(c["epoch"], c["test_error"], color="tab:red", linestyle="--", linewidth=0.8)
             if l2s_curves and epochs:
-                by_epoch.append(_by_epoch_row("L2S", l2s_curves, epochs))
+                by_epoch.append(_by_epoch_row(name, l2s_curves, epochs))
         axes[0, k].set(xlabel="message size", ylabel="min test rollout RMSE", title=system, yscale="log")
         at_least_a_factor(axes[0, k], 4.0)
         axes[0, k].legend(fontsize=8)
@@ -740,17 +880,19 @@ def messages(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
         curves = {r: c for r in part["run"] if (c := _curve(r)) is not None}  # each metrics.csv read once
         epochs = _checkpoint_epochs(list(curves.values()))
         rows, by_epoch, cell = [], [], {}
-        for off, runs in sorted(part.groupby("off"), key=lambda kv: bool(kv[0])):  # messages on first
-            label = "off (`zero_messages=true`)" if off else "on"
+        # messages on first
+        for (off, variant), runs in sorted(part.groupby(["off", "variant"]), key=lambda kv: (bool(kv[0][0]), kv[0][1])):
+            label = ("off (`zero_messages=true`)" if off else "on") + variant
             loaded = [curves[r] for r in runs["run"] if r in curves]
             loss = _stats(pd.Series([float(c.loc[c["epoch"] >= 1, "train_loss"].min()) for c in loaded]))
             err = _stats(runs["min_test_error"])
             exm = _stats(runs["epochs_x_min_error"])
-            cell[bool(off)] = (loss[0], err[0])
+            cell[(bool(off), variant)] = (loss[0], err[0])
             records.append(
                 {
                     "system": system,
                     "messages": "off" if off else "on",
+                    "variant": variant.strip(" ()"),
                     "runs": err[2],
                     "min_train_loss": loss[0],
                     "min_train_loss_std": loss[1],
@@ -764,7 +906,7 @@ def messages(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
             if loaded and epochs:
                 by_epoch.append(_by_epoch_row(label, loaded, epochs, "train_loss"))
             colour = "tab:blue" if off else "tab:red"  # the paper's Figure 3a: on red, off blue
-            name = "messages off (zero_messages=true)" if off else "messages on"
+            name = ("messages off (zero_messages=true)" if off else "messages on") + variant
             for key, ax in (("train_loss", axes[0, k]), ("test_error", axes[1, k])):
                 if loaded:
                     _mean_band(ax, loaded, key, f"{name} ({len(loaded)})", colour)
@@ -774,14 +916,15 @@ def messages(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
         text = f"**{system}**\n\n" + md_table(
             ["messages", "runs", "min train loss", "min test error", "epochs_x_min_error"], rows
         )
-        if True in cell and False in cell:
-            (loss_on, err_on), (loss_off, err_off) = cell[False], cell[True]
-            holds = loss_on < loss_off and err_on < err_off
-            text += (
-                f"\n\nMessages off / on: train loss {loss_off / loss_on:.3g}×, test error {err_off / err_on:.3g}× — "
-                f"messages {'lower' if holds else 'do NOT lower'} both (the paper's Figure 3a: lower training loss "
-                "with messages on)"
-            )
+        for variant in sorted({v for _, v in cell}):  # on against off, where both ran with the same settings
+            if (True, variant) in cell and (False, variant) in cell:
+                (loss_on, err_on), (loss_off, err_off) = cell[(False, variant)], cell[(True, variant)]
+                holds = loss_on < loss_off and err_on < err_off
+                text += (
+                    f"\n\nMessages off / on{variant}: train loss {loss_off / loss_on:.3g}×, test error "
+                    f"{err_off / err_on:.3g}× — messages {'lower' if holds else 'do NOT lower'} both (the paper's "
+                    "Figure 3a: lower training loss with messages on)"
+                )
         sections.append(text)
         if by_epoch:  # is the order the same at every stage of training?
             sections.append(
