@@ -8,7 +8,8 @@
 # normaliser does), and as MSE. A minute of CPU.
 #   cli/meanfield_gene.sh                     → $OUT/meanfield_gene.md
 # K: the mean field's k̄ that a BA-trained model can know (BA(16, 8) has mean degree 8); each graph's own k̄ is
-# the second mean-field row. CKPTS="" leaves out the model rows.
+# the second mean-field row. CKPTS="" leaves out the model rows. EXTRA: more overrides for every simulation, e.g.
+# EXTRA=system.initial=uniform (MPNODE.jl's default sampler: U(0, 50) per node instead of hot spots).
 set -euo pipefail
 OUT=${OUT:-outputs/meanfield_gene}
 N=${N:-200}
@@ -16,7 +17,7 @@ K=${K:-8}
 CKPTS=${CKPTS-"all-to-all=results/table1_full/train/mpnode/s0/checkpoints/best.ckpt system-graph=results/table1_paper/train/mpnode/s0/checkpoints/best.ckpt"}
 rm -rf "$OUT"
 for fam in ba er ws; do
-  sys=(system=gene_${fam}_small n=$N data.seed=7)
+  sys=(system=gene_${fam}_small n=$N data.seed=7 ${EXTRA:-})
   mpsim simulate "${sys[@]}" hydra.run.dir="$OUT/$fam/truth" > /dev/null
   mpsim simulate "${sys[@]}" system.coupling=mean_field system.mean_degree=$K hydra.run.dir="$OUT/$fam/mean_field_k$K" > /dev/null
   mpsim simulate "${sys[@]}" system.coupling=mean_field hydra.run.dir="$OUT/$fam/mean_field_own" > /dev/null
