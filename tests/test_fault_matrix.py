@@ -356,6 +356,16 @@ CASES: dict[str, Case] = {
         2,
         "runs/b/summary.json must hold a JSON object",
     ),
+    "report_layout_config_python_tag": Case(
+        lambda w, d: (
+            (d / "runs/c/.hydra").mkdir(parents=True),
+            (d / "runs/c/summary.json").write_text('{"task": "train", "mode": "scratch"}'),
+            (d / "runs/c/.hydra/config.yaml").write_text("!!python/object/apply:os.system ['touch pwned.txt']\n"),
+            ["report", "layout=table2", f"runs=[{d / 'runs'}]"],
+        )[3],
+        2,
+        "runs/c/.hydra/config.yaml is not valid YAML",
+    ),
     "report_missing_path": Case(
         lambda w, d: (
             (d / "runs/a").mkdir(parents=True),

@@ -41,6 +41,7 @@ import pandas as pd
 import yaml
 
 from mpsim.config import host_only, output_only
+from mpsim.errors import DataError
 from mpsim.plotting import at_least_a_factor, save_figure, subplots
 
 #: the paper's Table 2 (epochs to the minimum test error × that error; N/A where the paper has none)
@@ -173,14 +174,22 @@ def run_settings(run: Path, summary: dict[str, Any]) -> dict[str, str]:
     """What a run computed with, as key → value text: its resolved Hydra config (`.hydra/config.yaml`; its
     overrides where a run kept no config) with the model's config as summary.json records it (for a zero-shot
     run, the checkpoint's model), less the incidental keys, and less the trainer's for a run that trained
-    nothing (zero-shot, evaluation). Unreadable files give what could be read."""
+    nothing (zero-shot, evaluation). A config.yaml that is not a YAML mapping is a DataError."""
     tree: Any = None
     config_path = run / ".hydra" / "config.yaml"
     if config_path.is_file():
         try:
-            tree = yaml.safe_load(config_path.read_text())
-        except yaml.YAMLError:
-            tree = None
+            tree = yaml.safe_load(config_path.read_text())  # data only: a python tag is an error, never run
+        except yaml.YAMLError as err:
+            raise DataError(
+                f"{config_path} is not valid YAML ({str(err).splitlines()[0]}). Restore it (the run's resolved "
+                "config, as Hydra wrote it) or move the run out of the report's runs."
+            ) from None
+        if not isinstance(tree, dict):
+            raise DataError(
+                f"{config_path} must hold the run's resolved config (a mapping); got {type(tree).__name__}. "
+                "Restore it or move the run out of the report's runs."
+            )
     if isinstance(tree, dict):
         flat = _flat(tree)
     else:
