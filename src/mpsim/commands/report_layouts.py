@@ -1,9 +1,10 @@
 """Built-in `mpsim report layout=...` tables and figures of the MP-NODE paper, from any set of run directories.
 
-Each layout reads only what every run records (summary.json, metrics.csv), so it works on any mix of run and
-sweep directories: runs are sorted into rows and columns by what they are (model class, mode, system,
-training-set size, message size), never by where they lie. Every layout returns Markdown, a long-format table
-(→ CSV) and writes its PNG figures.
+Each layout reads only what every run records (summary.json, metrics.csv, .hydra/config.yaml), so it works on any
+mix of run and sweep directories: runs are sorted into rows and columns by what they are (model class, mode, system,
+training-set size, message size), never by where they lie. Every layout takes the frame of runs that
+`mark_variants` returns (its `variant` column) and returns Markdown, a long-format table (→ CSV) and writes its PNG
+figures.
 
 - ``table2``: the paper's Table 2. Rows MP-NODE finetuned / MP-NODE scratch / L2S (and any other model);
   columns are the systems that some run was *finetuned* on (the targets: Lorenz10 ds=50/100/500, Kuramoto
@@ -249,11 +250,6 @@ def mark_variants(frame: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
     return frame.drop(columns="settings"), notes
 
 
-def _variants(frame: pd.DataFrame) -> list[str]:
-    """The frame's `variant` column ("" for every run where `mark_variants` did not run)."""
-    return list(frame["variant"]) if "variant" in frame else [""] * len(frame)
-
-
 def model_name(model_class: Any, variant: Any = "") -> str:
     """A model's name in a layout's rows ("MP-NODE", "L2S", ...) with its variant, if any."""
     return MODEL_NAMES.get(str(model_class), str(model_class)) + (variant if isinstance(variant, str) else "")
@@ -372,7 +368,7 @@ def table2(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
         labels[s] + (f" ds={int(n)}" if sizes[s] > 1 else "")
         for s, n in zip(train["system"], train["n_train"], strict=True)
     ]
-    train["row"] = [row_label(*k) for k in zip(train["model_class"], train["mode"], _variants(train), strict=True)]
+    train["row"] = [row_label(*k) for k in zip(train["model_class"], train["mode"], train["variant"], strict=True)]
     records = []
     for (row, column), part in train.groupby(["row", "column"], sort=False):
         mean, std, n = _stats(part["epochs_x_min_error"])
@@ -688,7 +684,7 @@ def curves(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
     if train.empty:
         return LayoutResult("No training runs found.", pd.DataFrame(), [])
     train = train[train["system"].isin(_targets(train))].copy()
-    train["row"] = [row_label(*k) for k in zip(train["model_class"], train["mode"], _variants(train), strict=True)]
+    train["row"] = [row_label(*k) for k in zip(train["model_class"], train["mode"], train["variant"], strict=True)]
     panels = sorted(train.groupby(["system", "n_train"]).groups, key=lambda k: (_column_key(k[0]), k[1]))
     n_col = min(3, len(panels))
     n_row = math.ceil(len(panels) / n_col)
