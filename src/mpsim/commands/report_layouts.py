@@ -454,26 +454,39 @@ def _paired(fine: dict, scratch: dict) -> str:
 
 
 def _orderings(cell: dict, columns: list[str]) -> list[str]:
-    """finetuned < scratch in every column (on the means, and seed by seed); MP-NODE < L2S where both ran."""
+    """finetuned < scratch in every column (on the means, and seed by seed); MP-NODE < L2S where both ran. With
+    variants (`mark_variants`), every finetuned row against every scratch row, and the best MP-NODE row against
+    each L2S row."""
     lines = []
+    rows = sorted({r for r, _ in cell}, key=_row_order)
+    fines = [r for r in rows if r.startswith("MP-NODE finetuned")]
+    scratches = [r for r in rows if r.startswith("MP-NODE scratch")]
+    l2s_rows = [r for r in rows if r == "L2S" or r.startswith("L2S (")]
     for c in columns:
-        fine, scratch = cell.get(("MP-NODE finetuned", c)), cell.get(("MP-NODE scratch", c))
-        if fine and scratch:
-            a, b = fine["epochs_x_min_error"], scratch["epochs_x_min_error"]
-            lines.append(
-                f"- {c}: finetuned {'<' if a < b else '≥'} scratch ({a:.4g} vs {b:.4g}, "
-                f"{b / a:.2g}×) — {'holds' if a < b else 'does NOT hold'}{_paired(fine, scratch)}"
-            )
-        l2s = cell.get(("L2S", c))
-        best = min((r for r in (fine, scratch) if r), key=lambda r: r["epochs_x_min_error"], default=None)
-        if l2s and best:
-            a, b = best["epochs_x_min_error"], l2s["epochs_x_min_error"]
-            lines.append(
-                f"- {c}: {best['row']} {'<' if a < b else '≥'} L2S ({a:.4g} vs {b:.4g}) — "
-                f"{'holds' if a < b else 'does NOT hold'}"
-            )
-            ea, eb = best["min_test_error"], l2s["min_test_error"]
-            lines.append(f"  (minimum test error: {best['row']} {ea:.3g} vs L2S {eb:.3g})")
+        for f_row in fines:
+            for s_row in scratches:
+                fine, scratch = cell.get((f_row, c)), cell.get((s_row, c))
+                if not (fine and scratch):
+                    continue
+                plain = (f_row, s_row) == ("MP-NODE finetuned", "MP-NODE scratch")
+                f_name, s_name = ("finetuned", "scratch") if plain else (f_row, s_row)
+                a, b = fine["epochs_x_min_error"], scratch["epochs_x_min_error"]
+                lines.append(
+                    f"- {c}: {f_name} {'<' if a < b else '≥'} {s_name} ({a:.4g} vs {b:.4g}, "
+                    f"{b / a:.2g}×) — {'holds' if a < b else 'does NOT hold'}{_paired(fine, scratch)}"
+                )
+        mp = [cell[(r, c)] for r in (*fines, *scratches) if (r, c) in cell]
+        best = min(mp, key=lambda r: r["epochs_x_min_error"], default=None)
+        for l_row in l2s_rows:
+            l2s = cell.get((l_row, c))
+            if l2s and best:
+                a, b = best["epochs_x_min_error"], l2s["epochs_x_min_error"]
+                lines.append(
+                    f"- {c}: {best['row']} {'<' if a < b else '≥'} {l_row} ({a:.4g} vs {b:.4g}) — "
+                    f"{'holds' if a < b else 'does NOT hold'}"
+                )
+                ea, eb = best["min_test_error"], l2s["min_test_error"]
+                lines.append(f"  (minimum test error: {best['row']} {ea:.3g} vs {l_row} {eb:.3g})")
     return lines or ["- no column has both a finetuned and a scratch run"]
 
 
