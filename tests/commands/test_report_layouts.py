@@ -1,6 +1,7 @@
 """`mpsim report layout=...` on synthetic run directories: Table 2, Table 1, learning curves, message size."""
 
 import json
+import shutil
 from pathlib import Path
 
 import pandas as pd
@@ -30,6 +31,7 @@ def _run(
     per_step: list[float] | None = None,
     resolved: dict | None = None,
     model_config: dict | None = None,
+    state_std: float | None = None,
 ) -> Path:
     """A run directory as `mpsim train` (or a zero-shot run) leaves it: summary.json, metrics.csv, overrides."""
     run = root / name
@@ -72,6 +74,9 @@ def _run(
             "test": {"rmse": best_val},
             "test_error": best_val,
         }
+    if state_std is not None:  # a one-feature system whose states this run normalised by `state_std`
+        summary["system"]["state_names"] = ["x"]
+        summary["test"]["rmse_raw"] = summary["test"]["rmse"] * state_std
     if per_step is not None:  # test RMSE at each rollout step (index = step), as evaluation records it
         summary["test"]["per_step_rmse"] = per_step
     (run / "summary.json").write_text(json.dumps(summary))
@@ -319,12 +324,21 @@ def test_runs_with_other_settings_are_kept_apart_not_averaged_as_seeds(cfg_facto
             "data": {"seed": seed, "n_val": 20},
         }
         config = incidental | {"mode": {"name": "finetune", "refit_normalisation": True}}
-        _run(root, f"f{seed}", system="gene_ba_large", mode="finetune", seed=seed, errors=[1.0, 0.4], resolved=config)
+        _run(
+            root,
+            f"f{seed}",
+            system="gene_ba_large",
+            mode="finetune",
+            seed=seed,
+            errors=[1.0, 0.4],
+            resolved=config,
+            state_std=13.8,
+        )
     no_refit = {"mode": {"name": "finetune", "refit_normalisation": False}, "data": {"n_val": 20}}
-    _run(root, "nr", system="gene_ba_large", mode="finetune", errors=[1.0, 0.1], resolved=no_refit)
+    _run(root, "nr", system="gene_ba_large", mode="finetune", errors=[1.0, 0.1], resolved=no_refit, state_std=9.4)
     # a key an older mpsim did not write counts only where the runs that have it disagree
-    _run(root, "s0", system="gene_ba_large", errors=[2.0, 0.8], resolved={"trainer": {"lr": 1e-3}})
-    _run(root, "s1", system="gene_ba_large", seed=1, errors=[2.0, 0.6])
+    _run(root, "s0", system="gene_ba_large", errors=[2.0, 0.8], resolved={"trainer": {"lr": 1e-3}}, state_std=13.8)
+    _run(root, "s1", system="gene_ba_large", seed=1, errors=[2.0, 0.6], state_std=13.8)
     _, out = _report(cfg_factory, tmp_path, "table2", root)
     text = (out / "report.md").read_text()
     assert "| MP-NODE finetuned (mode.refit_normalisation=true) | 0.4 ± 0 |" in text
@@ -337,10 +351,19 @@ def test_runs_with_other_settings_are_kept_apart_not_averaged_as_seeds(cfg_facto
     # the paper's ordering, for each finetuned variant against scratch
     assert "- Gene: MP-NODE finetuned (mode.refit_normalisation=false) < MP-NODE scratch (0.1 vs 0.7, 7×)" in text
     assert "- Gene: MP-NODE finetuned (mode.refit_normalisation=true) < MP-NODE scratch (0.4 vs 0.7, 1.7×)" in text
+    # the run that kept its pre-training's normalisation measures its errors in other units: said, with raw ones
+    assert (
+        "- Gene: the rows were normalised by different state stds (MP-NODE finetuned (mode.refit_normalisation=false)"
+        " 9.4, MP-NODE finetuned (mode.refit_normalisation=true) 13.8, MP-NODE scratch 13.8)" in text
+    )
+    assert "test RMSE: MP-NODE finetuned (mode.refit_normalisation=false) 0.94, MP-NODE finetuned (" in text
     table = pd.read_csv(out / "report.csv")
     assert sorted(table["runs"]) == [1, 2, 2]
     _, out = _report(cfg_factory, tmp_path / "curves", "curves", root)
     assert "| MP-NODE finetuned (mode.refit_normalisation=false) |" in (out / "report.md").read_text()
+    shutil.rmtree(root / "nr")  # the same normalisation everywhere: nothing to say about units
+    _, out = _report(cfg_factory, tmp_path / "same", "table2", root)
+    assert "Units:" not in (out / "report.md").read_text()
 
 
 def test_table1_keeps_a_model_variant_apart_in_every_column(cfg_factory, tmp_path):

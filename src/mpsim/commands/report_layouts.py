@@ -104,6 +104,8 @@ def run_facts(run: Path, summary: dict[str, Any]) -> dict[str, Any]:
         "n_times": data.get("n_times"),
         "best_val_error": summary.get("best_val_error"),
         "test_rmse": test.get("rmse", summary.get("test_error")),
+        "test_rmse_raw": test.get("rmse_raw"),
+        "n_features": len(names) if isinstance(names := _section(summary, "system").get("state_names"), list) else None,
         "trained_on": summary.get("trained_on"),
         "seed_": summary.get("seed"),
         "device": summary.get("device"),  # "cpu (N threads)" / "cuda:0 (name)"; runs from before it was kept: None
@@ -389,9 +391,11 @@ def table2(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
                 "min_test_error_epoch_std": ep_sd,
                 "paper": PAPER_TABLE2.get(row, {}).get(column, math.nan),
                 "by_seed": _by_seed(part),
+                "test_rmse_raw": _stats(pd.to_numeric(part.get("test_rmse_raw"), errors="coerce"))[0],
+                "scale": _scale(part),
             }
         )
-    table = pd.DataFrame(records).drop(columns="by_seed")
+    table = pd.DataFrame(records).drop(columns=["by_seed", "scale"])
     columns = sorted(
         table["column"].unique(), key=lambda c: (_column_key(table.loc[table["column"] == c, "system"].iloc[0]), _ds(c))
     )
@@ -419,9 +423,39 @@ def table2(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
             "The paper's Table 2 (MPNODE.jl, 4000 epochs for MP-NODE, 10000 for L2S; its own error units):",
             md_table(["model", *columns], paper_rows),
             "Orderings the paper reports:\n" + "\n".join(_orderings(cell, columns)),
+            *_unit_notes(cell, columns, rows),
         ]
     )
     return LayoutResult(text, table, [_bars(table, columns, rows, out_dir / "table2.png")])
+
+
+def _scale(part: pd.DataFrame) -> float:
+    """Raw over normalised test RMSE, mean over runs: the state std each run's errors are divided by. Only for
+    one-feature systems (gene), where the ratio is that std exactly; NaN otherwise."""
+    if "test_rmse_raw" not in part or not (pd.to_numeric(part.get("n_features"), errors="coerce") == 1).all():
+        return math.nan
+    ratio = pd.to_numeric(part["test_rmse_raw"], errors="coerce") / pd.to_numeric(part["test_rmse"], errors="coerce")
+    ratio = ratio[ratio > 0]
+    return float(ratio.mean()) if len(ratio) else math.nan
+
+
+def _unit_notes(cell: dict, columns: list[str], rows: list[str]) -> list[str]:
+    """Where rows of one column were normalised by different stds (a finetune that kept its pre-training's
+    normalisation, `mode.refit_normalisation=false`), their normalised errors are in different units: say so and
+    give each row's test RMSE in raw units."""
+    lines = []
+    for c in columns:
+        here = [cell[(r, c)] for r in rows if (r, c) in cell and math.isfinite(cell[(r, c)]["scale"])]
+        scales = [r["scale"] for r in here]
+        if len(here) < 2 or max(scales) <= 1.01 * min(scales):
+            continue
+        stds = ", ".join(f"{r['row']} {r['scale']:.3g}" for r in here)
+        raw = ", ".join(f"{r['row']} {r['test_rmse_raw']:.3g}" for r in here)
+        lines.append(
+            f"- {c}: the rows were normalised by different state stds ({stds}), so their normalised errors and "
+            f"epochs_x_min_error are not comparable; in raw units, the best-validation model's test RMSE: {raw}"
+        )
+    return ["Units:\n" + "\n".join(lines)] if lines else []
 
 
 def _ds(column: str) -> int:
@@ -429,8 +463,10 @@ def _ds(column: str) -> int:
 
 
 def _row_order(row: str) -> tuple[int, str]:
+    """Finetuned, scratch, L2S (each with its variants, `mark_variants`), then any other model."""
     order = ["MP-NODE finetuned", "MP-NODE scratch", "L2S"]
-    return (order.index(row) if row in order else len(order), row)
+    base = next((k for k, o in enumerate(order) if row == o or row.startswith(f"{o} (")), len(order))
+    return (base, row)
 
 
 def _num(v: Any) -> str:
