@@ -360,10 +360,18 @@ def test_runs_with_other_settings_are_kept_apart_not_averaged_as_seeds(cfg_facto
     table = pd.read_csv(out / "report.csv")
     assert sorted(table["runs"]) == [1, 2, 2]
     _, out = _report(cfg_factory, tmp_path / "curves", "curves", root)
-    assert "| MP-NODE finetuned (mode.refit_normalisation=false) |" in (out / "report.md").read_text()
+    text = (out / "report.md").read_text()
+    # the curves compared in raw units: each run's normalised error × its own state std
+    assert "target: 9.66, the best mean test error every curve reaches" in text
+    assert "| MP-NODE finetuned (mode.refit_normalisation=false) | 9.4 | 1 | 0.94 @ 1 |" in text
+    assert "| MP-NODE scratch | 27.6 | 1 | 9.66 @ 1 |" in text
+    assert "Errors in raw units (each run's normalised error × its state std)" in text
     shutil.rmtree(root / "nr")  # the same normalisation everywhere: nothing to say about units
     _, out = _report(cfg_factory, tmp_path / "same", "table2", root)
     assert "Units:" not in (out / "report.md").read_text()
+    _, out = _report(cfg_factory, tmp_path / "same_curves", "curves", root)
+    text = (out / "report.md").read_text()
+    assert "raw units" not in text and "| MP-NODE scratch | 2 | 1 | 0.7 @ 1 |" in text  # normalised, as recorded
 
 
 def test_table1_keeps_a_model_variant_apart_in_every_column(cfg_factory, tmp_path):

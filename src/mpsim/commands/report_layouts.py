@@ -439,6 +439,17 @@ def _scale(part: pd.DataFrame) -> float:
     return float(ratio.mean()) if len(ratio) else math.nan
 
 
+def _run_scale(run: dict[str, Any]) -> float:
+    """One run's raw over normalised test RMSE (its state std on a one-feature system)."""
+    return float(run["test_rmse_raw"]) / float(run["test_rmse"])
+
+
+def _mixed_units(scales: dict[str, float]) -> bool:
+    """Whether rows (row → `_scale`) were normalised by stds more than 1 % apart; False where one is unknown."""
+    values = list(scales.values())
+    return len(values) > 1 and all(math.isfinite(v) for v in values) and max(values) > 1.01 * min(values)
+
+
 def _unit_notes(cell: dict, columns: list[str], rows: list[str]) -> list[str]:
     """Where rows of one column were normalised by different stds (a finetune that kept its pre-training's
     normalisation, `mode.refit_normalisation=false`), their normalised errors are in different units: say so and
@@ -446,8 +457,7 @@ def _unit_notes(cell: dict, columns: list[str], rows: list[str]) -> list[str]:
     lines = []
     for c in columns:
         here = [cell[(r, c)] for r in rows if (r, c) in cell and math.isfinite(cell[(r, c)]["scale"])]
-        scales = [r["scale"] for r in here]
-        if len(here) < 2 or max(scales) <= 1.01 * min(scales):
+        if not _mixed_units({r["row"]: r["scale"] for r in here}):
             continue
         stds = ", ".join(f"{r['row']} {r['scale']:.3g}" for r in here)
         raw = ", ".join(f"{r['row']} {r['test_rmse_raw']:.3g}" for r in here)
@@ -741,9 +751,15 @@ def curves(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
     records, sections = [], []
     for ax, (system, n_train) in zip(axes.flat, panels, strict=False):
         part = train[(train["system"] == system) & (train["n_train"] == n_train)]
+        scales = {row: _scale(runs) for row, runs in part.groupby("row")}
+        raw = _mixed_units(scales)  # rows normalised differently: compare them in raw units
         means = {}
         for row, runs in sorted(part.groupby("row"), key=lambda kv: _row_order(kv[0])):
-            loaded = [c for c in (_curve(r) for r in runs["run"]) if c is not None]
+            loaded = [
+                c.assign(test_error=c["test_error"] * (_run_scale(fact) if raw else 1.0))
+                for c, fact in ((_curve(r), fact) for r, fact in zip(runs["run"], runs.to_dict("records"), strict=True))
+                if c is not None
+            ]
             if not loaded:
                 continue
             wide = _mean_band(ax, loaded, "test_error", f"{row} ({len(loaded)})")
@@ -761,9 +777,17 @@ def curves(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
                 }
                 for e, v in mean.items()
             ]
-        ax.set(yscale="log", xlabel="epoch", ylabel="test rollout RMSE", title=f"{system}, ds={n_train}")
+        unit = " (raw units)" if raw else ""
+        ax.set(yscale="log", xlabel="epoch", ylabel=f"test rollout RMSE{unit}", title=f"{system}, ds={n_train}")
         ax.legend(fontsize=7)
-        sections.append(_reach_table(system, n_train, means))
+        section = _reach_table(system, n_train, means)
+        if raw:
+            stds = ", ".join(f"{row} {v:.3g}" for row, v in sorted(scales.items(), key=lambda kv: _row_order(kv[0])))
+            section += (
+                f"\n\nErrors in raw units (each run's normalised error × its state std): the rows were normalised "
+                f"by different stds ({stds})."
+            )
+        sections.append(section)
     for ax in list(axes.flat)[len(panels) :]:
         ax.axis("off")
     fig.suptitle("Finetuned vs from scratch (mean over seeds, band: min–max)")
