@@ -32,6 +32,8 @@ def _run(
     resolved: dict | None = None,
     model_config: dict | None = None,
     state_std: float | None = None,
+    exported: str | None = None,
+    init: str | None = None,
 ) -> Path:
     """A run directory as `mpsim train` (or a zero-shot run) leaves it: summary.json, metrics.csv, overrides."""
     run = root / name
@@ -74,6 +76,7 @@ def _run(
             "test": {"rmse": best_val},
             "test_error": best_val,
         }
+    summary |= {k: v for k, v in (("exported", exported), ("init", init)) if v is not None}
     if state_std is not None:  # a one-feature system whose states this run normalised by `state_std`
         summary["system"]["state_names"] = ["x"]
         summary["test"]["rmse_raw"] = summary["test"]["rmse"] * state_std
@@ -398,6 +401,32 @@ def test_table1_keeps_a_model_variant_apart_in_every_column(cfg_factory, tmp_pat
     assert "- MP-NODE (model.self_loops=true), Test ER (unseen): 12× the error on BA test data" in text
     assert "| MP-NODE (model.self_loops=false): ER / BA | 3.00 | 3.00 | 0.58 |" in text
     assert "| MP-NODE (model.self_loops=true): ER / BA | 12.00 | 12.00 | 0.58 |" in text
+
+
+def test_zero_shot_runs_follow_the_training_run_of_the_checkpoint_they_evaluated(cfg_factory, tmp_path):
+    # two models that differ only in how they were trained (the learning rate): a zero-shot run's own config does
+    # not say it, the training run whose exported checkpoint it evaluated does
+    root = tmp_path / "runs"
+    for lr, er in ((0.001, 0.3), (0.0001, 0.6)):
+        for seed in (0, 1):
+            ckpt = f"/ckpts/lr{lr}_s{seed}.ckpt"
+            trainer = {"trainer": {"lr": lr}}
+            _run(
+                root,
+                f"ba{lr}_{seed}",
+                system="gene_ba_small",
+                seed=seed,
+                errors=[1.0, 0.1],
+                resolved=trainer,
+                exported=ckpt,
+            )
+            _run(root, f"er{lr}_{seed}", system="gene_er_small", seed=seed, trained_on="gene_ba_small", best_val=er,
+                 resolved={"trainer": {"lr": 0.001}}, init=ckpt)  # fmt: skip
+    _, out = _report(cfg_factory, tmp_path, "table1", root)
+    text = (out / "report.md").read_text()
+    assert "| MP-NODE (trainer.lr=0.001) | 0.1 ± 0 | 0.1 ± 0 | 0.3 ± 0 |" in text
+    assert "| MP-NODE (trainer.lr=0.0001) | 0.1 ± 0 | 0.1 ± 0 | 0.6 ± 0 |" in text
+    assert "made_" not in pd.read_csv(out / "runs.csv").columns
 
 
 def test_unknown_layout_is_refused(cfg_factory, tmp_path, table2_runs):

@@ -107,6 +107,8 @@ def run_facts(run: Path, summary: dict[str, Any]) -> dict[str, Any]:
         "test_rmse_raw": test.get("rmse_raw"),
         "n_features": len(names) if isinstance(names := _section(summary, "system").get("state_names"), list) else None,
         "trained_on": summary.get("trained_on"),
+        "init_": summary.get("init"),  # the checkpoint a zero-shot (or finetuned) run started from
+        "made_": [str(p) for p in (summary.get("exported"), summary.get("checkpoint")) if isinstance(p, str)],
         "seed_": summary.get("seed"),
         "device": summary.get("device"),  # "cpu (N threads)" / "cuda:0 (name)"; runs from before it was kept: None
         **_step_errors(test.get("per_step_rmse")),
@@ -213,6 +215,24 @@ def run_settings(run: Path, summary: dict[str, Any]) -> dict[str, str]:
     return {k: _text(v) for k, v in flat.items() if not _incidental(k)}
 
 
+def _with_training(frame: pd.DataFrame) -> list[Any]:
+    """Each run's settings; a zero-shot run's joined by the trainer and mode settings of the training run whose
+    checkpoint it evaluated (its `init` is that run's export or best checkpoint), when that run is in the frame,
+    so that two models trained differently stay apart in the zero-shot columns too."""
+    settings = list(frame["settings"])
+    if "made_" not in frame or "init_" not in frame:
+        return settings
+    made: dict[str, dict[str, str]] = {}
+    for s, paths, mode in zip(settings, frame["made_"], frame["mode"], strict=True):
+        if mode != "zeroshot" and isinstance(s, dict) and isinstance(paths, list):
+            made |= {p: s for p in paths}
+    for k, (s, init, mode) in enumerate(zip(settings, frame["init_"], frame["mode"], strict=True)):
+        source = made.get(init) if mode == "zeroshot" and isinstance(init, str) else None
+        if source is not None and isinstance(s, dict):
+            settings[k] = {key: v for key, v in source.items() if key.startswith(("trainer.", "mode."))} | s
+    return settings
+
+
 def _fact(value: Any) -> str:
     return str(int(value)) if isinstance(value, float) and value.is_integer() else str(value)
 
@@ -227,6 +247,7 @@ def mark_variants(frame: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
     notes: list[str] = []
     if "settings" not in frame:
         return frame, notes
+    frame["settings"] = _with_training(frame)
     place = [c for c in PLACE if c in frame]
     keyed = frame[place].map(str)  # one text per fact, a missing one included ("nan", "None")
     for _, index in keyed.groupby(place, sort=False, dropna=False).groups.items():
@@ -249,7 +270,7 @@ def mark_variants(frame: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
             f"- {len(index)} runs ({where}) differ in {', '.join(f'`{k}`' for k in differ)}: kept apart, not "
             "averaged as seeds"
         )
-    return frame.drop(columns="settings"), notes
+    return frame.drop(columns=["settings", *(c for c in ("made_", "init_") if c in frame)]), notes
 
 
 def model_name(model_class: Any, variant: Any = "") -> str:
