@@ -68,7 +68,8 @@ def _run(
             "best_val_error": best_val or errors[best],
             "test": {"rmse": errors[best]},
         }
-    else:  # zero-shot evaluation
+    else:  # zero-shot evaluation: a test set, no training set
+        summary["data"] = {"test": 20, "n_times": 51}
         summary |= {
             "task": "train",
             "mode": "zeroshot",
@@ -230,6 +231,7 @@ def test_message_size_layout(cfg_factory, tmp_path):
                 errors=[2.0, 1.0, err + 0.01 * seed],
             )
     _run(root, "l2s", system="kuramoto10_ba", model="L2S", message_size=None, errors=[2.0, 1.0, 0.6])
+    _run(root, "zs", system="kuramoto10_ba", message_size=7, trained_on="kuramoto10_er", best_val=0.1)  # not trained
     _, out = _report(cfg_factory, tmp_path, "message_size", root)
     text = (out / "report.md").read_text()
     assert "| 7 | 2 | 0.305 ± 0.0071 |" in text and "| L2S | 1 | 0.6 |" in text
@@ -280,6 +282,7 @@ def test_messages_layout_compares_messages_on_and_off(cfg_factory, tmp_path):
     _run(root, "off", system="pendulum2", zero_messages=True, errors=[3, 1, 0.9, 0.9, 0.9])
     _run(root, "old", system="pendulum2", seed=2, errors=[3, 1, 0.6, 0.4, 0.3])  # no flag recorded: messages on
     _run(root, "l2s", system="pendulum2", model="L2S", message_size=None, errors=[3, 0.1, 0.1, 0.1, 0.1])  # not MP-NODE
+    _run(root, "zs", system="pendulum2", zero_messages=False, trained_on="pendulum2", best_val=0.1)  # trains nothing
     _, out = _report(cfg_factory, tmp_path, "messages", root)
     text = (out / "report.md").read_text()
     assert "| on | 3 | 2.67 ± 0.58 | 0.267 ± 0.058 | 1.067 ± 0.23 |" in text  # 0.2, 0.3 and the old run's 0.3
@@ -427,6 +430,16 @@ def test_zero_shot_runs_follow_the_training_run_of_the_checkpoint_they_evaluated
     assert "| MP-NODE (trainer.lr=0.001) | 0.1 ± 0 | 0.1 ± 0 | 0.3 ± 0 |" in text
     assert "| MP-NODE (trainer.lr=0.0001) | 0.1 ± 0 | 0.1 ± 0 | 0.6 ± 0 |" in text
     assert "made_" not in pd.read_csv(out / "runs.csv").columns
+
+
+@pytest.mark.parametrize("layout", ["table1", "table2", "curves", "message_size", "messages"])
+def test_a_layout_over_zero_shot_runs_only_says_what_it_lacks(cfg_factory, tmp_path, layout):
+    # the training run has not finished (no summary.json), its zero-shot runs have: no column a training run writes
+    root = tmp_path / "runs"
+    _run(root, "er", system="gene_er_small", trained_on="gene_ba_small", best_val=0.3)
+    result, out = _report(cfg_factory, tmp_path, layout, root)
+    assert result["n_runs"] == 1
+    assert "- `gene_er_small`: 1 run, 50 steps, seed 0\n" in (out / "report.md").read_text()
 
 
 def test_unknown_layout_is_refused(cfg_factory, tmp_path, table2_runs):

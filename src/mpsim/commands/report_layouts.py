@@ -325,14 +325,21 @@ def md_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     return "\n".join(lines)
 
 
+def _numbers(frame: pd.DataFrame, column: str) -> pd.Series:
+    """`frame[column]` as numbers (NaN where not one); all NaN where no run recorded the column."""
+    if column not in frame:
+        return pd.Series(math.nan, index=frame.index, dtype=float)
+    return pd.to_numeric(frame[column], errors="coerce")
+
+
 def settings_caption(frame: pd.DataFrame) -> str:
     """One line per system: training-set sizes, steps per trajectory, epochs run, seeds."""
     lines = []
     for system, part in frame.groupby("system", sort=True):
         trained = part[part["task"] == "train"] if "task" in part else part
-        sizes = sorted({int(v) for v in pd.to_numeric(trained.get("n_train"), errors="coerce").dropna()})
-        steps = sorted({int(v) - 1 for v in pd.to_numeric(part.get("n_times"), errors="coerce").dropna()})
-        epochs = pd.to_numeric(trained.get("epochs_run"), errors="coerce").dropna()
+        sizes = sorted({int(v) for v in _numbers(trained, "n_train").dropna()})
+        steps = sorted({int(v) - 1 for v in _numbers(part, "n_times").dropna()})
+        epochs = _numbers(trained, "epochs_run").dropna()
         seeds = (
             sorted({int(s) for s in pd.to_numeric(part["seed_"], errors="coerce").dropna()}) if "seed_" in part else []
         )
@@ -412,7 +419,7 @@ def table2(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
                 "min_test_error_epoch_std": ep_sd,
                 "paper": PAPER_TABLE2.get(row, {}).get(column, math.nan),
                 "by_seed": _by_seed(part),
-                "test_rmse_raw": _stats(pd.to_numeric(part.get("test_rmse_raw"), errors="coerce"))[0],
+                "test_rmse_raw": _stats(_numbers(part, "test_rmse_raw"))[0],
                 "scale": _scale(part),
             }
         )
@@ -453,7 +460,7 @@ def table2(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
 def _scale(part: pd.DataFrame) -> float:
     """Raw over normalised test RMSE, mean over runs: the state std each run's errors are divided by. Only for
     one-feature systems (gene), where the ratio is that std exactly; NaN otherwise."""
-    if "test_rmse_raw" not in part or not (pd.to_numeric(part.get("n_features"), errors="coerce") == 1).all():
+    if "test_rmse_raw" not in part or not (_numbers(part, "n_features") == 1).all():
         return math.nan
     ratio = pd.to_numeric(part["test_rmse_raw"], errors="coerce") / pd.to_numeric(part["test_rmse"], errors="coerce")
     ratio = ratio[ratio > 0]
@@ -868,7 +875,7 @@ def _by_epoch_row(
 
 def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
     """Figures 7 and 8: MP-NODE's minimum test error and learning curves per message size, per system."""
-    train = frame[frame["task"] == "train"].copy()
+    train = frame[(frame["task"] == "train") & (frame["mode"] != "zeroshot")].copy()  # zero-shot runs train nothing
     mp = train[(train["model_class"] == "MPNODE") & train["message_size"].notna()]
     if mp.empty:
         return LayoutResult("No MP-NODE training runs found.", pd.DataFrame(), [])
@@ -966,7 +973,9 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
 # ---- messages on vs off (figures 3a, 4) --------------------------------------------------------------------
 def messages(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
     """Figures 3a and 4: MP-NODE with messages vs `model.zero_messages=true` (each node an augmented NODE)."""
-    train = frame[(frame["task"] == "train") & (frame["model_class"] == "MPNODE")].copy()
+    train = frame[
+        (frame["task"] == "train") & (frame["mode"] != "zeroshot") & (frame["model_class"] == "MPNODE")
+    ].copy()
     if train.empty:
         return LayoutResult("No MP-NODE training runs found.", pd.DataFrame(), [])
     train["off"] = train["zero_messages"].map(lambda v: v is True)  # a config without the flag: messages on
