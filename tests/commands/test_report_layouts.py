@@ -442,6 +442,19 @@ def test_a_layout_over_zero_shot_runs_only_says_what_it_lacks(cfg_factory, tmp_p
     assert "- `gene_er_small`: 1 run, 50 steps, seed 0\n" in (out / "report.md").read_text()
 
 
+@pytest.mark.parametrize("layout", ["table1", "table2", "curves", "message_size", "messages"])
+def test_a_layout_over_other_tasks_summaries_finds_no_training_run(cfg_factory, tmp_path, layout):
+    # a bench table and a simulated dataset beside the runs: summaries without a mode, model or training set
+    for name, summary in (
+        ("bench", {"task": "bench", "suite": "epoch_time", "rows": []}),
+        ("sim", {"task": "simulate"}),
+    ):
+        (tmp_path / "runs" / name).mkdir(parents=True)
+        (tmp_path / "runs" / name / "summary.json").write_text(json.dumps(summary))
+    result, out = _report(cfg_factory, tmp_path, layout, tmp_path / "runs")
+    assert result["n_runs"] == 2 and "training runs found." in (out / "report.md").read_text()
+
+
 def test_unknown_layout_is_refused(cfg_factory, tmp_path, table2_runs):
     with pytest.raises(ConfigError, match="layout='table3' is unknown; choose one of table2, table1"):
         _report(cfg_factory, tmp_path, "table3", table2_runs)

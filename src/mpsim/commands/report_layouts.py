@@ -243,6 +243,9 @@ def mark_variants(frame: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
     keeps them apart instead of averaging them as seeds; "" where they agree. A key some runs lack (written by an
     older mpsim) counts only if the runs that have it disagree. Also returns one note per place so split."""
     frame = frame.copy()
+    for column in PLACE:  # summaries of other tasks (bench, simulate) lack them: such runs place nowhere
+        if column not in frame:
+            frame[column] = None
     frame["variant"] = ""
     notes: list[str] = []
     if "settings" not in frame:
