@@ -366,6 +366,16 @@ CASES: dict[str, Case] = {
         2,
         "runs/c/.hydra/config.yaml is not valid YAML",
     ),
+    "report_overrides_python_tag": Case(
+        lambda w, d: (
+            (d / "runs/o/.hydra").mkdir(parents=True),
+            (d / "runs/o/summary.json").write_text('{"task": "train", "mode": "scratch"}'),
+            (d / "runs/o/.hydra/overrides.yaml").write_text("!!python/object/apply:os.system ['touch pwned.txt']\n"),
+            ["report", f"runs=[{d / 'runs'}]"],
+        )[3],
+        2,
+        "runs/o/.hydra/overrides.yaml is not valid YAML",
+    ),
     "report_missing_path": Case(
         lambda w, d: (
             (d / "runs/a").mkdir(parents=True),

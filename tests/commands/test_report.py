@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from mpsim.commands.report import run_report
-from mpsim.errors import ConfigError
+from mpsim.errors import ConfigError, DataError
 
 
 def _finished(run, seed):
@@ -114,3 +114,17 @@ def test_runs_that_differ_only_in_where_they_wrote_are_one_row(cfg_factory, tmp_
     table = run_report(cfg_factory("report", f"runs=[{root}]"), output_dir=tmp_path / "out")["table"]
     assert len(table) == 1 and table["runs"].tolist() == [2]
     assert "paths.output_root" not in table.columns
+
+
+def test_an_added_override_groups_under_its_key_and_a_bad_overrides_file_is_refused(cfg_factory, tmp_path):
+    # `+key=v` (added) and `key=v` are the same setting: one column, the runs grouped by its values
+    root = tmp_path / "runs"
+    for seed, item in ((0, "+model.hidden=8"), (1, "model.hidden=8"), (2, "++model.hidden=16")):
+        _finished(root / f"s{seed}", seed)
+        saved = root / f"s{seed}" / ".hydra" / "overrides.yaml"
+        saved.write_text(yaml.safe_dump([*yaml.safe_load(saved.read_text()), item]))
+    table = run_report(cfg_factory("report", f"runs=[{root}]"), output_dir=tmp_path / "out")["table"]
+    assert dict(zip(table["model.hidden"], table["runs"], strict=True)) == {"8": 2, "16": 1}
+    (root / "s2" / ".hydra" / "overrides.yaml").write_text("{seed: 2}")  # a mapping, not a list of overrides
+    with pytest.raises(DataError, match="overrides.yaml must be a list of key=value overrides; got dict"):
+        run_report(cfg_factory("report", f"runs=[{root}]"), output_dir=tmp_path / "again")

@@ -28,6 +28,7 @@ from mpsim.commands.report_layouts import (
     DEFAULT_TITLES,
     LAYOUT_FUNCS,
     mark_variants,
+    read_overrides,
     run_facts,
     run_settings,
     settings_caption,
@@ -186,22 +187,7 @@ def read_summary(path: Path) -> dict[str, Any]:
 def _row(run: Path, facts: bool = False) -> dict[str, Any]:
     summary = read_summary(run / "summary.json")
     row: dict[str, Any] = {"run": str(run)}
-    overrides_path = run / ".hydra" / "overrides.yaml"
-    saved: Any = None
-    if overrides_path.is_file():
-        try:
-            saved = yaml.safe_load(overrides_path.read_text())
-        except yaml.YAMLError as err:
-            raise DataError(
-                f"{overrides_path} is not valid YAML ({str(err).splitlines()[0]}). Restore it (a list of "
-                "key=value overrides) or move the run out of the report's runs."
-            ) from None
-        if saved is not None and not isinstance(saved, list):
-            raise DataError(f"{overrides_path} must be a list of key=value overrides; got {type(saved).__name__}.")
-    if saved:
-        for item in saved:
-            key, _, value = str(item).partition("=")
-            row[key.lstrip("+~")] = value
+    row |= read_overrides(run)
     system = summary.get("system")
     row["system"] = system.get("name") if isinstance(system, dict) else system
     row["task"] = summary.get("task")

@@ -175,6 +175,28 @@ def _text(value: Any) -> str:
     )
 
 
+def read_overrides(run: Path) -> dict[str, str]:
+    """A run's `.hydra/overrides.yaml` as key → value ("+"/"~" prefixes dropped); {} where it kept none. A file
+    that is not a YAML list of overrides is a DataError."""
+    path = run / ".hydra" / "overrides.yaml"
+    if not path.is_file():
+        return {}
+    try:
+        saved = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as err:
+        raise DataError(
+            f"{path} is not valid YAML ({str(err).splitlines()[0]}). Restore it (a list of key=value overrides) "
+            "or move the run out of the report's runs."
+        ) from None
+    if saved is not None and not isinstance(saved, list):
+        raise DataError(f"{path} must be a list of key=value overrides; got {type(saved).__name__}.")
+    out = {}
+    for item in saved or []:
+        key, _, value = str(item).partition("=")
+        out[key.lstrip("+~")] = value
+    return out
+
+
 def run_settings(run: Path, summary: dict[str, Any]) -> dict[str, str]:
     """What a run computed with, as key → value text: its resolved Hydra config (`.hydra/config.yaml`; its
     overrides where a run kept no config) with the model's config as summary.json records it (for a zero-shot
@@ -195,18 +217,7 @@ def run_settings(run: Path, summary: dict[str, Any]) -> dict[str, str]:
                 f"{config_path} must hold the run's resolved config (a mapping); got {type(tree).__name__}. "
                 "Restore it or move the run out of the report's runs."
             )
-    if isinstance(tree, dict):
-        flat = _flat(tree)
-    else:
-        flat = {}
-        overrides_path = run / ".hydra" / "overrides.yaml"
-        try:
-            saved = yaml.safe_load(overrides_path.read_text()) if overrides_path.is_file() else None
-        except yaml.YAMLError:
-            saved = None
-        for item in saved if isinstance(saved, list) else []:
-            key, _, value = str(item).partition("=")
-            flat[key.lstrip("+~")] = value
+    flat = _flat(tree) if isinstance(tree, dict) else dict(read_overrides(run))
     flat = {k: v for k, v in flat.items() if not k.startswith("model.") and k != "model"}
     if summary.get("mode") == "zeroshot" or summary.get("task") != "train":  # it trained nothing: how it would have
         flat = {k: v for k, v in flat.items() if not k.startswith(("trainer.", "mode."))}
@@ -788,8 +799,8 @@ def curves(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
         for row, runs in sorted(part.groupby("row"), key=lambda kv: _row_order(kv[0])):
             loaded = [
                 c.assign(test_error=c["test_error"] * (_run_scale(fact) if raw else 1.0))
-                for c, fact in ((_curve(r), fact) for r, fact in zip(runs["run"], runs.to_dict("records"), strict=True))
-                if c is not None
+                for fact in runs.to_dict("records")
+                if (c := _curve(fact["run"])) is not None
             ]
             if not loaded:
                 continue
