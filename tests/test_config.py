@@ -110,6 +110,8 @@ def test_unknown_system_lists_the_options(cfg_factory):
         (["traner.lr=1"], "traner is not a config section. Did you mean trainer?"),
         (["system=nbody", "system.mass=2"], "add it with +system.mass=<value>"),
         (["-m", "seed=0,1", "trainer.batch_sise=4"], "Did you mean trainer.batch_size"),
+        (["ckpt=a.ckpt"], "ckpt is not a config key. Did you mean init?"),  # other tools' word for it
+        (["epochs=5"], "Did you mean trainer.max_epochs?"),
     ],
 )
 def test_command_line_typos_get_a_did_you_mean(args, match):
@@ -121,6 +123,19 @@ def test_command_line_typos_get_a_did_you_mean(args, match):
     assert match in str(err.value) and "To append" not in str(err.value)
     if "mass" not in match:
         assert "+" not in str(err.value)
+
+
+def test_a_key_with_no_close_match_lists_each_key_once():
+    # a top-level name is also looked up among the config groups, most of which are keys already
+    from mpsim.config import compose_command, register_schemas
+
+    register_schemas()
+    with pytest.raises(ConfigError) as err:
+        compose_command("eval", ["zzz=1"], str(CONF))
+    text = str(err.value)
+    assert "zzz is not a config key; the config has: " in text
+    listing = text.split("has: ", 1)[1].rstrip(".").split(", ")
+    assert {"init", "model", "system"} <= set(listing) and len(listing) == len(set(listing))
 
 
 @pytest.mark.parametrize(

@@ -480,6 +480,10 @@ def _one_line(err: BaseException) -> str:
     return " ".join([head, *rest[:2]])
 
 
+#: top-level names users reach for, other tools' words for a key mpsim has
+_SYNONYMS = {"ckpt": "init", "checkpoint": "init", "load": "init", "weights": "init", "epochs": "trainer.max_epochs"}
+
+
 def _unknown_key(key: str, others: list[str], compose_fn: Any, config_dir: str) -> str:
     """Message for `key=...` naming no key of the composed config: the closest keys, or how to add a parameter
     that the target class takes but its config file does not list."""
@@ -510,6 +514,8 @@ def _unknown_key(key: str, others: list[str], compose_fn: Any, config_dir: str) 
     if not parent:  # a top-level name may also be a config group
         keys += [p.name for p in Path(config_dir).iterdir() if p.is_dir() and not p.name.startswith("_")]
     close = difflib.get_close_matches(leaf, keys, n=3, cutoff=0.6)
+    if not parent and leaf in _SYNONYMS and _SYNONYMS[leaf].split(".")[0] in keys:
+        close = [_SYNONYMS[leaf]]
     if close:
         return (
             f"{key} is not a config key. Did you mean {' or '.join(where + c for c in close)}? "
@@ -531,5 +537,5 @@ def _unknown_key(key: str, others: list[str], compose_fn: Any, config_dir: str) 
         close = difflib.get_close_matches(leaf, [p for p in params if p != "self"], n=3, cutoff=0.6)
         if close:
             return f"{key} is not a parameter of {target}. Did you mean {' or '.join(where + c for c in close)}?"
-    listing = ", ".join(sorted(k for k in keys if not k.startswith("_")))
+    listing = ", ".join(sorted({k for k in keys if not k.startswith("_")}))  # a group may also be a key
     return f"{key} is not a config key; {parent or 'the config'} has: {listing}."
