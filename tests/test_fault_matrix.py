@@ -218,6 +218,11 @@ CASES: dict[str, Case] = {
     ),
     "simulate_n_zero": Case(lambda w, d: ["simulate", "n=0"], 2, "n=0"),
     "simulate_training_seed": Case(lambda w, d: ["simulate", "n=2", "seed=7"], 2, "Pass data.seed=7 instead"),
+    "simulate_blowup": Case(  # the ground truth cannot be integrated at these parameters (train shares the path)
+        lambda w, d: ["simulate", "system=lorenz3", "n=2", "data.horizon=5", "system.sigma=1e300"],
+        2,
+        "cannot simulate CoupledLorenz",
+    ),
     "sweep_bad_value": Case(lambda w, d: ["train", "-m", *TINY_TRAIN, "data.n_train=4,-1"], 2, "data.n_train=-1"),
     "unknown_command": Case(lambda w, d: ["frobnicate"], 2, "unknown command 'frobnicate'"),
     # -- output locations that cannot be written: refused before any work

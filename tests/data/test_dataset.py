@@ -4,8 +4,9 @@ import pytest
 import torch
 
 from mpsim.data.cache import cache_key, cached
-from mpsim.data.dataset import DatasetSpec, fit_normalisation, simulate_splits, split_trajectories
-from mpsim.errors import DataError
+from mpsim.data.dataset import DatasetSpec, fit_normalisation, generate, simulate_splits, split_trajectories
+from mpsim.data.trajectories import Trajectories
+from mpsim.errors import ConfigError, DataError
 from mpsim.systems import CoupledLorenz, CoupledPendulums
 
 SPEC = {"_target_": "mpsim.systems.CoupledPendulums", "name": "pendulum2"}
@@ -80,3 +81,33 @@ def test_concurrent_jobs_build_once_and_agree(tmp_path):
         sums = pool.map(_worker, [(str(tmp_path / "cache"), str(markers), i) for i in range(2)], chunksize=1)
     assert len(set(sums)) == 1
     assert len(list(markers.iterdir())) == 1  # the lock made the other job wait and reuse the entry
+
+
+def test_a_ground_truth_that_cannot_be_simulated_is_one_config_error():
+    # real blow-ups: the adaptive solver's step underflows (torchdiffeq asserts), here with two integrators
+    spec = DatasetSpec({"name": "lorenz3", "sigma": 1e300}, 2, 1, 1, horizon=5)
+    with pytest.raises(ConfigError, match=r"cannot simulate CoupledLorenz.*sigma=1e\+300.*step size underflowed"):
+        simulate_splits(CoupledLorenz(sigma=1e300), spec)
+    with pytest.raises(ConfigError, match="cannot simulate CoupledPendulums.*check the system's parameters"):
+        generate(CoupledPendulums(gravity=1e300), 2, 0, horizon=5)
+
+
+def test_simulated_nan_states_are_reported_as_the_system_not_as_bad_data():
+    class NaNSystem:
+        dt, horizon = 0.1, 4
+
+        def generate(self, n, seed, **kwargs):
+            x = torch.full((n, 5, 2, 1), float("nan"))
+            return Trajectories(t=torch.arange(5) * 0.1, x=x, edge_index=torch.zeros(2, 0, dtype=torch.long))
+
+    with pytest.raises(ConfigError, match="NaN or infinite.*system.*parameters"):
+        generate(NaNSystem(), 2, 0)
+
+    class OtherDataError:
+        dt, horizon = 0.1, 4
+
+        def generate(self, n, seed, **kwargs):
+            raise DataError("the cache file is damaged")
+
+    with pytest.raises(DataError, match="damaged"):  # not every DataError is a blow-up
+        generate(OtherDataError(), 2, 0)

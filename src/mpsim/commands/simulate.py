@@ -14,6 +14,7 @@ from mpsim.commands.checkpoints import load_init
 from mpsim.commands.console import fmt, print_summary
 from mpsim.commands.runtime import setup_runtime
 from mpsim.commands.splits import check_simulation_memory
+from mpsim.data.dataset import generate
 from mpsim.data.io import save_csv, save_npz
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError
@@ -50,8 +51,14 @@ def run_simulate(cfg: DictConfig, output_dir: str | Path | None = None, override
         )
     system = build_system(cfg)
     check_simulation_memory(cfg, system, [cfg.n], int(cfg.data.horizon or system.horizon) + 1)
-    truth = system.generate(
-        cfg.n, cfg.data.seed, dt=cfg.data.dt, horizon=cfg.data.horizon, rtol=cfg.data.gt_rtol, atol=cfg.data.gt_atol
+    truth = generate(
+        system,
+        cfg.n,
+        cfg.data.seed,
+        dt=cfg.data.dt,
+        horizon=cfg.data.horizon,
+        rtol=cfg.data.gt_rtol,
+        atol=cfg.data.gt_atol,
     )
     stem = rt.output_dir / cfg.out
     files = _export(truth, stem, cfg.format)

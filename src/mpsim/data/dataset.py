@@ -41,6 +41,26 @@ class Simulator(Protocol):
     ) -> Trajectories: ...
 
 
+def generate(system: Simulator, n: int, seed: int, **kwargs: Any) -> Trajectories:
+    """`system.generate(n, seed, **kwargs)`, with a ground truth that cannot be simulated (the adaptive solver's
+    step underflowed, or the states left the floats) reported as one ConfigError naming the system: its
+    parameters, the sampling step or the horizon are the user's to change."""
+    try:
+        return system.generate(n, seed, **kwargs)
+    except (AssertionError, DataError) as err:  # torchdiffeq reports a step underflow by `assert`; NaN states
+        if isinstance(err, DataError) and "NaN/inf" not in str(err):
+            raise
+        why = (
+            f"the ground-truth solver's step size underflowed ({err})"
+            if isinstance(err, AssertionError)
+            else "its states became NaN or infinite"
+        )
+        raise ConfigError(
+            f"cannot simulate {system!r}: {why}. Its dynamics are too stiff or blow up at these settings; check the "
+            "system's parameters (system.*), or try a smaller data.dt or a shorter data.horizon."
+        ) from None
+
+
 @dataclass
 class Splits:
     """The three splits of one dataset."""
@@ -106,7 +126,7 @@ def simulate_splits(system: Simulator, spec: DatasetSpec, cache_dir: str | Path 
             cache_dir,
             key,
             functools.partial(
-                system.generate, sizes[name], split_seed, dt=dt, horizon=horizon, rtol=rtol, atol=atol, **extra
+                generate, system, sizes[name], split_seed, dt=dt, horizon=horizon, rtol=rtol, atol=atol, **extra
             ),
         )
     return Splits(**out)
