@@ -111,3 +111,12 @@ def test_simulated_nan_states_are_reported_as_the_system_not_as_bad_data():
 
     with pytest.raises(DataError, match="damaged"):  # not every DataError is a blow-up
         generate(OtherDataError(), 2, 0)
+
+
+def test_a_sampling_step_far_too_long_ends_with_a_message_not_a_hang(monkeypatch):
+    import mpsim.systems.base
+
+    monkeypatch.setattr(mpsim.systems.base, "GROUND_TRUTH_MAX_STEPS", 200)  # the real limit fails the same way
+    with pytest.raises(ConfigError, match="too many steps for one sampling interval.*data.dt"):
+        generate(CoupledPendulums(), 2, 0, dt=50.0, horizon=2)
+    assert len(generate(CoupledPendulums(), 2, 0, dt=0.1, horizon=2).x[0]) == 3  # the defaults are far inside it

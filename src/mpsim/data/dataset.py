@@ -50,14 +50,15 @@ def generate(system: Simulator, n: int, seed: int, **kwargs: Any) -> Trajectorie
     except (AssertionError, DataError) as err:  # torchdiffeq reports a step underflow by `assert`; NaN states
         if isinstance(err, DataError) and "NaN/inf" not in str(err):
             raise
-        why = (
-            f"the ground-truth solver's step size underflowed ({err})"
-            if isinstance(err, AssertionError)
-            else "its states became NaN or infinite"
-        )
+        if isinstance(err, DataError):
+            why = "its states became NaN or infinite"
+        elif "max_num_steps" in str(err):
+            why = f"the ground-truth solver needed too many steps for one sampling interval ({err})"
+        else:
+            why = f"the ground-truth solver's step size underflowed ({err})"
         raise ConfigError(
             f"cannot simulate {system!r}: {why}. Its dynamics are too stiff or blow up at these settings; check the "
-            "system's parameters (system.*), or try a smaller data.dt or a shorter data.horizon."
+            "system's parameters (system.*) and data.dt (the sampling step, in the system's time units)."
         ) from None
 
 

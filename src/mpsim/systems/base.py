@@ -18,6 +18,11 @@ from mpsim.data.trajectories import Trajectories, grid_step
 from mpsim.effects import EffectContext, min_delay, total
 from mpsim.errors import ConfigError
 from mpsim.solvers.dde import rk4_delay
+from mpsim.solvers.odeint import ADAPTIVE
+
+#: adaptive ground-truth steps allowed per sampling interval (the seed systems take 1–5 at their defaults): a
+#: sampling step far too long for the dynamics (`data.dt` in the wrong units) ends with a message, not a hang
+GROUND_TRUTH_MAX_STEPS = 20_000
 
 
 class System:
@@ -137,7 +142,9 @@ class System:
         if delay > 0:  # a delayed term needs the history: fixed-step RK4 with interpolated history
             x = rk4_delay(lambda tt, xx, hist: self.rhs(tt, xx, history=hist), x0, t, step=1e-3, min_delay=delay)
         else:
-            x = odeint(lambda tt, xx: self.rhs(tt, xx), x0, t, rtol=rtol, atol=atol, method=method).transpose(0, 1)
+            options = {"max_num_steps": GROUND_TRUTH_MAX_STEPS} if method in ADAPTIVE else None
+            x = odeint(lambda tt, xx: self.rhs(tt, xx), x0, t, rtol=rtol, atol=atol, method=method, options=options)
+            x = x.transpose(0, 1)
         return Trajectories(t=t, x=x.contiguous(), edge_index=self.edge_index, meta=self.meta(grid_step(t)))
 
     def generate(
