@@ -40,6 +40,11 @@ def test_split_trajectories_fractions_and_error():
     assert len(set(ids.tolist())) == 10
     with pytest.raises(DataError, match="at least one each"):
         split_trajectories(data.subset(slice(0, 2)), (0.7, 0.15, 0.15))
+    # three trajectories are enough for the default fractions: one each, not a refusal that asks for three
+    assert split_trajectories(data.subset(slice(0, 3)), (0.7, 0.15, 0.15)).sizes() == {"train": 1, "val": 1, "test": 1}
+    assert split_trajectories(data.subset(slice(0, 4)), (0.7, 0.15, 0.15)).sizes() == {"train": 2, "val": 1, "test": 1}
+    with pytest.raises(DataError, match="at least one each"):  # a zero fraction is still refused, not filled
+        split_trajectories(data, (0.8, 0.2, 0.0))
 
 
 def test_cache_hit_returns_the_stored_data(tmp_path):

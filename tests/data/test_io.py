@@ -21,6 +21,8 @@ def test_npz_round_trip(traj, tmp_path):
     assert torch.equal(back.edge_index, traj.edge_index)
     assert back.meta["system"] == "pendulum2" and back.meta["state_names"] == ["theta", "omega"]
     assert not list(tmp_path.glob(".*tmp"))  # atomic write leaves no temporary file
+    # messages about loaded data name the file it came from, as for CSV (not "data")
+    assert back.meta["source"] == str(path) and load_csv(save_csv(traj, tmp_path / "d.csv")[0]).meta["source"]
 
 
 def test_csv_round_trip_with_edge_list(traj, tmp_path):

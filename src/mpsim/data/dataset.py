@@ -139,8 +139,8 @@ def split_trajectories(data: Trajectories, fractions: tuple[float, float, float]
         raise ConfigError(f"data.split must be three non-negative fractions (train, val, test); got {list(fractions)}.")
     b = len(data)
     total = sum(fractions)
-    n_val = int(round(b * fractions[1] / total))
-    n_test = int(round(b * fractions[2] / total))
+    # a split with a nonzero fraction gets at least one trajectory (3 trajectories split 0.7/0.15/0.15 as 1/1/1)
+    n_val, n_test = (max(1, int(round(b * f / total))) if f > 0 else 0 for f in fractions[1:])
     n_train = b - n_val - n_test
     if b < 3 or n_train < 1 or n_val < 1 or n_test < 1:
         raise DataError(

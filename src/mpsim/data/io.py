@@ -77,6 +77,7 @@ def load_npz(path: str | Path, edge_index: torch.Tensor | None = None) -> Trajec
             "data.edges=<edges.csv> or data.graph=system (with system=<name>)."
         )
     meta.setdefault("system", path.stem)
+    meta["source"] = str(path)  # as for CSV: messages about the data name the file
     x = torch.from_numpy(arrays["x"]).double()
     t = torch.from_numpy(arrays["t"]).double()
     meta.setdefault("dt", grid_step(t))
