@@ -125,6 +125,21 @@ def test_command_line_typos_get_a_did_you_mean(args, match):
         assert "+" not in str(err.value)
 
 
+def test_an_unquoted_function_call_in_an_inline_equation_gets_the_quoting_advice():
+    from mpsim.config import compose_command, register_schemas
+
+    register_schemas()
+    args = ["system=pendulum2", "model=equations", "model.states=[theta,omega]", "model.params={g: 9.0}"]
+    for bad in ("model.equations={theta: omega, omega: -g*sin(theta)}", "model.equations={omega: log(theta)}"):
+        with pytest.raises(ConfigError, match=r"cannot parse.*In model.equations=\.\.\., quote every expression"):
+            compose_command("train", [*args, bad], str(CONF))
+    cfg = compose_command("train", [*args, 'model.equations={theta: omega, omega: "-g*sin(theta)"}'], str(CONF))
+    assert cfg is not None and cfg.model.equations.omega == "-g*sin(theta)"  # the advice given works
+    with pytest.raises(ConfigError) as err:  # a parse error elsewhere gets no quoting advice
+        compose_command("train", ["trainer.lr=[1,"], str(CONF))
+    assert "quote every expression" not in str(err.value)
+
+
 def test_a_key_with_no_close_match_lists_each_key_once():
     # a top-level name is also looked up among the config groups, most of which are keys already
     from mpsim.config import compose_command, register_schemas

@@ -404,6 +404,26 @@ def _sweep_variants(args: list[str]) -> list[list[str]] | None:
     return variants[:MAX_SWEEP_CHECKS]
 
 
+def _quote_hint(overrides: list[str]) -> str:
+    """Advice for the override Hydra could not parse when its value holds a call, e.g. an inline equation
+    `omega: -g*sin(theta)`: Hydra reads `sin(...)` as one of its own functions unless the expression is quoted."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parser = OverridesParser.create()
+    for arg in overrides:
+        key, _, value = arg.partition("=")
+        if "(" not in value:
+            continue
+        try:
+            parser.parse_override(arg)
+        except Exception:  # noqa: BLE001 - Hydra raises several kinds for one unparsable override
+            return (
+                f". In {key}=..., quote every expression that calls a function, inside the single quotes: "
+                f"'{key}={{omega: \"-g*sin(theta)\"}}' (or write it in a spec file)"
+            )
+    return ""
+
+
 def compose_command(command: str, args: list[str], config_dir: str) -> DictConfig | None:
     """Compose `command`'s config from its command-line `args` exactly as the run will, and check it.
 
@@ -424,7 +444,7 @@ def compose_command(command: str, args: list[str], config_dir: str) -> DictConfi
     try:
         variants = _sweep_variants(overrides)
     except OverrideParseException as err:
-        raise ConfigError(f"cannot parse the command line: {_one_line(err)}") from None
+        raise ConfigError(f"cannot parse the command line: {_one_line(err)}{_quote_hint(overrides)}") from None
     if variants is None:
         return None
 
