@@ -176,8 +176,10 @@ def test_spec_file_reading(tmp_path):
     (tmp_path / "list.yaml").write_text("- 1\n- 2\n")
     (tmp_path / "bad.yaml").write_text("states: [x\n")
     (tmp_path / "obj.yaml").write_text("!!python/object/apply:os.system ['true']\n")
+    (tmp_path / "folder.yaml").mkdir()
     for name, message in [
         ("missing.yaml", "does not exist"),
+        ("folder.yaml", "folder.yaml is a folder; give a path to a YAML file"),
         ("list.yaml", "not a mapping"),
         ("bad.yaml", "cannot read spec file"),
         ("obj.yaml", "cannot read spec file"),

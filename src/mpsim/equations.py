@@ -81,7 +81,7 @@ def load_spec_file(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise ConfigError(
-            f"spec file {path} does not exist; give a path to a YAML file (absolute, or relative to "
+            f"spec file {path} {'is a folder' if path.is_dir() else 'does not exist'}; give a path to a YAML file (absolute, or relative to "
             "the directory you started mpsim from)."
         )
     try:
