@@ -124,6 +124,18 @@ def test_unknown_extension(tmp_path):
         load_trajectories(tmp_path / "d.txt")
 
 
+def test_a_folder_given_as_a_data_file_or_edge_list_is_named_as_one(tmp_path, traj):
+    (tmp_path / "runs.csv").mkdir()
+    for path in (tmp_path, tmp_path / "runs.csv"):
+        with pytest.raises(DataError, match="is a folder, not a file"):
+            load_trajectories(path)
+    csv_path, _ = save_csv(traj, tmp_path / "d.csv")
+    with pytest.raises(DataError, match=r"edge list .* is a folder, not a file; pass data.edges"):
+        load_trajectories(csv_path, edges=tmp_path)
+    with pytest.raises(DataError, match="does not exist"):
+        load_trajectories(tmp_path / "none.npz")
+
+
 def test_container_checks_time_grid():
     with pytest.raises(DataError, match="strictly increasing"):
         Trajectories(t=torch.tensor([0.0, 1.0, 1.0]), x=torch.zeros(1, 3, 1, 1), edge_index=torch.zeros(2, 0).long())

@@ -139,7 +139,7 @@ def load_csv(
     """
     path = Path(path)
     if not path.is_file():
-        raise DataError(f"data file {path} does not exist.")
+        raise DataError(f"data file {path} {_not_a_file(path)}.")
     try:
         frame = pd.read_csv(path)
     except Exception as err:  # noqa: BLE001
@@ -243,11 +243,16 @@ def load_csv(
     )
 
 
+def _not_a_file(path: Path) -> str:
+    """Why `path` cannot be read as a file: it is a folder, or nothing is there."""
+    return "is a folder, not a file" if path.is_dir() else "does not exist"
+
+
 def load_edges(path: str | Path, n_nodes: int, traj_labels: Any = None) -> torch.Tensor:
     """Edge list CSV (``src, dst`` [, ``traj``]) → [2, E] or [B, 2, E] padded with −1."""
     path = Path(path)
     if not path.is_file():
-        raise DataError(f"edge list {path} does not exist; pass data.edges=<path> (columns src,dst).")
+        raise DataError(f"edge list {path} {_not_a_file(path)}; pass data.edges=<path> (columns src,dst).")
     try:
         frame = pd.read_csv(path)
     except Exception as err:  # noqa: BLE001
@@ -289,8 +294,8 @@ def load_trajectories(
 ) -> Trajectories:
     """Load `.npz` or `.csv` by extension."""
     path = Path(path)
-    if not path.exists():
-        raise DataError(f"data file {path} does not exist (data.path={path}).")
+    if not path.is_file():
+        raise DataError(f"data file {path} {_not_a_file(path)} (data.path={path}).")
     if path.suffix == ".npz":
         ei = load_edges(edges, _npz_nodes(path)) if edges else edge_index
         return load_npz(path, ei)
