@@ -125,7 +125,7 @@ def test_command_line_typos_get_a_did_you_mean(args, match):
         assert "+" not in str(err.value)
 
 
-def test_an_unquoted_function_call_in_an_inline_equation_gets_the_quoting_advice():
+def test_an_unquoted_call_or_nested_override_gets_the_quoting_advice():
     from mpsim.config import compose_command, register_schemas
 
     register_schemas()
@@ -135,6 +135,14 @@ def test_an_unquoted_function_call_in_an_inline_equation_gets_the_quoting_advice
             compose_command("train", [*args, bad], str(CONF))
     cfg = compose_command("train", [*args, 'model.equations={theta: omega, omega: "-g*sin(theta)"}'], str(CONF))
     assert cfg is not None and cfg.model.equations.omega == "-g*sin(theta)"  # the advice given works
+    with pytest.raises(ConfigError, match=r'In bench.cases=\.\.\., quote every item that holds "="'):
+        compose_command(
+            "bench", ["bench=epoch_time", "bench.cases=[{name: x, overrides: [system=lorenz3]}]"], str(CONF)
+        )
+    nested = compose_command(
+        "bench", ["bench=epoch_time", "bench.cases=[{name: x, overrides: ['system=lorenz3']}]"], str(CONF)
+    )
+    assert nested is not None and list(nested.bench.cases[0].overrides) == ["system=lorenz3"]
     with pytest.raises(ConfigError) as err:  # a parse error elsewhere gets no quoting advice
         compose_command("train", ["trainer.lr=[1,"], str(CONF))
     assert "quote every expression" not in str(err.value)

@@ -405,22 +405,25 @@ def _sweep_variants(args: list[str]) -> list[list[str]] | None:
 
 
 def _quote_hint(overrides: list[str]) -> str:
-    """Advice for the override Hydra could not parse when its value holds a call, e.g. an inline equation
-    `omega: -g*sin(theta)`: Hydra reads `sin(...)` as one of its own functions unless the expression is quoted."""
+    """Advice for the override Hydra could not parse when its value holds a call or an `=`: an inline equation
+    `omega: -g*sin(theta)` (Hydra reads `sin(...)` as one of its own functions) or a nested override
+    `overrides: [system=lorenz3]`; quoted inside the override, either is a plain string."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     parser = OverridesParser.create()
     for arg in overrides:
         key, _, value = arg.partition("=")
-        if "(" not in value:
+        if "(" not in value and "=" not in value:
             continue
         try:
             parser.parse_override(arg)
         except Exception:  # noqa: BLE001 - Hydra raises several kinds for one unparsable override
-            return (
-                f". In {key}=..., quote every expression that calls a function, inside the single quotes: "
-                f"'{key}={{omega: \"-g*sin(theta)\"}}' (or write it in a spec file)"
-            )
+            if "(" in value:
+                return (
+                    f". In {key}=..., quote every expression that calls a function, inside the single quotes: "
+                    f"'{key}={{omega: \"-g*sin(theta)\"}}' (or write it in a spec file)"
+                )
+            return f'. In {key}=..., quote every item that holds "=", inside the single quotes: [..., "system=lorenz3"]'
     return ""
 
 
