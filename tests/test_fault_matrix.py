@@ -179,6 +179,13 @@ def _replace_export(ws, d):
     return ["train", *TINY_TRAIN, "eval.plots=false"]
 
 
+def _damaged_metrics(ws: Path, d: Path, text: str) -> list[str]:
+    """A copy of the trained run whose metrics.csv is not the table a trainer writes, drawn by layout=curves."""
+    shutil.copytree(lorenz_run(ws), d / "runs" / "r")
+    (d / "runs" / "r" / "metrics.csv").write_text(text)
+    return ["report", "layout=curves", f"runs=[{d / 'runs'}]"]
+
+
 def _damaged_history(p: dict) -> None:
     """A trainer state whose history rows are longer than its columns."""
     p["trainer"] = {"history_json": '{"columns": ["epoch"], "rows": [[1, 2]]}'}
@@ -343,6 +350,10 @@ CASES: dict[str, Case] = {
         lambda w, d: ((d / "d.txt").write_text("1"), data_args(d / "d.txt"))[1], 2, "unknown data format"
     ),
     # -- report
+    "report_metrics_text": Case(
+        lambda w, d: _damaged_metrics(w, d, "epoch,test_error\n1,abc\n"), 2, "holds 'abc' in row 2"
+    ),
+    "report_metrics_columns": Case(lambda w, d: _damaged_metrics(w, d, "a,b\n1,2\n"), 2, "has no epoch or test_error"),
     "report_corrupt_summary": Case(
         lambda w, d: (
             (d / "runs/a").mkdir(parents=True),

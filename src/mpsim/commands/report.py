@@ -28,6 +28,7 @@ from mpsim.commands.report_layouts import (
     DEFAULT_TITLES,
     LAYOUT_FUNCS,
     mark_variants,
+    read_metrics,
     read_overrides,
     run_facts,
     run_settings,
@@ -212,9 +213,8 @@ def add_epochs_to_target(frame: pd.DataFrame, target: str | float) -> float:
     """
     curves = {}
     for run in frame["run"]:
-        path = Path(run) / "metrics.csv"
-        if path.is_file():
-            m = pd.read_csv(path)
+        m = read_metrics(run)
+        if m is not None:
             curves[run] = m[m["epoch"] >= 1]
     if target == "max_min":
         value = max(float(c["test_error"].min()) for c in curves.values()) if curves else math.nan

@@ -376,11 +376,33 @@ def settings_caption(frame: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
-def _curve(run: str) -> pd.DataFrame | None:
+def read_metrics(run: str | Path) -> pd.DataFrame | None:
+    """A run's `metrics.csv` (None where it has none, or no rows yet), every column numeric. A file that is not
+    such a table (not CSV, no `epoch` or `test_error` column, text where a number belongs) is a DataError naming
+    the file, the column and the row."""
     path = Path(run) / "metrics.csv"
     if not path.is_file():
         return None
-    m = pd.read_csv(path)
+    try:
+        m = pd.read_csv(path)
+    except pd.errors.EmptyDataError:
+        return None
+    except (pd.errors.ParserError, UnicodeDecodeError, ValueError) as err:
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise DataError(f"{path} cannot be read as CSV ({first}); restore it or move the run out of runs.") from None
+    missing = [c for c in ("epoch", "test_error") if c not in m]
+    if missing:
+        raise DataError(f"{path} has no {' or '.join(missing)} column; it is not a metrics.csv that mpsim train wrote.")
+    for column in m.columns:
+        values = pd.to_numeric(m[column], errors="coerce")
+        bad = values.isna() & m[column].notna()
+        if bad.any():
+            row = int(bad.to_numpy().nonzero()[0][0])
+            raise DataError(
+                f"{path}: column {column!r} holds {m[column].iloc[row]!r} in row {row + 2} (not a number); "
+                "restore the file or move the run out of runs."
+            )
+        m[column] = values
     return m if len(m) else None
 
 
@@ -800,7 +822,7 @@ def curves(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
             loaded = [
                 c.assign(test_error=c["test_error"] * (_run_scale(fact) if raw else 1.0))
                 for fact in runs.to_dict("records")
-                if (c := _curve(fact["run"])) is not None
+                if (c := read_metrics(fact["run"])) is not None
             ]
             if not loaded:
                 continue
@@ -901,7 +923,7 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
         part = mp[mp["system"] == system]
         rows, by_epoch = [], []
         # compared at the quarters of the longest MP-NODE run (L2S may run longer: 10000 epochs against 4000)
-        curves = {r: c for r in part["run"] if (c := _curve(r)) is not None}  # each metrics.csv read once
+        curves = {r: c for r in part["run"] if (c := read_metrics(r)) is not None}  # each metrics.csv read once
         epochs = _checkpoint_epochs(list(curves.values()))
         for (m, variant), runs in sorted(
             part.groupby(["message_size", "variant"]), key=lambda kv: (int(kv[0][0]), kv[0][1])
@@ -958,7 +980,7 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
                 }
             )
             rows.append([name, n, pm(ref, ref_sd, 3), "", ""])
-            l2s_curves = [c for c in (_curve(r) for r in l2s["run"]) if c is not None]
+            l2s_curves = [c for c in (read_metrics(r) for r in l2s["run"]) if c is not None]
             for c in l2s_curves:
                 caxes[1, k].plot(c["epoch"], c["test_error"], color="tab:red", linestyle="--", linewidth=0.8)
             if l2s_curves and epochs:
@@ -999,7 +1021,7 @@ def messages(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
     records, sections = [], []
     for k, system in enumerate(systems):
         part = train[train["system"] == system]
-        curves = {r: c for r in part["run"] if (c := _curve(r)) is not None}  # each metrics.csv read once
+        curves = {r: c for r in part["run"] if (c := read_metrics(r)) is not None}  # each metrics.csv read once
         epochs = _checkpoint_epochs(list(curves.values()))
         rows, by_epoch, cell = [], [], {}
         # messages on first
