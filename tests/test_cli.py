@@ -126,6 +126,7 @@ def test_trained_file_data_round_trip(tmp_path):
     assert (
         summary["data"]["source"].endswith("trajectories.csv") and summary["data"]["train"] == 7
     )  # 9 trajectories split 0.7/0.15/0.15 → 7/1/1
+    assert sim.name.endswith("_pendulum2") and _runs(tmp_path)[-1].name.endswith("_trajectories")  # named by its data
 
 
 def test_sweep_gives_every_job_its_own_directory(lorenz_ws):

@@ -177,7 +177,17 @@ class BenchConf:
     device: str = "cpu"  # cpu | cuda | auto: passed to suites that take a device
 
 
+def run_name(system_choice: str, data_path: Any = None) -> str:
+    """The suffix of a run's directory: the data file's name when the run reads one (`data.path`), else the
+    system's (`outputs/train/<date>/<time>_<this>`), reduced to ``[A-Za-z0-9_.-]``."""
+    if not data_path:
+        return system_choice
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", Path(str(data_path)).stem).strip("._") or system_choice
+
+
 def register_schemas() -> None:
+    if not OmegaConf.has_resolver("mpsim_run_name"):  # for hydra/output/mpsim.yaml's run directory
+        OmegaConf.register_new_resolver("mpsim_run_name", run_name)
     cs = ConfigStore.instance()
     cs.store(name="_train_schema", node=TrainConf)
     cs.store(name="_eval_schema", node=EvalCmdConf)
