@@ -225,6 +225,10 @@ CASES: dict[str, Case] = {
     ),
     "simulate_n_zero": Case(lambda w, d: ["simulate", "n=0"], 2, "n=0"),
     "simulate_training_seed": Case(lambda w, d: ["simulate", "n=2", "seed=7"], 2, "Pass data.seed=7 instead"),
+    "noise_overflow": Case(lambda w, d: ["train", *TINY_TRAIN, "data.noise_std=1e40"], 2, "data.noise_std=1e+40"),
+    "smnn_record_shorter_than_context": Case(
+        lambda w, d: ["train", "model=smnn_forecast", *TINY_TRAIN[:-1], "data.horizon=2"], 2, "use data.horizon >= 10"
+    ),
     "simulate_blowup": Case(  # the ground truth cannot be integrated at these parameters (train shares the path)
         lambda w, d: ["simulate", "system=lorenz3", "n=2", "data.horizon=5", "system.sigma=1e300"],
         2,

@@ -131,6 +131,19 @@ def check_training_memory(
     )
 
 
-def noisy_train(splits: Splits, std: torch.Tensor, scale: float, seed: int) -> Splits:
-    """Training split with measurement noise (`data.noise_std` × feature std); val/test stay clean."""
-    return Splits(train=add_noise(splits.train, std, scale, seed), val=splits.val, test=splits.test)
+def noisy_train(
+    splits: Splits,
+    std: torch.Tensor,  # [D] per-feature std of the training states
+    scale: float,
+    seed: int,
+    dtype: torch.dtype = torch.float32,  # what the run computes in
+) -> Splits:
+    """Training split with measurement noise (`data.noise_std` × feature std); val/test stay clean. A noise level
+    whose states `dtype` cannot hold is a ConfigError (they would become inf)."""
+    train = add_noise(splits.train, std, scale, seed)
+    if float(train.x.abs().max()) > torch.finfo(dtype).max:
+        raise ConfigError(
+            f"data.noise_std={scale:g} (times each feature's std) makes training states beyond the largest "
+            f"{str(dtype).split('.')[-1]} ({torch.finfo(dtype).max:.2g}); give a noise level of the order of 0.01–1."
+        )
+    return Splits(train=train, val=splits.val, test=splits.test)

@@ -100,7 +100,8 @@ def _run(cfg: DictConfig, rt: Runtime, ctx: DistContext) -> dict:
             write_json(rt.output_dir / "data.json", {"path": str(data_file), "sha256": file_sha256(data_file)})
     init_path = last.get("init") if last is not None else (None if ckpt is None else ckpt["path"])
     if cfg.data.noise_std > 0:
-        splits = noisy_train(splits, model.state_std.detach().cpu().double(), cfg.data.noise_std, cfg.data.seed)
+        std = model.state_std.detach().cpu().double()
+        splits = noisy_train(splits, std, cfg.data.noise_std, cfg.data.seed, rt.dtype)
     train, val, test = splits.train, splits.val, splits.test
     if last is None:
         log.info(

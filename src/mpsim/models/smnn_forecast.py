@@ -161,7 +161,13 @@ class SMNNForecaster(Model):
         context = x0[:, None] if x0.dim() == 3 else x0
         b, k, n, d = context.shape
         if k != self.context_steps:
-            raise ConfigError(f"SMNNForecaster reads {self.context_steps} context states; got {k}.")
+            fix = (
+                f" The records hold {k} time points: use data.horizon >= {self.context_steps} or a smaller "
+                "model.context_steps."
+                if k < self.context_steps
+                else ""
+            )
+            raise ConfigError(f"SMNNForecaster reads {self.context_steps} context states; got {k}.{fix}")
         if t.shape[0] <= k:
             return context[:, : t.shape[0]]
         if self.whole_state:  # one node whose state is every node's state
