@@ -29,3 +29,35 @@ def test_effect_kinds_are_one_list():
 def test_an_unknown_kind_is_refused_with_a_suggestion():
     with pytest.raises(ConfigError, match="'LinearDamping'"):
         DiagnoseParams(kinds=["LinearDampin"])
+
+
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        ({"n_boot": 0}, "diagnose.n_boot must be >= 1"),  # was a ZeroDivisionError deep in the selection
+        ({"rounds": 0}, "diagnose.rounds must be >= 1"),
+        ({"fit_window": 1}, "diagnose.fit_window must be >= 2"),
+        ({"horizon": 0}, "diagnose.horizon >= 1"),
+        ({"margin": float("nan")}, "diagnose.margin must be a finite number >= 0"),
+        ({"tolerance": 0.0}, "diagnose.tolerance must be a finite number > 0"),
+        ({"delays": [0.5, -1.0]}, "diagnose.delays must be times > 0"),
+    ],
+)
+def test_settings_out_of_range_are_refused(change, match):
+    with pytest.raises(ConfigError, match=match):
+        DiagnoseParams(**change)
+    DiagnoseParams(min_explained=1.5, horizon=3, delays=[0.5])  # in range, even where unreachable, is accepted
+
+
+def test_windows_too_short_for_a_phased_drive_say_so():
+    # a model that tracks the data for 2 steps gives 2-step windows: no step is left after the phase's warm-up
+    import torch
+
+    from mpsim.data.trajectories import Trajectories
+    from mpsim.diagnose.heldout import phased_heldout
+    from mpsim.errors import DataError
+
+    data = Trajectories(t=torch.arange(3) * 0.1, x=torch.zeros(2, 3, 2, 1), edge_index=torch.zeros(2, 0).long())
+    trial = type("Trial", (), {"effects": [object()]})()
+    with pytest.raises(DataError, match="windows are 2 steps.*diagnose.horizon=3 or more"):
+        phased_heldout(None, trial, data, 2, 1)

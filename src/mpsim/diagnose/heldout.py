@@ -38,7 +38,7 @@ from mpsim.diagnose.shooting import (
     window_error,
     with_effect,
 )
-from mpsim.errors import ConfigError, did_you_mean
+from mpsim.errors import ConfigError, DataError, did_you_mean
 from mpsim.models.base import Model
 from mpsim.models.capabilities import Interpretable
 
@@ -366,6 +366,12 @@ def phased_heldout(current: Model, trial: Model, data: Trajectories, horizon: in
 
     drive = cast(Any, trial.effects[-1])  # the candidate drive (a Module list holds Modules)
     warm = max(2, min(horizon, (data.n_times - 1) // 4))
+    if data.n_times < warm + 2:  # no step left to test on after the warm-up
+        raise DataError(
+            f"diagnose: the held-out windows are {data.n_times - 1} steps (the model tracks the data for only "
+            f"{horizon} before its error passes diagnose.vpt_threshold), too short to fit a periodic drive's phase "
+            "and then test it. Give diagnose.horizon=3 or more, or leave PeriodicForcing out of diagnose.kinds."
+        )
     head, tail = data.time_slice(0, warm + 1), data.time_slice(warm, data.n_times)
     res = one_step_residual(current, head)
     r = res.r[..., drive.target].mean(dim=2).nan_to_num()  # [B, warm]

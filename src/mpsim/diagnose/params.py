@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from mpsim.errors import ConfigError, did_you_mean
@@ -94,5 +95,24 @@ class DiagnoseParams:
                     f"diagnose.kinds: unknown effect kind {kind!r}; the library holds {', '.join(DEFAULT_KINDS)}."
                     + did_you_mean(str(kind), DEFAULT_KINDS)
                 )
+        counts = ("n_boot", "screen_trajectories", "fit_trajectories", "max_candidates", "shooting_iters", "rounds")
+        for name in counts:
+            if int(getattr(self, name)) < 1:
+                raise ConfigError(f"diagnose.{name} must be >= 1; got {getattr(self, name)}.")
+        if self.fit_window < 2 or (self.horizon is not None and self.horizon < 1):
+            raise ConfigError(
+                f"diagnose.fit_window must be >= 2 and diagnose.horizon >= 1 (or null); got {self.fit_window}, "
+                f"{self.horizon}."
+            )
+        levels = ("min_gain", "null_factor", "min_inclusion", "margin", "min_explained", "structured_factor")
+        for name in (*levels, "tolerance", "vpt_threshold", "fix_lr_factor"):
+            value = float(getattr(self, name))
+            positive = name in ("tolerance", "vpt_threshold", "fix_lr_factor")
+            if not math.isfinite(value) or value < 0 or (positive and value == 0):
+                raise ConfigError(
+                    f"diagnose.{name} must be a finite number {'> 0' if positive else '>= 0'}; got {value}."
+                )
+        if any(not math.isfinite(float(d)) or float(d) <= 0 for d in self.delays or []):
+            raise ConfigError(f"diagnose.delays must be times > 0; got {list(self.delays or [])}.")
         if self.jobs is not None and self.jobs < 1:
             raise ConfigError(f"diagnose.jobs must be >= 1 or null (one per CPU core); got {self.jobs}.")
