@@ -241,6 +241,10 @@ def test_config_errors(quad3: QuadrotorSwarm) -> None:
         QuadrotorSwarm(n_quads=1).generate(n=1, seed=0, horizon=2)
     with pytest.raises(ConfigError, match="burn_in"):
         quad3.generate(n=1, seed=0, horizon=2, burn_in=3)
+    with pytest.raises(ConfigError, match=r"system.quad_mass must be > 0"):  # was a ZeroDivisionError mid-step
+        QuadrotorSwarm(quad_mass=0.0)
+    with pytest.raises(ConfigError, match=r"system.cable_length, system.inertia\[2\] must be > 0.*got -1.0, nan"):
+        QuadrotorSwarm(cable_length=-1.0, inertia=(0.0023, 0.0023, float("nan")))
     with pytest.raises(IncompatibleError, match="load"):
         quad3.rhs(torch.tensor(0.0), torch.zeros(1, 3, 13, dtype=F64))
 

@@ -181,6 +181,14 @@ class QuadrotorSwarm(System):
             raise ConfigError(f"system.u_sampling must be 'mean' or 'first'; got {u_sampling!r}.")
         if control_dt <= 0 or substeps < 1:
             raise ConfigError(f"need control_dt > 0 and substeps >= 1; got {control_dt}, {substeps}.")
+        physical = {"quad_mass": quad_mass, "load_mass": load_mass, "arm": arm, "cable_length": cable_length}
+        physical.update({f"inertia[{k}]": v for k, v in enumerate(inertia)})
+        bad = {k: v for k, v in physical.items() if not (math.isfinite(float(v)) and float(v) > 0)}
+        if bad:
+            raise ConfigError(
+                f"system.{', system.'.join(bad)} must be > 0 (masses, lengths, moments of inertia); got "
+                f"{', '.join(str(v) for v in bad.values())}."
+            )
         super().__init__(name, n_quads, complete(n_quads), effects)
         self.dt, self.horizon = float(dt), int(horizon)
         self.control_dt, self.substeps = float(control_dt), int(substeps)
