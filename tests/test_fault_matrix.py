@@ -350,6 +350,7 @@ CASES: dict[str, Case] = {
     ),
     "npz_missing_x": Case(lambda w, d: data_args(write_npz(d, x=None)), 2, "missing array(s) ['x']"),
     "data_missing_file": Case(lambda w, d: data_args(d / "nothing.npz"), 2, "does not exist"),
+    "data_path_folder": Case(lambda w, d: ((d / "runs.npz").mkdir(), data_args(d / "runs.npz"))[1], 2, "is a folder"),
     "data_unknown_format": Case(
         lambda w, d: ((d / "d.txt").write_text("1"), data_args(d / "d.txt"))[1], 2, "unknown data format"
     ),

@@ -177,12 +177,15 @@ class BenchConf:
     device: str = "cpu"  # cpu | cuda | auto: passed to suites that take a device
 
 
+def file_stem(path: str | Path) -> str:
+    """A file's name without its suffix, reduced to ``[A-Za-z0-9_.-]`` (a name for runs and systems); may be ""."""
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", Path(str(path)).stem).strip("._")
+
+
 def run_name(system_choice: str, data_path: Any = None) -> str:
     """The suffix of a run's directory: the data file's name when the run reads one (`data.path`), else the
-    system's (`outputs/train/<date>/<time>_<this>`), reduced to ``[A-Za-z0-9_.-]``."""
-    if not data_path:
-        return system_choice
-    return re.sub(r"[^A-Za-z0-9_.-]", "_", Path(str(data_path)).stem).strip("._") or system_choice
+    system's (`outputs/train/<date>/<time>_<this>`)."""
+    return (file_stem(data_path) if data_path else "") or system_choice
 
 
 def register_schemas() -> None:

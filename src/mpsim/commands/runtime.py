@@ -7,7 +7,6 @@ This is the command layer: the only code that reads config objects. Everything b
 from __future__ import annotations
 
 import os
-import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,7 +15,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, open_dict
 
-from mpsim.config import check_targets, validate_values
+from mpsim.config import check_targets, file_stem, validate_values
 from mpsim.errors import ConfigError
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
@@ -110,7 +109,7 @@ def inline_specs(cfg: DictConfig) -> None:
         with open_dict(cfg):
             node.spec = content
             if key == "system" and "name" in node and node.name is None and not content.get("name"):
-                node.name = re.sub(r"[^A-Za-z0-9_.-]", "_", path.stem)
+                node.name = file_stem(path) or "equations"
 
 
 def resolve_path(path: str | Path, start_dir: Path) -> Path:
