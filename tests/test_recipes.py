@@ -201,6 +201,30 @@ def test_diagnose_cases_refuses_an_unknown_case_before_simulating_anything(tmp_p
     assert "diagnose_cases.sh: unknown value 'b_vdpp' in CASES" in proc.stderr and calls == []
 
 
+@pytest.mark.parametrize("jobs", [1, 3])
+def test_diagnose_cases_runs_jobs_at_once_each_run_in_its_own_checkpoint_folder(tmp_path, jobs):
+    env = dict(CASES="a_damped case1 clean", SEEDS="0 1", NOISES="0", JOBS=str(jobs))
+    proc, calls = run_recipe("diagnose_cases.sh", tmp_path, STUB_SLOW="fix=true", STUB_SLOW_S="2", **env)
+    assert proc.returncode == 0, proc.stderr
+    runs = {}  # checkpoint folder -> the commands that used it
+    for c in calls:
+        if c[0] in ("train", "diagnose"):
+            runs.setdefault(_arg(c, "paths.ckpt_dir"), []).append(c[0])
+    out = tmp_path / "diagnose_cases.sh"
+    assert sorted(runs) == sorted(
+        str(out / r / "checkpoints") for r in ("a_damped", "case1", "clean/noise0/seed0", "clean/noise0/seed1")
+    )
+    assert all(sorted(v) == ["diagnose", "train"] for v in runs.values())
+    # how many diagnoses had begun when the first one finished: all at once up to JOBS, one by one with JOBS=1
+    first_done = next(i for i, c in enumerate(calls) if c[0] == "finished")
+    assert sum(c[0] == "diagnose" for c in calls[:first_done]) == min(jobs, 4)
+
+
+def test_diagnose_cases_refuses_jobs_zero(tmp_path):
+    proc, calls = run_recipe("diagnose_cases.sh", tmp_path, CASES="case1", JOBS="0")
+    assert proc.returncode == 2 and "JOBS" in proc.stderr and calls == []
+
+
 @pytest.mark.parametrize("seeds", ["0,1", "0 1"])  # lists take commas or spaces in every recipe
 def test_table1_seeds_take_commas_or_spaces(tmp_path, seeds):
     proc, calls = run_recipe("table1.sh", tmp_path, SEEDS=seeds, MODELS="mpnode")
