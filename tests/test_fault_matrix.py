@@ -234,6 +234,11 @@ CASES: dict[str, Case] = {
         2,
         "cannot simulate CoupledLorenz",
     ),
+    "simulate_dt_far_too_long": Case(  # a fixed-step ground truth (velocity Verlet) would take 8e8 steps: it hung
+        lambda w, d: ["simulate", "system=nbody20", "n=2", "data.horizon=2", "data.dt=1e6"],
+        2,
+        "cannot simulate nbody20: one sampling interval of 1e+06 needs 8e+08 integrator steps",
+    ),
     "sweep_bad_value": Case(lambda w, d: ["train", "-m", *TINY_TRAIN, "data.n_train=4,-1"], 2, "data.n_train=-1"),
     "unknown_command": Case(lambda w, d: ["frobnicate"], 2, "unknown command 'frobnicate'"),
     # -- output locations that cannot be written: refused before any work

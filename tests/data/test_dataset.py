@@ -125,3 +125,21 @@ def test_a_sampling_step_far_too_long_ends_with_a_message_not_a_hang(monkeypatch
     with pytest.raises(ConfigError, match="too many steps for one sampling interval.*data.dt"):
         generate(CoupledPendulums(), 2, 0, dt=50.0, horizon=2)
     assert len(generate(CoupledPendulums(), 2, 0, dt=0.1, horizon=2).x[0]) == 3  # the defaults are far inside it
+
+
+@pytest.mark.parametrize("case", ["nbody", "quadrotor", "delay"])
+def test_a_fixed_step_ground_truth_refuses_a_sampling_step_far_too_long(case):
+    # the fixed-step integrators (N-body velocity Verlet, quadrotor RK4 per 100 Hz tick, delay RK4) would take
+    # 1e8+ steps per interval for data.dt=1e6: each refuses before its first step, naming the system and its own dt
+    from mpsim.effects import DelayedFeedback
+    from mpsim.systems import NBody, QuadrotorSwarm
+
+    system, dt = {
+        "nbody": (NBody(n_particles=3), 0.01),
+        "quadrotor": (QuadrotorSwarm(n_quads=3), 0.05),
+        "delay": (CoupledPendulums(effects=[DelayedFeedback(-0.1, delay=0.5, target="omega", source="theta")]), 0.1),
+    }[case]
+    with pytest.raises(ConfigError, match=rf"cannot simulate {system.name}: .* far too long .*data.dt={dt:g}"):
+        generate(system, 2, 0, dt=1e6, horizon=2)
+    if case != "quadrotor":  # (its 3-quad flight takes seconds; tests/systems/test_quadrotor.py flies it)
+        assert len(generate(system, 2, 0, dt=dt, horizon=2).x[0]) == 3

@@ -15,6 +15,12 @@ import torch
 from mpsim.errors import ConfigError, DivergenceError
 
 
+def delay_substeps(interval: float, step: float, min_delay: float) -> int:
+    """RK4 steps per output interval in `rk4_delay`: no longer than `step` nor than the smallest delay."""
+    h_max = min(step, min_delay) if min_delay > 0 else step
+    return max(1, math.ceil(interval / h_max - 1e-9))
+
+
 def rk4_delay(
     func: Callable[[torch.Tensor, torch.Tensor, Callable[[torch.Tensor], torch.Tensor]], torch.Tensor],
     y0: torch.Tensor,  # [B, ...] initial state (also the constant history before t0)
@@ -33,8 +39,7 @@ def rk4_delay(
     dt_out = float(t[1] - t[0]) if t.numel() > 1 else step
     if t.numel() > 1 and not torch.allclose(t[1:] - t[:-1], torch.full_like(t[1:], dt_out), rtol=1e-4, atol=1e-6):
         raise ConfigError("delay effects need a uniform time grid.")
-    h_max = min(step, min_delay) if min_delay > 0 else step
-    sub = max(1, math.ceil(dt_out / h_max - 1e-9))
+    sub = delay_substeps(dt_out, step, min_delay)
     h = dt_out / sub
     t0 = float(t[0])
     states = [y0]  # states at t0 + k h

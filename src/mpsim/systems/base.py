@@ -17,12 +17,23 @@ from torchdiffeq import odeint
 from mpsim.data.trajectories import Trajectories, grid_step
 from mpsim.effects import EffectContext, min_delay, total
 from mpsim.errors import ConfigError
-from mpsim.solvers.dde import rk4_delay
+from mpsim.solvers.dde import delay_substeps, rk4_delay
 from mpsim.solvers.odeint import ADAPTIVE
 
 #: adaptive ground-truth steps allowed per sampling interval (the seed systems take 1–5 at their defaults): a
 #: sampling step far too long for the dynamics (`data.dt` in the wrong units) ends with a message, not a hang
 GROUND_TRUTH_MAX_STEPS = 20_000
+
+
+def check_fixed_steps(name: str, n_steps: int, interval: float, system_dt: float) -> None:
+    """Refuse a fixed-step ground truth that needs more than GROUND_TRUTH_MAX_STEPS steps per sampling interval:
+    `n_steps` steps for an interval of `interval` (`data.dt`); `system_dt` is the system's own sampling step."""
+    if n_steps > GROUND_TRUTH_MAX_STEPS:
+        raise ConfigError(
+            f"cannot simulate {name}: one sampling interval of {interval:g} needs {n_steps:.3g} integrator steps "
+            f"(at most {GROUND_TRUTH_MAX_STEPS}), so data.dt is far too long for this system (its own step is "
+            f"{system_dt:g}). Set data.dt in the system's time units, e.g. data.dt={system_dt:g}."
+        )
 
 
 class System:
@@ -140,6 +151,8 @@ class System:
     def _simulate(self, x0, t, rtol, atol, method) -> Trajectories:
         delay = min_delay(self.effects)
         if delay > 0:  # a delayed term needs the history: fixed-step RK4 with interpolated history
+            interval = float(t[1] - t[0]) if t.numel() > 1 else 0.0
+            check_fixed_steps(self.name, delay_substeps(interval, 1e-3, delay), interval, self.dt)
             x = rk4_delay(lambda tt, xx, hist: self.rhs(tt, xx, history=hist), x0, t, step=1e-3, min_delay=delay)
         else:
             options = {"max_num_steps": GROUND_TRUTH_MAX_STEPS} if method in ADAPTIVE else None

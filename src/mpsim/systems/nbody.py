@@ -43,7 +43,7 @@ import torch
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError
 from mpsim.periodic import minimum_image, wrap_positions
-from mpsim.systems.base import System
+from mpsim.systems.base import System, check_fixed_steps
 
 # Pairwise work is tiled so that one tile holds at most this many pairs. On a CPU a tile's temporaries
 # (512 kB each) stay in cache, which measured 2-4x faster than 16 MB tiles at N = 1000; on a GPU large tiles
@@ -271,6 +271,7 @@ class NBody(System):
         if base <= 0:
             raise ConfigError(f"time grid must increase; got step {base}.")
         n_sub = max(1, math.ceil(base / (self.dt / self.substeps) - 1e-9))
+        check_fixed_steps(self.name, n_sub, base, self.dt)
         b = x0.shape[0]
         if node_features is None:
             s, m = self._strengths(None, x0.shape[:-1], x0)

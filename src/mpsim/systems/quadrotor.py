@@ -28,7 +28,7 @@ import torch
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError, IncompatibleError
 from mpsim.graphs.topology import complete
-from mpsim.systems.base import System
+from mpsim.systems.base import System, check_fixed_steps
 from mpsim.systems.quadrotor_control import GeometricController
 from mpsim.systems.quadrotor_dynamics import Derivatives, QuadrotorPlant
 from mpsim.systems.quadrotor_scenarios import (
@@ -359,6 +359,7 @@ class QuadrotorSwarm(System):
                 f"quadrotor data need dt to be a whole multiple of control_dt={self.control_dt}; got dt={dt}. "
                 f"Set system.dt to e.g. {max(1, k) * self.control_dt:g}."
             )
+        check_fixed_steps(self.name, k * self.substeps, dt, self.dt)
         return k
 
     def rollout(self, scenario: DoorwayScenario, dt: float | None = None, horizon: int | None = None) -> SwarmRollout:
