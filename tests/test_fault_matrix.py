@@ -234,6 +234,11 @@ CASES: dict[str, Case] = {
         2,
         "cannot simulate CoupledLorenz",
     ),
+    "solver_step_too_small": Case(  # torchdiffeq's fixed grid for 1e-12 was a 20 TB allocation ("out of memory")
+        lambda w, d: ["train", *TINY_TRAIN, "solver=rk4", "solver.step_size=1e-12"],
+        2,
+        "solver.step_size=1e-12 needs 1e+11 rk4 steps",
+    ),
     "simulate_dt_far_too_long": Case(  # a fixed-step ground truth (velocity Verlet) would take 8e8 steps: it hung
         lambda w, d: ["simulate", "system=nbody20", "n=2", "data.horizon=2", "data.dt=1e6"],
         2,

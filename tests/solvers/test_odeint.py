@@ -140,3 +140,17 @@ def test_stacked_outputs_keep_the_backward_linear_in_the_number_of_outputs():
         return sum(sizes)
 
     assert copied(81) < 3 * copied(41)  # quadratic growth would give 4x
+
+
+def test_a_fixed_step_too_small_for_the_step_budget_is_refused_before_the_grid_is_built():
+    # torchdiffeq lays out the whole fixed grid at once: step_size=1e-12 over 0.1 asked for 20 TB (an OOM message
+    # that advised fewer trajectories); it is a setting, refused with the step count and a step that fits
+    y0, t = torch.ones(1, 2, dtype=torch.float64), torch.tensor([0.0, 0.1, 0.2], dtype=torch.float64)
+    with pytest.raises(ConfigError, match=r"step_size=1e-12 needs 1e\+11 rk4 steps .* of 0.1 .*e.g. 0.025"):
+        ODESolver("rk4", step_size=1e-12)(Oscillator(), y0, t)
+    with pytest.raises(ConfigError, match="step_size=0.001 needs 100 euler steps"):
+        ODESolver("euler", step_size=1e-3, max_num_steps=99)(Oscillator(), y0, t)
+    ys = ODESolver("euler", step_size=1e-3, max_num_steps=100)(Oscillator(), y0, t)  # exactly the budget: runs
+    assert ys.shape == (1, 3, 2)
+    with pytest.raises(ConfigError, match="max_num_steps must be >= 1; got 0"):
+        ODESolver("rk4", max_num_steps=0)

@@ -16,6 +16,7 @@ torchdiffeq's steps and values to rounding, with much less bookkeeping per step 
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
@@ -46,7 +47,8 @@ class ODESolver:
         step_size: step of fixed-step methods (None: one step per output interval).
         adjoint: backpropagate with the continuous adjoint (less memory, usually slower).
         max_num_steps: adaptive steps allowed per output interval before the rollout counts as diverged
-            (a learned field that became stiff would otherwise stall training).
+            (a learned field that became stiff would otherwise stall training); fixed-step methods refuse a
+            `step_size` that would need more steps than this per output interval.
         stacked: collect the outputs in a list and stack them (the default: same numbers, cheaper backward);
             false runs torchdiffeq's `odeint` as is, to measure the difference (`mpsim bench bench=mpnode`).
         implementation: who integrates dopri5 (stacked, without the adjoint): "mpsim" (`solvers/dopri5.py`: the
@@ -72,6 +74,8 @@ class ODESolver:
             raise ConfigError(f"solver.rtol and solver.atol must be > 0; got {rtol}, {atol}.")
         if step_size is not None and step_size <= 0:
             raise ConfigError(f"solver.step_size must be > 0 or null; got {step_size}.")
+        if max_num_steps < 1:
+            raise ConfigError(f"solver.max_num_steps must be >= 1; got {max_num_steps}.")
         self.method, self.rtol, self.atol = method, float(rtol), float(atol)
         self.step_size, self.adjoint, self.max_num_steps = step_size, bool(adjoint), int(max_num_steps)
         self.stacked = bool(stacked)
@@ -80,6 +84,18 @@ class ODESolver:
                 f"solver.implementation={implementation!r} is not known; choose one of {IMPLEMENTATIONS}."
             )
         self.implementation = implementation
+
+    def _check_fixed_steps(self, interval: float) -> None:
+        """Refuse a fixed step so small that one output interval would take more than max_num_steps steps
+        (torchdiffeq lays the whole grid out at once: solver.step_size=1e-12 asked for 20 TB)."""
+        assert self.step_size is not None
+        steps = math.ceil(interval / self.step_size - 1e-9)
+        if steps > self.max_num_steps:
+            raise ConfigError(
+                f"solver.step_size={self.step_size:g} needs {steps:.3g} {self.method} steps per sampling interval of "
+                f"{interval:.4g} (solver.max_num_steps={self.max_num_steps}). Use a larger solver.step_size, e.g. "
+                f"{interval / 4:.3g}, or null for one step per interval."
+            )
 
     @property
     def options(self) -> dict[str, Any]:
@@ -99,6 +115,8 @@ class ODESolver:
             DivergenceError: the state became NaN/inf or the adaptive step size underflowed.
         """
         t = t.to(device=y0.device, dtype=y0.dtype)
+        if self.step_size is not None and self.method in FIXED and t.numel() > 1:
+            self._check_fixed_steps(float((t[1:] - t[:-1]).abs().max()))
         own = self.method == "dopri5" and self.implementation == "mpsim" and self.stacked and not self.adjoint
         try:
             if own:
