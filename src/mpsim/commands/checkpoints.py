@@ -73,10 +73,19 @@ def check_checkpoint_system(ckpt: dict[str, Any], state_dim: int, control_dim: i
     meta = ckpt["system"]
     ck_d, ck_c = int(ckpt["model"]["state_dim"]), int(ckpt["model"].get("control_dim", 0))
     if ck_d != state_dim or ck_c != control_dim:
+        if ck_d == state_dim:  # the node state matches: only the inputs differ, and the data are what is off
+            fix = (
+                f"Give the data the {ck_c} control inputs per node the model was trained with (`u` [B, T, N, "
+                f"{ck_c}] in an .npz; data.control_columns=[...] for a CSV)"
+                if ck_c
+                else "This model takes no control inputs: drop `u` from the .npz (or data.control_columns)"
+            )
+        else:
+            fix = "Use a checkpoint of a system with the same node state, or drop init="
         raise IncompatibleError(
             f"{ckpt['path']} was trained on {meta.get('system')} ({ck_d} states {meta.get('state_names')}, "
             f"{ck_c} controls per node) but this data has {state_dim} states {state_names} and {control_dim} "
-            "controls per node. Use a checkpoint of a system with the same node state, or drop init=."
+            f"controls per node. {fix}."
         )
 
 
