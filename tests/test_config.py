@@ -125,6 +125,40 @@ def test_command_line_typos_get_a_did_you_mean(args, match):
         assert "+" not in str(err.value)
 
 
+@pytest.mark.parametrize(
+    ("args", "match"),
+    [
+        (["hydra.sweeper.n_trials=0"], "hydra.sweeper.n_trials=0: must be a whole number >= 1"),
+        (["hydra.sweeper.n_jobs=-1"], "hydra.sweeper.n_jobs=-1: must be a whole number >= 1"),
+        (["hydra.sweeper.direction=up"], "hydra.sweeper.direction=up: must be minimize or maximize"),
+        (["trainer.lr=tag(log,interval(0,1e-2))"], "a log-scale interval needs a low end > 0"),
+        (["trainer.lr=interval(1e-2,1e-3)"], r"interval\(0.01, 0.001\): the low end must not exceed the high end"),
+        (["model.hidden=interval(8,12)"], "model.hidden is a whole number, .* write range\\(8, 12\\)"),
+        (["hydra.sweeper.params.trainer.lr='tag(log, interval(1e-4, 1e-2))'"], "given on the key itself"),
+        (["hydra.sweeper.n_trial=3"], "Did you mean hydra.sweeper.n_trials?"),
+    ],
+)
+def test_an_optuna_search_is_checked_before_the_study_starts(args, match):
+    # each of these was a traceback from Optuna (after the study was created) or a wrong "hydra is not a config
+    # section"; they must be one message, before any trial
+    pytest.importorskip("hydra_plugins.hydra_optuna_sweeper")
+    from mpsim.config import compose_command, register_schemas
+
+    register_schemas()
+    with pytest.raises(ConfigError, match=match):
+        compose_command("train", ["hparams_search=mpnode_lorenz10", *args], str(CONF))
+    good = ["hparams_search=mpnode_lorenz10", "model.hidden=range(8,12)", "trainer.lr=tag(log, interval(1e-4, 1e-2))"]
+    assert compose_command("train", good, str(CONF)) is not None
+
+
+def test_an_interval_without_an_optuna_search_says_what_a_sweep_takes():
+    from mpsim.config import compose_command, register_schemas
+
+    register_schemas()
+    with pytest.raises(ConfigError, match="an interval is a search space.*e.g. trainer.lr=1e-3,3e-3,1e-2"):
+        compose_command("train", ["-m", "trainer.lr=interval(1e-3,1e-2)"], str(CONF))
+
+
 def test_an_unquoted_call_or_nested_override_gets_the_quoting_advice():
     from mpsim.config import compose_command, register_schemas
 

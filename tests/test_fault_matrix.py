@@ -244,6 +244,9 @@ CASES: dict[str, Case] = {
         2,
         "cannot simulate nbody20: one sampling interval of 1e+06 needs 8e+08 integrator steps",
     ),
+    "sweep_interval_without_search": Case(  # Hydra's BasicSweeper traceback ("does not support sweep type")
+        lambda w, d: ["train", "-m", *TINY_TRAIN, "trainer.lr=interval(1e-3,1e-2)"], 2, "an interval is a search space"
+    ),
     "sweep_bad_value": Case(lambda w, d: ["train", "-m", *TINY_TRAIN, "data.n_train=4,-1"], 2, "data.n_train=-1"),
     "unknown_command": Case(lambda w, d: ["frobnicate"], 2, "unknown command 'frobnicate'"),
     # -- output locations that cannot be written: refused before any work

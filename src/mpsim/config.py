@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any, cast
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING, DictConfig, OmegaConf
+from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.errors import ConfigError
@@ -397,11 +397,16 @@ def _sweep_variants(args: list[str]) -> list[list[str]] | None:
     """Override lists that together use every value of every sweep at least once: the first values, then each
     other value of one sweep with the others at their first (None if the sweeps cannot be expanded here)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.core.override_parser.types import IntervalSweep
 
     parsed = OverridesParser.create().parse_overrides(args)
     values: list[list[str]] = []
     for item in parsed:
-        if item.is_sweep_override():
+        sweep = item.value()
+        if isinstance(sweep, IntervalSweep):  # an Optuna search space: its two ends stand for the values it may take
+            ends = [int(v) if v is not None and float(v).is_integer() else v for v in (sweep.start, sweep.end)]
+            values.append([f"{item.get_key_element()}={v}" for v in ends])
+        elif item.is_sweep_override():
             try:
                 values.append([f"{item.get_key_element()}={v}" for v in item.sweep_string_iterator()])
             except Exception:  # noqa: BLE001 - glob() and friends need Hydra's config loader
@@ -464,16 +469,73 @@ def compose_command(command: str, args: list[str], config_dir: str) -> DictConfi
     if variants is None:
         return None
 
-    def _compose(items: list[str]) -> DictConfig:
+    def _compose(items: list[str], hydra: bool = False) -> DictConfig:
         with initialize_config_dir(config_dir=config_dir, version_base="1.3", job_name=command):
-            return compose(config_name=command, overrides=items)
+            return compose(config_name=command, overrides=items, return_hydra_config=hydra)
 
-    first = None
-    for items in variants:
-        cfg = _compose_one(items, _compose, config_dir)
-        validate_values(cfg)
-        first = first or cfg
+    first = _compose_one(variants[0], _compose, config_dir)
+    if any("sweeper" in a or a.startswith("hparams_search") or "interval(" in a for a in overrides):
+        validate_search(_compose(variants[0], hydra=True).hydra.sweeper, overrides, first)
+    validate_values(first)
+    for items in variants[1:]:
+        validate_values(_compose_one(items, _compose, config_dir))
     return first
+
+
+def validate_search(sweeper: DictConfig, overrides: list[str], cfg: DictConfig) -> None:
+    """Check an Optuna search (hparams_search=...) before its first trial: the trial count, the direction, and
+    every search space (`hydra.sweeper.params` and `key=interval(...)` / `choice(...)` on the command line)
+    as Optuna will read it, so a typo is one message instead of a traceback after the study was created. `cfg`
+    (the composed run config) tells which keys hold whole numbers: their intervals need the `int` tag."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.core.override_parser.types import IntervalSweep
+
+    intervals = [a for a in overrides if "interval(" in a and not a.startswith("hydra.")]
+    if "optuna" not in str(sweeper.get("_target_", "")).lower():
+        if intervals:
+            key = intervals[0].split("=", 1)[0]
+            raise ConfigError(
+                f"{intervals[0]}: an interval is a search space, for an Optuna search (hparams_search=<file>); a "
+                f"-m sweep takes a list of values, e.g. {key}=1e-3,3e-3,1e-2."
+            )
+        return
+    for key in ("n_trials", "n_jobs"):
+        value = sweeper.get(key)
+        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            raise ConfigError(f"hydra.sweeper.{key}={value}: must be a whole number >= 1.")
+    direction = sweeper.get("direction")
+    directions = list(direction) if isinstance(direction, ListConfig) else [direction]
+    if not directions or any(d not in ("minimize", "maximize") for d in directions):
+        raise ConfigError(
+            f"hydra.sweeper.direction={direction}: must be minimize or maximize (mpsim's objective "
+            "is an error: minimize)."
+        )
+    parser = OverridesParser.create()
+    spaces = [(f"hydra.sweeper.params.{k}", f"{k}={v}") for k, v in (sweeper.get("params") or {}).items()]
+    spaces += [(a.split("=", 1)[0], a) for a in intervals]
+    for where, text in spaces:
+        try:
+            sweep = parser.parse_override(text).value()
+        except Exception as err:  # noqa: BLE001 - Hydra raises several kinds for one unparsable override
+            raise ConfigError(
+                f"{where}: cannot read the search space {text.split('=', 1)[1]!r}: {_one_line(err)}"
+            ) from None
+        if isinstance(sweep, IntervalSweep):
+            low, high = sweep.start, sweep.end
+            if low is None or high is None or not low <= high:
+                raise ConfigError(f"{where}=interval({low}, {high}): the low end must not exceed the high end.")
+            key = text.split("=", 1)[0]
+            if isinstance(OmegaConf.select(cfg, key), int):  # Hydra reads interval ends as floats: always fractions
+                raise ConfigError(
+                    f"{where}=interval({low:g}, {high:g}): {key} is a whole number, and Optuna draws fractions "
+                    f"from an interval; write range({low:g}, {high:g}) (whole numbers, both ends included) or "
+                    "choice(...)."
+                )
+            if "log" in sweep.tags and low <= 0:
+                raise ConfigError(
+                    f"{where}=tag(log, interval({low}, {high})): a log-scale interval needs a low end > 0, "
+                    f"e.g. interval({high / 100:g}, {high:g})."
+                )
 
 
 def _compose_one(firsts: list[str], _compose: Any, config_dir: str) -> DictConfig:
@@ -524,8 +586,15 @@ def _unknown_key(key: str, others: list[str], compose_fn: Any, config_dir: str) 
     """Message for `key=...` naming no key of the composed config: the closest keys, or how to add a parameter
     that the target class takes but its config file does not list."""
     parent, _, leaf = key.rpartition(".")
+    if key.startswith("hydra.sweeper.params."):  # its keys hold dots: an override cannot reach them
+        name = key.removeprefix("hydra.sweeper.params.")
+        return (
+            f"{key}: a search space is given on the key itself, '{name}=interval(low, high)', "
+            f"'{name}=tag(log, interval(low, high))' or '{name}=choice(a, b)' (with hparams_search=...), or in a "
+            "copy of conf/hparams_search/*.yaml."
+        )
     try:
-        base = compose_fn(others)
+        base = compose_fn(others, hydra=True) if key.startswith("hydra.") else compose_fn(others)
     except Exception:  # noqa: BLE001
         return f"{key} is not a config key. Check its spelling (mpsim <command> --cfg job lists every key)."
     node = OmegaConf.select(base, parent) if parent else base
