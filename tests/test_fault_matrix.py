@@ -247,6 +247,7 @@ CASES: dict[str, Case] = {
     "sweep_interval_without_search": Case(  # Hydra's BasicSweeper traceback ("does not support sweep type")
         lambda w, d: ["train", "-m", *TINY_TRAIN, "trainer.lr=interval(1e-3,1e-2)"], 2, "an interval is a search space"
     ),
+    "device_mps_missing": Case(lambda w, d: ["train", *TINY_TRAIN, "device=mps"], 2, "device=mps but Apple's MPS"),
     "sweep_bad_value": Case(lambda w, d: ["train", "-m", *TINY_TRAIN, "data.n_train=4,-1"], 2, "data.n_train=-1"),
     "unknown_command": Case(lambda w, d: ["frobnicate"], 2, "unknown command 'frobnicate'"),
     # -- output locations that cannot be written: refused before any work

@@ -32,6 +32,7 @@ from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.errors import ConfigError
+from mpsim.process import DEVICE
 
 
 def output_only(key: str) -> bool:
@@ -289,7 +290,6 @@ def check_targets(cfg: DictConfig, keys: tuple[str, ...] = ("system", "model", "
 
 
 # ---- values ------------------------------------------------------------------------------------------------
-DEVICE = re.compile(r"auto|cpu|mps|cuda(:\d+)?")
 _FINITE_GROUPS = ("system", "model", "solver", "trainer", "data", "eval")
 
 

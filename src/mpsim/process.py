@@ -10,7 +10,17 @@ from __future__ import annotations
 
 import ctypes
 import os
+import re
 import sys
+from typing import TYPE_CHECKING
+
+from mpsim.errors import ConfigError
+
+if TYPE_CHECKING:
+    import torch
+
+#: the values `device=` takes
+DEVICE = re.compile(r"auto|cpu|mps|cuda(:\d+)?")
 
 
 def configure_process() -> bool:
@@ -47,3 +57,21 @@ def keep_freed_cpu_memory() -> bool:
         return False
     m_trim_threshold, m_mmap_max = -1, -4
     return bool(mallopt(m_mmap_max, 0)) and bool(mallopt(m_trim_threshold, 2**31 - 1))
+
+
+def resolve_device(device: str) -> torch.device:
+    """The torch device for `device=` (auto: CUDA when there is one), refused when this machine lacks it."""
+    import torch
+
+    if not DEVICE.fullmatch(device):
+        raise ConfigError(f"device={device} is not supported; choose auto, cpu, cuda, cuda:<index> or mps.")
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise ConfigError(f"device={device} but CUDA is not available on this machine; use device=cpu.")
+    if device.startswith("cuda:") and int(device[5:]) >= torch.cuda.device_count():
+        count = torch.cuda.device_count()
+        raise ConfigError(f"device={device} but this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}.")
+    if device == "mps" and not torch.backends.mps.is_available():
+        raise ConfigError("device=mps but Apple's MPS backend is not available on this machine; use device=cpu.")
+    return torch.device(device)

@@ -16,6 +16,7 @@ from typing import Any
 
 import torch
 
+from mpsim import process
 from mpsim.errors import ConfigError
 
 
@@ -41,15 +42,12 @@ def timeit(fn: Callable[[], Any], repeats: int = 5, warmup: int = 1, max_seconds
 
 
 def resolve_device(device: str) -> str:
-    """A suite's `device=`: `auto` becomes `cuda` when one is available, else `cpu`; `cuda` without one, or
-    anything but cpu/cuda[:i], is a `ConfigError`."""
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise ConfigError(f"device={device} but CUDA is not available on this machine; use device=cpu.")
-    if not (device == "cpu" or device.startswith("cuda")):
+    """A suite's `device=`: `auto` becomes `cuda` when one is available, else `cpu` (`mpsim.process.resolve_device`,
+    which refuses a device this machine lacks); the suites run on cpu or cuda[:i] only."""
+    chosen = process.resolve_device(device)
+    if chosen.type not in ("cpu", "cuda"):
         raise ConfigError(f"device must be cpu, cuda or auto; got {device!r}.")
-    return device
+    return str(chosen)
 
 
 def cuda_sync() -> None:

@@ -17,6 +17,7 @@ from omegaconf import DictConfig, open_dict
 
 from mpsim.config import check_targets, file_stem, validate_values
 from mpsim.errors import ConfigError
+from mpsim.process import resolve_device
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
@@ -72,13 +73,8 @@ def setup_runtime(cfg: DictConfig, output_dir: str | Path | None = None, overrid
     torch.manual_seed(int(cfg.seed))
     if cfg.dtype not in DTYPES:
         raise ConfigError(f"dtype={cfg.dtype!r} is not supported; choose one of {sorted(DTYPES)}.")
-    device = cfg.device
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
-    if str(device).startswith("cuda") and not torch.cuda.is_available():
-        raise ConfigError(f"device={device} but CUDA is not available on this machine; use device=cpu.")
     return Runtime(
-        device=torch.device(device),
+        device=resolve_device(str(cfg.device)),
         dtype=DTYPES[cfg.dtype],
         start_dir=start_dir,
         output_dir=output_dir,
