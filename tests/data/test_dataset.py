@@ -43,8 +43,12 @@ def test_split_trajectories_fractions_and_error():
     # three trajectories are enough for the default fractions: one each, not a refusal that asks for three
     assert split_trajectories(data.subset(slice(0, 3)), (0.7, 0.15, 0.15)).sizes() == {"train": 1, "val": 1, "test": 1}
     assert split_trajectories(data.subset(slice(0, 4)), (0.7, 0.15, 0.15)).sizes() == {"train": 2, "val": 1, "test": 1}
-    with pytest.raises(DataError, match="at least one each"):  # a zero fraction is still refused, not filled
+    # a zero share is refused as a setting (it said "provide at least 3 trajectories" for a file of 10)
+    with pytest.raises(ConfigError, match=r"data.split=\[0.8, 0.2, 0.0\] gives the test split no trajectories"):
         split_trajectories(data, (0.8, 0.2, 0.0))
+    with pytest.raises(ConfigError, match="gives the val and test splits no trajectories; each needs a share > 0"):
+        split_trajectories(data, (1.0, 0.0, 0.0))
+    assert split_trajectories(data, (1.4, 0.3, 0.3)).sizes() == split_trajectories(data, (0.7, 0.15, 0.15)).sizes()
 
 
 def test_cache_hit_returns_the_stored_data(tmp_path):

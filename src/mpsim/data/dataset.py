@@ -137,10 +137,17 @@ def split_trajectories(data: Trajectories, fractions: tuple[float, float, float]
     """Split loaded data by trajectory with a seeded permutation (`fractions` of train/val/test)."""
     if len(fractions) != 3 or any(f < 0 for f in fractions) or sum(fractions) <= 0:
         raise ConfigError(f"data.split must be three non-negative fractions (train, val, test); got {list(fractions)}.")
+    empty = [name for name, f in zip(("train", "val", "test"), fractions, strict=True) if f == 0]
+    if empty:  # training stops early on val and reports on test; eval and diagnose use train for the data's layout
+        raise ConfigError(
+            f"data.split={list(fractions)} gives the {' and '.join(empty)} split{'s' if len(empty) > 1 else ''} no "
+            "trajectories; each needs a share > 0, e.g. data.split=[0.7,0.15,0.15] (shares of the file's "
+            "trajectories, normalised by their sum)."
+        )
     b = len(data)
     total = sum(fractions)
-    # a split with a nonzero fraction gets at least one trajectory (3 trajectories split 0.7/0.15/0.15 as 1/1/1)
-    n_val, n_test = (max(1, int(round(b * f / total))) if f > 0 else 0 for f in fractions[1:])
+    # every split gets at least one trajectory (3 trajectories split 0.7/0.15/0.15 as 1/1/1)
+    n_val, n_test = (max(1, int(round(b * f / total))) for f in fractions[1:])
     n_train = b - n_val - n_test
     if b < 3 or n_train < 1 or n_val < 1 or n_test < 1:
         raise DataError(
