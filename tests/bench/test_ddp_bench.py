@@ -12,6 +12,9 @@ from mpsim.errors import ConfigError
 def test_refuses_unknown_cases_and_a_missing_gpu():
     with pytest.raises(ConfigError, match="choose from nbody, mpnode"):
         DDPBench(cases=["lorenz"])
+    for processes in ([], [0]):  # [] was "min() arg is an empty sequence"
+        with pytest.raises(ConfigError, match=r"need bench.processes \(a non-empty list\)"):
+            DDPBench(processes=processes)
     if not torch.cuda.is_available():
         with pytest.raises(ConfigError, match="CUDA is not available"):
             DDPBench(device="cuda")

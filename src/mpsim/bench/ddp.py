@@ -77,9 +77,10 @@ class DDPBench(Suite):
         unknown = [c for c in cases if c not in CASES]
         if unknown or not cases:
             raise ConfigError(f"bench.cases={list(cases)}: choose from {', '.join(CASES)}.")
-        if min(processes) < 1 or steps < 1 or repeats < 1:
+        if not processes or min(processes) < 1 or steps < 1 or repeats < 1:
             raise ConfigError(
-                f"need bench.processes, bench.steps and bench.repeats >= 1; got {list(processes)}, {steps}, {repeats}."
+                f"need bench.processes (a non-empty list), bench.steps and bench.repeats >= 1; got {list(processes)}, "
+                f"{steps}, {repeats}."
             )
         self.cases, self.processes = list(cases), sorted(set(int(p) for p in processes))
         self.nbody_n, self.nbody_batch, self.nbody_graph = nbody_n, nbody_batch, nbody_graph
