@@ -127,6 +127,13 @@ def test_trained_file_data_round_trip(tmp_path):
         summary["data"]["source"].endswith("trajectories.csv") and summary["data"]["train"] == 7
     )  # 9 trajectories split 0.7/0.15/0.15 → 7/1/1
     assert sim.name.endswith("_pendulum2") and _runs(tmp_path)[-1].name.endswith("_trajectories")  # named by its data
+    # eval of the trained model on the file: the test share by default (said so), every trajectory with [0,0,1]
+    ckpt = f"init={_runs(tmp_path)[-1] / 'checkpoints' / 'best.ckpt'}"
+    share = run_mpsim_ok(["eval", ckpt, f"data.path={sim / 'trajectories.csv'}", "eval.plots=false"], tmp_path)
+    assert "1 test trajectories, N=2, 10 steps (the test share of the file's 9; data.split=[0,0,1]" in share.stdout
+    every = ["eval", ckpt, f"data.path={sim / 'trajectories.csv'}", "data.split=[0,0,1]", "eval.plots=false"]
+    assert "9 test trajectories, N=2, 10 steps\n" in run_mpsim_ok(every, tmp_path).stdout
+    assert json.loads((_runs(tmp_path, "eval")[-1] / "summary.json").read_text())["data"]["n_test"] == 9
 
 
 def test_sweep_gives_every_job_its_own_directory(lorenz_ws):

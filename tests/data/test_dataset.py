@@ -46,9 +46,20 @@ def test_split_trajectories_fractions_and_error():
     # a zero share is refused as a setting (it said "provide at least 3 trajectories" for a file of 10)
     with pytest.raises(ConfigError, match=r"data.split=\[0.8, 0.2, 0.0\] gives the test split no trajectories"):
         split_trajectories(data, (0.8, 0.2, 0.0))
-    with pytest.raises(ConfigError, match="gives the val and test splits no trajectories; each needs a share > 0"):
+    with pytest.raises(
+        ConfigError,
+        match="gives the val and test splits no trajectories; this command needs train, val, test with a share > 0",
+    ):
         split_trajectories(data, (1.0, 0.0, 0.0))
     assert split_trajectories(data, (1.4, 0.3, 0.3)).sizes() == split_trajectories(data, (0.7, 0.15, 0.15)).sizes()
+    # a command that needs only the test split (eval) may give the others no share: every trajectory, or a part
+    every = split_trajectories(data, (0.0, 0.0, 1.0), need=("test",))
+    assert every.sizes() == {"train": 0, "val": 0, "test": 10} and set(every.test.x[:, 0, 0, 0].tolist()) == set(
+        ids.tolist()
+    )
+    assert split_trajectories(data, (0.0, 0.5, 0.5), need=("test",)).sizes() == {"train": 0, "val": 5, "test": 5}
+    with pytest.raises(ConfigError, match="gives the test split no trajectories; this command needs test"):
+        split_trajectories(data, (0.5, 0.5, 0.0), need=("test",))
 
 
 def test_cache_hit_returns_the_stored_data(tmp_path):

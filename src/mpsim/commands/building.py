@@ -15,7 +15,7 @@ from mpsim.commands.checkpoints import check_checkpoint_system, load_weights
 from mpsim.commands.runtime import Runtime
 from mpsim.commands.splits import load_splits
 from mpsim.config import plain_dict
-from mpsim.data.dataset import Splits, fit_normalisation
+from mpsim.data.dataset import SPLITS, Splits, fit_normalisation
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError, IncompatibleError, MpsimError
 from mpsim.models.base import Model
@@ -121,12 +121,18 @@ def build_model_for(
 
 
 def model_and_data(
-    cfg: DictConfig, rt: Runtime, system: System | None, ckpt: dict[str, Any] | None, refit: bool
+    cfg: DictConfig,
+    rt: Runtime,
+    system: System | None,
+    ckpt: dict[str, Any] | None,
+    refit: bool,
+    need: tuple[str, ...] = SPLITS,
 ) -> tuple[Model, dict[str, Any], Splits]:
     """Model and splits, checked in the order that writes nothing before a bad input is found: the model
-    (and checkpoint) is checked against the system before any data is simulated into the cache."""
-    splits = load_splits(cfg, rt, system) if cfg.data.path else None
-    source = splits.train if splits else system
+    (and checkpoint) is checked against the system before any data is simulated into the cache. `need`: the
+    splits the command uses (a file's other splits may be given no share)."""
+    splits = load_splits(cfg, rt, system, need) if cfg.data.path else None
+    source = (splits.train if len(splits.train) else splits.test) if splits else system
     if source is None:
         raise ConfigError("no data: pass system=<name> or data.path=<file>.")
     model, model_cfg = build_model_for(cfg, rt, Shape.of(source), ckpt)

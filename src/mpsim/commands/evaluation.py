@@ -96,8 +96,10 @@ def evaluate_checkpoint(cfg: DictConfig, rt: Runtime, task: str) -> dict:
     ckpt = load_init(cfg, rt)
     assert ckpt is not None  # both callers require init= (`mpsim eval`, `resolve_mode` for zeroshot)
     system = None if cfg.data.path and cfg.data.graph != "system" else build_system(cfg)
-    model, model_cfg, splits = model_and_data(cfg, rt, system, ckpt, refit=False)
+    # nothing trains: a file's train and val shares may be zero (data.split=[0,0,1] evaluates every trajectory)
+    model, model_cfg, splits = model_and_data(cfg, rt, system, ckpt, refit=False, need=("test",))
     test = splits.test
+    n_file = sum(splits.sizes().values())
     title = f"{test.system_name}: {ckpt['system'].get('system')} checkpoint, no training"
     metrics = evaluate_model(
         model,
@@ -134,7 +136,12 @@ def evaluate_checkpoint(cfg: DictConfig, rt: Runtime, task: str) -> dict:
         ("checkpoint", f"{ckpt['path']} (trained on {summary['trained_on']})"),
         (
             "evaluated on",
-            f"{test.system_name}: {len(test)} test trajectories, N={test.n_nodes}, {test.n_times - 1} steps",
+            f"{test.system_name}: {len(test)} test trajectories, N={test.n_nodes}, {test.n_times - 1} steps"
+            + (
+                f" (the test share of the file's {n_file}; data.split=[0,0,1] evaluates every one)"
+                if cfg.data.path and len(test) < n_file
+                else ""
+            ),
         ),
         ("model", f"{summary['model']['model']} ({summary['model']['n_params']:,} params)"),
         ("test RMSE", f"{fmt(metrics['rmse'])} normalised, {fmt(metrics['rmse_raw'])} raw units"),

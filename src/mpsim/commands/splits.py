@@ -12,7 +12,7 @@ from omegaconf import DictConfig
 
 from mpsim.commands.runtime import Runtime, resolve_path
 from mpsim.config import plain_dict
-from mpsim.data.dataset import DatasetSpec, Splits, add_noise, simulate_splits, split_trajectories
+from mpsim.data.dataset import SPLITS, DatasetSpec, Splits, add_noise, simulate_splits, split_trajectories
 from mpsim.data.io import check_representable, load_trajectories
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError
@@ -28,8 +28,9 @@ def system_spec(cfg: DictConfig) -> dict[str, Any]:
     return plain_dict(cfg.system)
 
 
-def load_splits(cfg: DictConfig, rt: Runtime, system: System | None) -> Splits:
-    """Simulate the system's three splits (cached), or load `data.path` and split it by trajectory."""
+def load_splits(cfg: DictConfig, rt: Runtime, system: System | None, need: tuple[str, ...] = SPLITS) -> Splits:
+    """Simulate the system's three splits (cached), or load `data.path` and split it by trajectory (the splits in
+    `need` get a share > 0; see `split_trajectories`)."""
     data = cfg.data
     if data.path:
         graph = None
@@ -47,7 +48,7 @@ def load_splits(cfg: DictConfig, rt: Runtime, system: System | None) -> Splits:
         )
         check_representable(loaded, str(cfg.dtype), str(data.path))
         fit_horizons(cfg, rt, loaded.n_times - 1, f"data.path={data.path}")
-        return split_trajectories(loaded, tuple(data.split), data.seed)
+        return split_trajectories(loaded, tuple(data.split), data.seed, need)
     if system is None:
         raise ConfigError("no data: pass system=<name> or data.path=<file>.")
     horizon = int(data.horizon or system.horizon)

@@ -133,27 +133,40 @@ def simulate_splits(system: Simulator, spec: DatasetSpec, cache_dir: str | Path 
     return Splits(**out)
 
 
-def split_trajectories(data: Trajectories, fractions: tuple[float, float, float], seed: int = 0) -> Splits:
-    """Split loaded data by trajectory with a seeded permutation (`fractions` of train/val/test)."""
+SPLITS = ("train", "val", "test")
+
+
+def split_trajectories(
+    data: Trajectories, fractions: tuple[float, float, float], seed: int = 0, need: tuple[str, ...] = SPLITS
+) -> Splits:
+    """Split loaded data by trajectory with a seeded permutation (`fractions`: shares of train/val/test, normalised).
+
+    The splits in `need` must get a share > 0 and then get at least one trajectory each; the others may have a
+    zero share and stay empty (`mpsim eval` needs only test: data.split=[0,0,1] evaluates every trajectory).
+    """
     if len(fractions) != 3 or any(f < 0 for f in fractions) or sum(fractions) <= 0:
         raise ConfigError(f"data.split must be three non-negative fractions (train, val, test); got {list(fractions)}.")
-    empty = [name for name, f in zip(("train", "val", "test"), fractions, strict=True) if f == 0]
-    if empty:  # training stops early on val and reports on test; eval and diagnose use train for the data's layout
+    empty = [name for name, f in zip(SPLITS, fractions, strict=True) if f == 0 and name in need]
+    if empty:  # training stops early on val and reports on test; diagnose fits on train and tests on test
         raise ConfigError(
             f"data.split={list(fractions)} gives the {' and '.join(empty)} split{'s' if len(empty) > 1 else ''} no "
-            "trajectories; each needs a share > 0, e.g. data.split=[0.7,0.15,0.15] (shares of the file's "
-            "trajectories, normalised by their sum)."
+            f"trajectories; this command needs {', '.join(need)} with a share > 0 each, e.g. data.split=[0.7,0.15,0.15] "
+            "(shares of the file's trajectories, normalised by their sum)."
         )
     b = len(data)
     total = sum(fractions)
-    # every split gets at least one trajectory (3 trajectories split 0.7/0.15/0.15 as 1/1/1)
-    n_val, n_test = (max(1, int(round(b * f / total))) for f in fractions[1:])
-    n_train = b - n_val - n_test
-    if b < 3 or n_train < 1 or n_val < 1 or n_test < 1:
+    # every split with a share gets at least one trajectory (3 trajectories split 0.7/0.15/0.15 as 1/1/1); the
+    # first split with a share takes the rounding remainder
+    n = [max(1, int(round(b * f / total))) if f > 0 else 0 for f in fractions]
+    first = next(i for i, f in enumerate(fractions) if f > 0)
+    n[first] += b - sum(n)
+    if any(k < 1 for k, f in zip(n, fractions, strict=True) if f > 0):
         raise DataError(
             f"{data.meta.get('source', 'data')}: {b} trajectories cannot be split into train/val/test "
-            f"{list(fractions)} with at least one each; provide at least 3 trajectories or change data.split."
+            f"{list(fractions)} with at least one each; provide at least {sum(f > 0 for f in fractions)} "
+            "trajectories or change data.split."
         )
+    n_train, n_val, _ = n
     order = torch.randperm(b, generator=torch.Generator().manual_seed(int(seed)))
     return Splits(
         train=data.subset(order[:n_train]),
