@@ -61,3 +61,34 @@ def test_windows_too_short_for_a_phased_drive_say_so():
     trial = type("Trial", (), {"effects": [object()]})()
     with pytest.raises(DataError, match="windows are 2 steps.*diagnose.horizon=3 or more"):
         phased_heldout(None, trial, data, 2, 1)
+
+
+def test_a_phased_drive_that_cannot_be_tested_is_rejected_with_its_reason_and_the_diagnosis_goes_on():
+    # 2-step held-out windows leave no step after the phase warm-up: the candidate is not tested (it was a
+    # DataError that ended the whole diagnosis), the others are judged, and the summary names it as untested
+    from types import SimpleNamespace
+
+    import torch
+
+    from mpsim.diagnose.heldout import Trial, _best_text, _trial, phase_warmup
+
+    assert phase_warmup(2, 3) is None and phase_warmup(3, 13) == 3 and phase_warmup(50, 201) == 50
+    finding = SimpleNamespace(label="dv/dt: PeriodicForcing(ω=3.1, a phase per recording)", kind="PeriodicForcing",
+                              accepted=True, coef=[1.0])  # fmt: skip
+    e = torch.tensor([2e-3, 1e-3])
+    short, long = SimpleNamespace(n_times=3), SimpleNamespace(n_times=41)
+    phased = SimpleNamespace(params={"phased": True})
+    args = (None, e, None, e, e / 100, phased, finding, None)
+    for test, null_test in ((short, long), (long, short)):  # the null records may be the shorter ones
+        trial, model, e_after = _trial(*args, test, None, null_test, 2, None, ["x", "v"])
+        assert not trial.accepted and trial.reason.startswith("not tested: the held-out windows are 2 steps")
+        assert "diagnose.horizon=3 or more" in trial.reason and model is None and e_after is e
+    other = Trial(
+        "dv/dt: LinearDamping(v)", "LinearDamping", True, {}, {}, {}, 1.5e-3, 1e-3, 5e-4, 1e-4, 0.0, False, "x"
+    )
+    text = _best_text([trial, other], 1.5e-3, 1e-5)
+    assert text.startswith("best candidate dv/dt: LinearDamping(v): held-out MSE 0.0015 → 0.001")
+    assert "; dv/dt: PeriodicForcing(ω=3.1, a phase per recording) not tested: the held-out windows" in text
+    assert _best_text([trial], 1.5e-3, 1e-5).startswith(
+        "dv/dt: PeriodicForcing(ω=3.1, a phase per recording) not tested"
+    )

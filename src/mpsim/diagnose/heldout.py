@@ -44,6 +44,8 @@ from mpsim.models.capabilities import Interpretable
 
 EFFECTS_NAMED, NOTHING_MISSING, UNEXPLAINED = "effects named", "nothing missing", "unexplained structured residual"
 EXIT_CODES = {EFFECTS_NAMED: 0, NOTHING_MISSING: 10, UNEXPLAINED: 11}
+#: how a candidate that could not be tested on these data begins its reason
+NOT_TESTED = "not tested"
 #: a simpler kind is preferred when its held-out error is within this factor of the best candidate's
 SIMPLER_WITHIN = 1.25
 
@@ -334,13 +336,16 @@ def phase_lag(
 
 
 def _best_text(trials: list[Trial], refit: float, null: float) -> str:
-    if not trials:
-        return "no candidate was left to test"
-    best = min(trials, key=lambda t: t.error_after)
+    untested = [t for t in trials if t.reason.startswith(NOT_TESTED)]
+    tested = [t for t in trials if t not in untested]
+    skipped = f"{', '.join(t.label for t in untested)} {untested[0].reason}" if untested else ""
+    if not tested:
+        return skipped or "no candidate was left to test"
+    best = min(tested, key=lambda t: t.error_after)
     left = (best.error_after - null) / max(refit - null, 1e-300)
     return (
         f"best candidate {best.label}: held-out MSE {refit:.3g} → {best.error_after:.3g} (null level {null:.3g}); "
-        f"it would leave {max(left, 0):.0%} of the excess"
+        f"it would leave {max(left, 0):.0%} of the excess" + (f"; {skipped}" if skipped else "")
     )
 
 
@@ -354,6 +359,21 @@ def log_ratio(before: torch.Tensor, after: torch.Tensor, floor: float) -> tuple[
     return float(ratio.mean()), se
 
 
+def phase_warmup(horizon: int, n_times: int) -> int | None:
+    """Steps at the start of each held-out record that fit a per-recording drive's phase (at most one horizon, a
+    quarter of the record); None when no step would be left to test the drive on."""
+    warm = max(2, min(horizon, (n_times - 1) // 4))
+    return warm if n_times >= warm + 2 else None
+
+
+def _too_short_for_phases(n_times: int, horizon: int) -> str:
+    return (
+        f"the held-out windows are {n_times - 1} steps (the model tracks the data for only {horizon} before its "
+        "error passes diagnose.vpt_threshold), too short to fit a periodic drive's phase per recording and then "
+        "test it; give diagnose.horizon=3 or more, or leave PeriodicForcing out of diagnose.kinds"
+    )
+
+
 def phased_heldout(current: Model, trial: Model, data: Trajectories, horizon: int, iters: int):
     """([B] MSE without, [B] MSE with a per-recording drive, the model with it) on `data` after a warm-up window.
 
@@ -365,13 +385,9 @@ def phased_heldout(current: Model, trial: Model, data: Trajectories, horizon: in
     from mpsim.diagnose.residual import one_step_residual
 
     drive = cast(Any, trial.effects[-1])  # the candidate drive (a Module list holds Modules)
-    warm = max(2, min(horizon, (data.n_times - 1) // 4))
-    if data.n_times < warm + 2:  # no step left to test on after the warm-up
-        raise DataError(
-            f"diagnose: the held-out windows are {data.n_times - 1} steps (the model tracks the data for only "
-            f"{horizon} before its error passes diagnose.vpt_threshold), too short to fit a periodic drive's phase "
-            "and then test it. Give diagnose.horizon=3 or more, or leave PeriodicForcing out of diagnose.kinds."
-        )
+    warm = phase_warmup(horizon, data.n_times)
+    if warm is None:  # no step left to test on after the warm-up (`_trial` skips the candidate before this)
+        raise DataError(f"diagnose: {_too_short_for_phases(data.n_times, horizon)}")
     head, tail = data.time_slice(0, warm + 1), data.time_slice(warm, data.n_times)
     res = one_step_residual(current, head)
     r = res.r[..., drive.target].mean(dim=2).nan_to_num()  # [B, warm]
@@ -406,6 +422,18 @@ def _trial(
     # the error the given model (own parameters refit) had above the null level: what effects may explain
     excess = max(float(e_base.mean()) - float(e_null.mean()), 0.0)
     phased = bool(cand.params.get("phased"))
+    shortest = min(test.n_times, null_test.n_times)  # null records may be cut window by window
+    if phased and phase_warmup(horizon, shortest) is None:  # not testable here: rejected, the others go on
+        before = float(e_current.mean())
+        return (
+            Trial(
+                label=finding.label, kind=finding.kind, screened=finding.accepted, effect={}, values={}, interval={},
+                error_before=before, error_after=before, gain=0.0, gain_se=math.inf, null_gain=0.0, accepted=False,
+                reason=f"{NOT_TESTED}: {_too_short_for_phases(shortest, horizon)}",
+            ),
+            current,
+            e_current,
+        )  # fmt: skip
     coef = list(finding.coef)[: 2 * len(train)] if phased else list(finding.coef)  # the fit's recordings only
     effect = cand.make_effect(coef, finding.target, names)
     fit_len = min(horizon, params.fit_window)
