@@ -327,3 +327,17 @@ def test_bench_writes_table_and_plot(tmp_path):
     run_mpsim_ok(["bench", "bench.nodes=[2,4]", "bench.batches=[1,2]", "bench.steps=3", "bench.repeats=1"], tmp_path)
     (run,) = sorted(p.parent for p in (tmp_path / "outputs" / "bench").rglob("bench.md"))
     assert "fwd_bwd_s" in (run / "bench.md").read_text() and (run / "plots" / "mpnode_scaling.png").is_file()
+
+
+def test_simulate_applies_data_burn_in_as_train_does(tmp_path):
+    # data.burn_in was ignored by mpsim simulate (its files began at t=0 while train's data began after the burn-in)
+    args = ["simulate", "system=pendulum2", "n=2", "format=npz", "eval.plots=false"]
+    run_mpsim_ok([*args, "data.horizon=30", "data.burn_in=20", "hydra.run.dir=burn"], tmp_path)
+    run_mpsim_ok([*args, "data.horizon=50", "hydra.run.dir=long"], tmp_path)
+    with (
+        np.load(tmp_path / "burn" / "trajectories.npz") as burn,
+        np.load(tmp_path / "long" / "trajectories.npz") as long,
+    ):
+        assert burn["x"].shape == (2, 31, 2, 2) and burn["t"][0] == pytest.approx(20 * 0.1)
+        assert np.allclose(burn["x"][:, 0], long["x"][:, 20], atol=1e-9)  # the record starts 20 steps in
+    _fails(["simulate", "system=nbody20", "n=2", "data.horizon=3", "data.burn_in=5"], tmp_path, "has no burn-in")

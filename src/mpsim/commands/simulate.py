@@ -50,7 +50,8 @@ def run_simulate(cfg: DictConfig, output_dir: str | Path | None = None, override
             f"with data.seed (now {cfg.data.seed}), as train draws its dataset. Pass data.seed={cfg.seed} instead."
         )
     system = build_system(cfg)
-    check_simulation_memory(cfg, system, [cfg.n], int(cfg.data.horizon or system.horizon) + 1)
+    burn_in = int(cfg.data.burn_in)  # as train simulates its dataset (it was ignored here)
+    check_simulation_memory(cfg, system, [cfg.n], burn_in + int(cfg.data.horizon or system.horizon) + 1)
     truth = generate(
         system,
         cfg.n,
@@ -59,6 +60,7 @@ def run_simulate(cfg: DictConfig, output_dir: str | Path | None = None, override
         horizon=cfg.data.horizon,
         rtol=cfg.data.gt_rtol,
         atol=cfg.data.gt_atol,
+        **({"burn_in": burn_in} if burn_in else {}),  # only systems that support it are asked for it
     )
     stem = rt.output_dir / cfg.out
     files = _export(truth, stem, cfg.format)
