@@ -57,9 +57,7 @@ class DataConf:
     n_train: int = 200
     n_val: int = 50
     n_test: int = 50
-    split: list[float] = field(
-        default_factory=lambda: [0.7, 0.15, 0.15]
-    )  # file data: train/val/test shares (> 0, normalised)
+    split: list[float] = field(default_factory=lambda: [0.7, 0.15, 0.15])  # file data: train/val/test shares
     dt: float | None = None  # sampling step; null = the system's default
     horizon: int | None = None  # steps per trajectory; null = the system's default
     burn_in: int = 0  # steps simulated and discarded before each record (e.g. to start on an attractor)

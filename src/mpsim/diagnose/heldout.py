@@ -337,7 +337,7 @@ def phase_lag(
 
 def _best_text(trials: list[Trial], refit: float, null: float) -> str:
     untested = [t for t in trials if t.reason.startswith(NOT_TESTED)]
-    tested = [t for t in trials if t not in untested]
+    tested = [t for t in trials if not t.reason.startswith(NOT_TESTED)]
     skipped = f"{', '.join(t.label for t in untested)} {untested[0].reason}" if untested else ""
     if not tested:
         return skipped or "no candidate was left to test"
