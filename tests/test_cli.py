@@ -206,6 +206,24 @@ def test_resume_after_interrupt_matches_an_uninterrupted_run(tmp_path, monkeypat
     assert sa["min_test_error"] == sb["min_test_error"] and sa["test"]["rmse"] == sb["test"]["rmse"]
 
 
+def test_a_finished_run_trains_on_with_a_larger_max_epochs_and_matches_a_longer_run(tmp_path):
+    """`resume=true trainer.max_epochs=6` finds the finished 3-epoch run (when it stops is not what it is) and
+    trains it on: its curve is the 6-epoch run's, row for row."""
+    args = ["train", "trainer=quick", "trainer.progress=false", "eval.plots=false", "export=false"]
+    args += ["data.n_train=8", "data.n_val=4", "data.n_test=4", "data.horizon=10"]
+    full_ws, short_ws = tmp_path / "full", tmp_path / "short"
+    full_ws.mkdir(), short_ws.mkdir()
+    run_mpsim_ok([*args, "trainer.max_epochs=6"], full_ws)
+    run_mpsim_ok([*args, "trainer.max_epochs=3"], short_ws)
+    res = run_mpsim_ok([*args, "trainer.max_epochs=6", "resume=true"], short_ws)
+    assert "resuming after epoch 3" in res.err and "trainer.max_epochs 3 -> 6" in res.err, res.err[-2000:]
+    (full_run,), (short_run,) = _runs(full_ws), _runs(short_ws)
+    cols = ["epoch", "train_loss", "val_error", "test_error", "lr"]
+    a, b = pd.read_csv(full_run / "metrics.csv")[cols], pd.read_csv(short_run / "metrics.csv")[cols]
+    assert len(a) == 7
+    pd.testing.assert_frame_equal(a, b)
+
+
 def _fails(args, cwd, match, code=2):
     before = {p for p in cwd.rglob("*") if p.is_file()}
     proc = run_mpsim(args, cwd)

@@ -173,6 +173,23 @@ def _resume_other_lr(ws, d):
     return ["train", f"resume={lorenz_run(ws)}", "trainer.lr=0.5"]
 
 
+def _resume_damaged_state(ws: Path, d: Path) -> list[str]:
+    """A copy of the trained run whose last.ckpt counts its epochs with a word (saved with a valid checksum)."""
+    run_dir = d / "run"
+    shutil.copytree(lorenz_run(ws), run_dir)
+    last = run_dir / "checkpoints" / "last.ckpt"
+    p = torch.load(last, weights_only=True)
+    p["trainer"]["epoch"] = "many"
+    save_checkpoint(last, p)
+    return ["train", f"resume={run_dir}"]
+
+
+def _resume_fewer_epochs(ws: Path, d: Path) -> list[str]:
+    run_dir = d / "run"
+    shutil.copytree(lorenz_run(ws), run_dir)
+    return ["train", f"resume={run_dir}", "trainer.max_epochs=1"]
+
+
 def _replace_export(ws, d):
     (d / "checkpoints").mkdir()
     shutil.copy(ws / "checkpoints" / "lorenz3.ckpt", d / "checkpoints" / "pendulum2.ckpt")
@@ -262,6 +279,8 @@ CASES: dict[str, Case] = {
     # -- resume
     "resume_missing_dir": Case(lambda w, d: ["train", f"resume={d}/nowhere"], 2, "last.ckpt does not exist"),
     "resume_other_lr": Case(_resume_other_lr, 2, "trainer.lr=0.5 (not set in the run)"),
+    "resume_fewer_epochs": Case(_resume_fewer_epochs, 2, "has already run 3 epochs; trainer.max_epochs=1 is fewer"),
+    "resume_damaged_state": Case(_resume_damaged_state, 2, "'trainer.epoch' is 'many'"),
     "resume_true_no_run": Case(lambda w, d: ["train", "resume=true", "seed=7"], 2, "no earlier run"),
     # -- checkpoints: data, never code
     "init_missing": Case(lambda w, d: ["eval", "init=nowhere.ckpt", "system=lorenz3", *EVAL], 2, "no such checkpoint"),

@@ -197,16 +197,22 @@ def _saved_overrides(run: Path) -> list[str] | None:
 
 
 def find_resumable(args: list[str], command: str = "train") -> Path | None:
-    """The newest earlier run of `mpsim <command>` with the same overrides (ignoring `resume`) that has a
-    `last.ckpt`, under `paths.output_root`."""
-    key = sorted(_own(args))
+    """The newest earlier run of `mpsim <command>` with the same overrides (ignoring `resume` and when training
+    stops: `trainer.max_epochs=` raised with resume=true trains the same run further) that has a `last.ckpt`,
+    under `paths.output_root`."""
+    from mpsim.config import stopping_rule
+
+    def defining(overrides: list[str]) -> list[str]:
+        return sorted(a for a in _own(overrides) if not stopping_rule(_key(a)))
+
+    key = defining(args)
     root = next((a.split("=", 1)[1] for a in args if a.startswith("paths.output_root=")), "outputs")
     found = []
     for overrides in Path(root).glob(f"{command}/*/*/.hydra/overrides.yaml"):
         run = overrides.parent.parent
         saved = _saved_overrides(run)
         last = run / "checkpoints" / "last.ckpt"
-        if saved is not None and sorted(_own(saved)) == key and last.is_file():
+        if saved is not None and defining(saved) == key and last.is_file():
             found.append((last.stat().st_mtime, run))
     return max(found)[1] if found else None
 
@@ -219,7 +225,9 @@ def _with_resume(args: list[str]) -> list[str]:
     writes (`paths.*`) and how it shows its progress (`trainer.progress`, `trainer.log_every_s`) are not what it
     computes: those given now replace the run's own, so a run directory moved to another disk or machine resumes
     there, and a run started with a bar can be resumed in the background without one. Nor is the hardware it
-    computes on (`device`, `threads`): a run started on a GPU resumes on a CPU with device=cpu. `data.path` may
+    computes on (`device`, `threads`): a run started on a GPU resumes on a CPU with device=cpu. Nor is when it
+    stops (`trainer.max_epochs`, `trainer.early_stop_patience`): a finished run trains on with a larger
+    `trainer.max_epochs` (the trainer refuses fewer epochs than the run has already run). `data.path` may
     differ too when the file holds the bytes the run trained on (the SHA-256 it recorded in `data.json`, or the
     file at its own path): data moved along with its run.
     """
@@ -253,7 +261,7 @@ def _with_resume(args: list[str]) -> list[str]:
         )
         own = _own(args)
     else:
-        from mpsim.config import host_only, output_only  # where it writes and runs, how it shows progress
+        from mpsim.config import host_only, output_only, stopping_rule  # where it writes and runs, when it stops
 
         mine, theirs = dict(_split(a) for a in _own(args)), dict(_split(a) for a in _own(saved))
         # the data file may have moved with the run (a copied results folder) if it holds the same bytes
@@ -263,12 +271,16 @@ def _with_resume(args: list[str]) -> list[str]:
             and mine["data.path"] != theirs["data.path"]
             and _same_data(run, mine["data.path"], theirs["data.path"])
         )
+
+        def free(k: str) -> bool:  # may differ from the run's own
+            return output_only(k) or host_only(k) or stopping_rule(k) or (k == "data.path" and data_moved)
+
         differ = [
             f"{k}={v} (the run has {k}={theirs[k]}{_data_hint(run, theirs[k]) if k == 'data.path' else ''})"
             if k in theirs
             else f"{k}={v} (not set in the run)"
             for k, v in mine.items()
-            if theirs.get(k) != v and not output_only(k) and not host_only(k) and not (k == "data.path" and data_moved)
+            if theirs.get(k) != v and not free(k)
         ]
         if differ:
             raise MpsimError(
@@ -276,7 +288,7 @@ def _with_resume(args: list[str]) -> list[str]:
                 f"({' '.join(_own(saved)) or 'no overrides'}); drop the differing overrides, or start a new run "
                 "without resume= (finetune from its checkpoint with init=<run>/checkpoints/best.ckpt)."
             )
-        moved = {k for k in mine if output_only(k) or host_only(k) or (k == "data.path" and data_moved)}
+        moved = {k for k in mine if free(k)}
         for k in sorted(k for k in moved if host_only(k) and theirs.get(k, "its default") != mine[k]):
             print(
                 f"mpsim train: resuming with {k}={mine[k]} (the run has {k}={theirs.get(k, 'its default')}): "

@@ -48,6 +48,13 @@ def host_only(key: str) -> bool:
     return key in {"device", "threads"}
 
 
+def stopping_rule(key: str) -> bool:
+    """An override that says when training stops (`trainer.max_epochs`, `trainer.early_stop_patience`), not what
+    an epoch computes: a resumed run may change it, so a run can be trained on past its first budget. Its curve
+    up to where it would have stopped is the same either way."""
+    return key in {"trainer.max_epochs", "trainer.early_stop_patience"}
+
+
 @dataclass
 class DataConf:
     path: str | None = None  # .npz or long .csv of measured trajectories (replaces simulation)

@@ -1,9 +1,11 @@
 import math
 
+import pytest
 import torch
 from torch import nn
 
 from mpsim.data.dataset import fit_normalisation
+from mpsim.errors import ConfigError
 from mpsim.models import MPNODE
 from mpsim.models.base import Model
 from mpsim.solvers import ODESolver
@@ -61,6 +63,30 @@ def test_resume_gives_the_same_result_as_an_uninterrupted_run(tmp_path):
     for k, v in full_state["model"]["state_dict"].items():
         assert torch.equal(v, resumed_last["model"]["state_dict"][k]), k
     assert resumed.best_epoch_ == full.best_epoch_
+
+
+def test_a_resumed_run_trains_on_to_a_raised_budget_but_never_past_an_early_stop(tmp_path):
+    """When training stops may change on a resume: more epochs continue the same curve; fewer than the run has
+    run are refused; a run that stopped early stays stopped (no extra epoch) unless its patience is raised."""
+    train, val, test = _data()
+    _trainer(3).fit(_model(train), train, val, test, run_dir=tmp_path)
+    state = load_checkpoint(tmp_path / "checkpoints" / "last.ckpt")["trainer"]
+
+    def resume(epochs, patience, changed=None):
+        st = {**state, **(changed or {})}
+        tr = Trainer(max_epochs=epochs, batch_size=5, lr=1e-2, plateau_patience=2, early_stop_patience=patience)
+        return tr.fit(_model(train), train, val, test, run_dir=tmp_path / f"r{epochs}_{patience}", resume_state=st)
+
+    assert [r["epoch"] for r in resume(5, 0).history_] == list(range(6))
+    with pytest.raises(ConfigError, match="has already run 3 epochs; trainer.max_epochs=2 is fewer"):
+        resume(2, 0)
+    stopped = {"since_best": 2, "max_epochs": 10}  # as if it had stopped early at epoch 3 of 10 (patience 2)
+    kept = resume(10, 2, stopped)
+    assert kept.status_ == "early_stopped" and len(kept.history_) == 4  # no epoch more
+    with pytest.raises(ConfigError, match="stopped early at epoch 3 .* Raise trainer.early_stop_patience above 2"):
+        resume(20, 2, stopped)
+    longer = resume(6, 5, stopped)
+    assert longer.status_ == "complete" and [r["epoch"] for r in longer.history_] == list(range(7))
 
 
 class _Exploding(Model):

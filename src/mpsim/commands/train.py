@@ -271,7 +271,50 @@ def _resume_checkpoint(cfg: DictConfig, rt: Runtime) -> dict | None:
     state = load_checkpoint(last)
     if "trainer" not in state:
         raise CheckpointError(f"resume: {last} holds no trainer state.")
+    _check_trainer_state(state["trainer"], last)
     return state
+
+
+#: what a resume reads from a last.ckpt's trainer state, and the type each must have
+_TRAINER_STATE: dict[str, type | tuple[type, ...]] = {
+    "epoch": int,
+    "best_epoch": int,
+    "since_best": int,
+    "max_epochs": int,
+    "best_val": (int, float),
+    "model_state": dict,
+    "best_state": dict,
+    "optimizer": dict,
+    "scheduler": dict,
+    "history": list,
+}
+
+
+def _check_trainer_state(trainer: dict, path: Path) -> None:
+    """The counters and mappings a resume reads: present (`max_epochs` only in newer files), of their types, the
+    counters >= 0 (one message naming the first that is wrong)."""
+    import torch
+
+    for key, kind in _TRAINER_STATE.items():
+        if key not in trainer:
+            if key == "max_epochs":
+                continue
+            raise CheckpointError(f"resume: {path} lacks 'trainer.{key}'; the file is damaged. Start the run afresh.")
+        value = trainer[key]
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, kind)
+            or (kind is int and isinstance(value, int) and value < 0)
+        ):
+            raise CheckpointError(
+                f"resume: {path}: 'trainer.{key}' is {value!r:.60}, not what a trainer writes "
+                f"({'a count >= 0' if kind is int else 'a ' + getattr(kind, '__name__', 'number')}); the file is "
+                "damaged. Start the run afresh."
+            )
+    if not isinstance(trainer.get("shuffle_rng"), torch.Tensor):
+        raise CheckpointError(
+            f"resume: {path} lacks the tensor 'trainer.shuffle_rng'; the file is damaged. Start the run afresh."
+        )
 
 
 def _export(best: Path, cfg: DictConfig, rt: Runtime, name: str) -> tuple[Path | None, Path | None]:
