@@ -79,14 +79,29 @@ def tiny_ckpt(tmp_path_factory):
     [
         ("diagnose.n_boot=many", "diagnose.n_boot=many"),
         ("diagnose.kinds=[Wobble]", "unknown effect kind 'Wobble'"),
+        # one or two held-out trajectories cannot judge a candidate (no standard error, or a bar of 14 of them)
+        ("data.n_test=2", "needs at least 3; data.n_test=2. Give data.n_test=3 or more"),
     ],
 )
 def test_bad_diagnose_settings(tmp_path, tiny_ckpt, bad, match):
-    proc = run_mpsim(["diagnose", f"init={tiny_ckpt}", bad, *TINY_TRAIN[2:]], tmp_path)
+    proc = run_mpsim(["diagnose", f"init={tiny_ckpt}", *TINY_TRAIN[2:], bad], tmp_path)
     assert proc.code == 2 and "Traceback" not in proc.err, (proc.code, proc.err[-2000:])
     (line,) = proc.error_lines()
     assert match in line
     assert not [p for p in tmp_path.rglob("*") if p.is_file()]
+
+
+def test_a_file_with_too_few_held_out_trajectories_is_refused_with_a_split_that_holds_out_enough(tmp_path, tiny_ckpt):
+    """8 recordings at the default shares hold out 1: refused before any work, with a data.split that holds out 3."""
+    run_mpsim_ok(["simulate", "n=8", "data.horizon=10", "hydra.run.dir=sim"], tmp_path)
+    data = tmp_path / "sim" / "trajectories.npz"
+    proc = run_mpsim(["diagnose", f"init={tiny_ckpt}", f"data.path={data}", "hydra.run.dir=out"], tmp_path)
+    assert proc.code == 2 and "Traceback" not in proc.err, (proc.code, proc.err[-2000:])
+    (line,) = proc.error_lines()
+    assert "of the file's 8 trajectories holds out 1" in line
+    shares = [float(v) for v in line.split("data.split=[")[-1].split("]")[0].split(",")]
+    assert len(shares) == 3 and sum(shares) == pytest.approx(1.0) and round(8 * shares[2]) >= 3
+    assert not (tmp_path / "out").exists()
 
 
 @pytest.mark.slow

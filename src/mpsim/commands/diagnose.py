@@ -31,7 +31,7 @@ from mpsim.diagnose.finetuned import serial
 from mpsim.diagnose.heldout import EFFECTS_NAMED, NOTHING_MISSING
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.diagnose.rounds import LoopResult, holdout_metrics, run_loop
-from mpsim.errors import ConfigError, DivergenceError
+from mpsim.errors import ConfigError, DataError, DivergenceError
 from mpsim.files import atomic_write, write_json
 from mpsim.models.base import Model
 from mpsim.models.capabilities import LatentState
@@ -80,8 +80,11 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
         raise ConfigError("mpsim diagnose needs init=<checkpoint> (the trained model to diagnose).")
     ckpt = load_init(cfg, rt)
     assert ckpt is not None  # cfg.init is set
+    if not cfg.data.path:  # simulated: its held-out count is known before anything is simulated
+        _check_heldout(cfg, int(cfg.data.n_test))
     system = None if cfg.data.path and cfg.data.graph != "system" else build_system(cfg)
     model, model_cfg, splits = model_and_data(cfg, rt, system, ckpt, refit=False)
+    _check_heldout(cfg, len(splits.test), len(splits.train) + len(splits.val) + len(splits.test))
     if isinstance(model, LatentState):
         model.latent_reset = cfg.trainer.window  # latent states (messages) were trained over windows this long
     horizons = list(cfg.eval.horizons)
@@ -214,6 +217,33 @@ def _workers(jobs: int | None, rt: Runtime) -> int:
         else len(os.sched_getaffinity(0))
         if hasattr(os, "sched_getaffinity")
         else (os.cpu_count() or 1)
+    )
+
+
+#: held-out trajectories a diagnosis needs: a candidate's gain is a mean over them with a standard error taken
+#: from them (Student's t, `mpsim.diagnose.heldout.critical`); with 1 there is no standard error, with 2 the bar
+#: is 14 standard errors (margin 2)
+MIN_HELDOUT = 3
+
+
+def _check_heldout(cfg: DictConfig, n: int, total: int = 0) -> None:
+    """Refuse `n` held-out trajectories (of `total` in a file) when too few to judge a candidate on, before any
+    work (the loop would report "unexplained" for an effect it could not test)."""
+    if n >= MIN_HELDOUT:
+        return
+    if cfg.data.path:
+        share = math.ceil(10 * MIN_HELDOUT / total) / 10 if total else 1.0
+        fix = (
+            f"hold out more, e.g. data.split=[{1 - share - 0.1:.1f},0.1,{share:.1f}]"
+            if total >= 2 * MIN_HELDOUT and share <= 0.5
+            else f"record more trajectories (at least {2 * MIN_HELDOUT})"
+        )
+        where = f"data.split={list(cfg.data.split)} of the file's {total} trajectories holds out {n}"
+    else:
+        fix, where = f"give data.n_test={MIN_HELDOUT} or more", f"data.n_test={n}"
+    raise DataError(
+        f"diagnose judges each candidate by its error gain on held-out trajectories, with a standard error taken "
+        f"across them, and needs at least {MIN_HELDOUT}; {where}. {fix[0].upper() + fix[1:]}."
     )
 
 

@@ -30,7 +30,7 @@ from typing import Any
 import torch
 
 from mpsim.data.trajectories import Trajectories
-from mpsim.diagnose.heldout import EFFECTS_NAMED, UNEXPLAINED, Trial, log_ratio, reported
+from mpsim.diagnose.heldout import EFFECTS_NAMED, UNEXPLAINED, Trial, critical, level_text, log_ratio, reported
 from mpsim.diagnose.library import Candidate
 from mpsim.diagnose.loop import Diagnosis, Finding
 from mpsim.diagnose.params import DiagnoseParams
@@ -186,7 +186,8 @@ def judge_by_finetune(
             continue
         tuned, path = outcome
         e_after = window_error(tuned, test, horizon)
-        log_gain, log_se = log_ratio(e_control, e_after, floor)
+        log_gain, log_se, n_rec = log_ratio(e_control, e_after, floor)
+        bar = critical(params.margin, n_rec)
         diff = (e_control - e_after)[torch.isfinite(e_control - e_after)]
         gain = float(diff.mean()) if diff.numel() else -math.inf
         gain_se = float(diff.std() / math.sqrt(diff.numel())) if diff.numel() > 1 else math.inf
@@ -199,9 +200,9 @@ def judge_by_finetune(
         checks = [
             (math.isfinite(gain), "the finetuned model's held-out rollouts diverged"),
             (
-                log_gain > params.margin * log_se,
+                log_gain > bar * log_se,
                 f"held-out error ratio against the control e^{log_gain:.3g} (± {log_se:.2g} in log) is not above "
-                f"{params.margin:g} standard errors",
+                f"{bar:.3g} standard errors ({level_text(params.margin, n_rec)})",
             ),
             (
                 share >= params.min_gain,

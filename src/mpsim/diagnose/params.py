@@ -44,8 +44,9 @@ class DiagnoseParams:
     Acceptance (held-out prediction):
         max_candidates: screened candidates tested on held-out data, strongest share of their row first.
         margin: a candidate is named only if its held-out multi-step error gain exceeds the gain the same fit
-            achieves on null data plus `margin` standard errors (paired over held-out trajectories), and removes
-            at least `min_gain` of the held-out error the model had above the null level.
+            achieves on null data plus `margin` standard errors (paired over held-out trajectories; Student's t at
+            the level `margin` has for a Gaussian, as the standard error comes from those few trajectories), and
+            removes at least `min_gain` of the held-out error the model had above the null level.
         min_explained: the named effects must remove this share of the held-out error above the null level;
             otherwise the verdict is *unexplained structured residual* (a partial fit is not a finding).
         structured_factor, tolerance: the residual is at the null level ("nothing missing") when the held-out

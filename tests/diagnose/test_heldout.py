@@ -1,0 +1,29 @@
+"""The held-out acceptance test's statistics: the log error ratio over recordings and the bar it must clear."""
+
+import math
+
+import pytest
+import torch
+
+from mpsim.diagnose.heldout import critical, log_ratio
+
+
+def test_the_bar_is_students_t_at_the_gaussian_level_of_the_margin():
+    """Textbook two-sided 95 % t values (t_{0.975}): 12.706 (1 d.o.f.), 2.571 (5), 2.228 (10); z = 1.95996."""
+    z = 1.959964
+    assert critical(z, 2) == pytest.approx(12.706, abs=1e-3)
+    assert critical(z, 6) == pytest.approx(2.571, abs=1e-3)
+    assert critical(z, 11) == pytest.approx(2.228, abs=1e-3)
+    assert critical(z, 10_000) == pytest.approx(z, abs=1e-3)  # many recordings: the Gaussian bar
+    assert critical(2.0, 1) == math.inf and critical(2.0, 0) == math.inf  # one recording has no standard error
+
+
+def test_log_ratio_counts_only_the_recordings_where_it_is_finite():
+    before = torch.tensor([1.0, 1.0, float("inf"), 4.0], dtype=torch.float64)  # [B]
+    after = torch.tensor([0.5, 0.25, 1.0, 1.0], dtype=torch.float64)  # [B]
+    mean, se, n = log_ratio(before, after, 0.0)
+    logs = torch.log(torch.tensor([2.0, 4.0, 4.0], dtype=torch.float64))
+    assert n == 3
+    assert mean == pytest.approx(float(logs.mean()))
+    assert se == pytest.approx(float(logs.std() / math.sqrt(3)))
+    assert log_ratio(before[2:3], after[2:3], 0.0) == (-math.inf, math.inf, 0)
