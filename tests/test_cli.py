@@ -16,6 +16,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+import yaml
 
 from tests.helpers import TINY_TRAIN, run_cli, run_mpsim, run_mpsim_ok
 
@@ -222,6 +223,11 @@ def test_a_finished_run_trains_on_with_a_larger_max_epochs_and_matches_a_longer_
     a, b = pd.read_csv(full_run / "metrics.csv")[cols], pd.read_csv(short_run / "metrics.csv")[cols]
     assert len(a) == 7
     pd.testing.assert_frame_equal(a, b)
+    # the run's record says what it trained under now (a report shows 6 epochs), the rest as the run wrote it
+    overrides = yaml.safe_load((short_run / ".hydra" / "overrides.yaml").read_text())
+    assert "trainer.max_epochs=6" in overrides and "trainer.max_epochs=3" not in overrides
+    assert overrides[:-1] == [a for a in args[1:] if a != "trainer.max_epochs=3"]
+    assert yaml.safe_load((short_run / ".hydra" / "config.yaml").read_text())["trainer"]["max_epochs"] == 6
 
 
 def _fails(args, cwd, match, code=2):

@@ -12,6 +12,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import yaml
 from omegaconf import DictConfig, OmegaConf
 
 from mpsim import plotting
@@ -29,6 +30,7 @@ from mpsim.training import distributed
 from mpsim.training.checkpoint import load_checkpoint
 from mpsim.training.distributed import DistContext
 from mpsim.training.loggers import Logger, LoggerGroup, flatten
+from mpsim.training.trainer import check_resume
 from mpsim.version import __version__
 
 log = logging.getLogger(__name__)
@@ -117,6 +119,8 @@ def _run(cfg: DictConfig, rt: Runtime, ctx: DistContext) -> dict:
     )
     check_training_memory(cfg, rt, model, model_cfg, train)
     trainer = build(cfg.trainer, "trainer")
+    if last is not None and ctx.is_main:
+        _record_stopping(cfg, rt.output_dir)
     loggers = build_loggers(cfg) if ctx.is_main else LoggerGroup()
     loggers.start(
         rt.output_dir,
@@ -272,7 +276,38 @@ def _resume_checkpoint(cfg: DictConfig, rt: Runtime) -> dict | None:
     if "trainer" not in state:
         raise CheckpointError(f"resume: {last} holds no trainer state.")
     _check_trainer_state(state["trainer"], last)
+    check_resume(state["trainer"], int(cfg.trainer.max_epochs), int(cfg.trainer.early_stop_patience))
     return state
+
+
+def _record_stopping(cfg: DictConfig, run_dir: Path) -> None:
+    """Write a resume's new `trainer.max_epochs` / `trainer.early_stop_patience` into the run's `.hydra/` record
+    (overrides.yaml and config.yaml, atomically), so a report of the run shows the budget it trained under. The
+    rest of the record stays as the run wrote it."""
+    record = run_dir / ".hydra"
+    try:
+        config = yaml.safe_load((record / "config.yaml").read_text())
+        overrides = yaml.safe_load((record / "overrides.yaml").read_text()) or []
+    except (OSError, yaml.YAMLError):
+        return  # no record to keep up to date (the CLI warned that the run kept none)
+    if not isinstance(config, dict) or not isinstance(config.get("trainer"), dict) or not isinstance(overrides, list):
+        return
+    changed = {
+        key: int(cfg.trainer[key])
+        for key in ("max_epochs", "early_stop_patience")
+        if config["trainer"].get(key) != int(cfg.trainer[key])
+    }
+    if not changed:
+        return
+    for key, value in changed.items():
+        config["trainer"][key] = value
+        kept = [o for o in overrides if str(o).split("=", 1)[0].lstrip("+~") != f"trainer.{key}"]
+        overrides = [*kept, f"trainer.{key}={value}"]
+    text = yaml.safe_dump(overrides, sort_keys=False)
+    atomic_write(record / "overrides.yaml", lambda f: f.write(text), mode="w")
+    config_text = yaml.safe_dump(config, sort_keys=False)
+    atomic_write(record / "config.yaml", lambda f: f.write(config_text), mode="w")
+    log.info(f"recorded {', '.join(f'trainer.{k}={v}' for k, v in changed.items())} in {record}")
 
 
 #: what a resume reads from a last.ckpt's trainer state, and the type each must have

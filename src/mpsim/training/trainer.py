@@ -231,7 +231,7 @@ class Trainer:
             wall_before = self.history_[-1]["wall_time"] if self.history_ else 0.0
             start_epoch = resume_state["epoch"] + 1
             before = resume_state.get("max_epochs", self.max_epochs)  # the budget it ran under
-            self._check_resumable(resume_state["epoch"], before, since_best)
+            check_resume(resume_state, self.max_epochs, self.early_stop_patience)
             log.info(
                 f"resuming after epoch {resume_state['epoch']} (best val {self.best_val_:.4g} at epoch "
                 f"{self.best_epoch_})"
@@ -296,23 +296,6 @@ class Trainer:
         bar.close()
         model.load_state_dict(self.best_state_)
         return self
-
-    def _check_resumable(self, done: int, before: int, since_best: int) -> None:
-        """Refuse a resumed budget that cannot be met: fewer epochs than the run has run, or more epochs for a run
-        that stopped early (its patience is spent, so it would stop again at once) without raising its patience."""
-        if self.max_epochs < done:
-            raise ConfigError(
-                f"resume: the run has already run {done} epochs; trainer.max_epochs={self.max_epochs} is fewer. "
-                f"Give trainer.max_epochs >= {done} (the run was set to {before})."
-            )
-        stopped = bool(self.early_stop_patience) and since_best >= self.early_stop_patience
-        if stopped and self.max_epochs > max(done, before):
-            raise ConfigError(
-                f"resume: the run stopped early at epoch {done} (no validation improvement for {since_best} "
-                f"epochs, trainer.early_stop_patience={self.early_stop_patience}), so trainer.max_epochs="
-                f"{self.max_epochs} would not train it further. Raise trainer.early_stop_patience above "
-                f"{since_best} (0: never stop early) to continue it."
-            )
 
     def _train_epoch(self, model, data, opt, loss_fn, shuffle, epoch) -> tuple[float, float]:
         model.train()
@@ -451,6 +434,29 @@ class Trainer:
             "max_epochs": self.max_epochs,
         }
         save_checkpoint(self._ckpt_dir / "last.ckpt", self._payload(model, metrics={"epoch": epoch}, trainer=state))
+
+
+def check_resume(state: dict[str, Any], max_epochs: int, patience: int) -> None:
+    """Refuse a resumed budget that cannot be met: fewer epochs than the run in `state` (a last.ckpt's trainer
+    state) has run, or more epochs for a run that stopped early (its patience spent, it would stop again at once)
+    without raising its patience.
+
+    Raises:
+        ConfigError: naming the budget that would work.
+    """
+    done, since_best = state["epoch"], state["since_best"]
+    before = state.get("max_epochs", max_epochs)  # the budget it ran under
+    if max_epochs < done:
+        raise ConfigError(
+            f"resume: the run has already run {done} epochs; trainer.max_epochs={max_epochs} is fewer. "
+            f"Give trainer.max_epochs >= {done} (the run was set to {before})."
+        )
+    if patience and since_best >= patience and max_epochs > max(done, before):
+        raise ConfigError(
+            f"resume: the run stopped early at epoch {done} (no validation improvement for {since_best} "
+            f"epochs, trainer.early_stop_patience={patience}), so trainer.max_epochs={max_epochs} would not train "
+            f"it further. Raise trainer.early_stop_patience above {since_best} (0: never stop early) to continue it."
+        )
 
 
 def _ids(idx: torch.Tensor, limit: int = 8) -> str:
