@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
+import sympy
 import torch
 
 from mpsim.equations import EquationField, load_spec_file, parse_spec
@@ -186,3 +188,36 @@ def test_spec_file_reading(tmp_path):
     ]:
         with pytest.raises(ConfigError, match=message):
             load_spec_file(tmp_path / name)
+
+
+X = sympy.Symbol("x")
+
+
+@pytest.mark.parametrize(
+    "eq, match",
+    [
+        ("x*9**9**9**9", "the constant 9**387420489 is about 10^3.7e+08, beyond float64"),  # used to hang
+        ("x*2**-(10**200)", "beyond float64"),  # an exact 1/2^(1e200): as hopeless
+        ("x*10**400", "is about 10^400"),
+    ],
+)
+def test_a_power_of_constants_beyond_float64_is_refused_before_it_is_computed(eq, match):
+    with pytest.raises(ConfigError, match=re.escape(match)):
+        parse_spec({"states": ["x"], "equations": {"x": eq}})
+    assert parse_spec({"states": ["x"], "equations": {"x": "x*10**300"}}).rhs[0] == sympy.Integer(10) ** 300 * X
+
+
+@pytest.mark.parametrize("eq", ["x*1e309", "x + 1/0", "x*exp(exp(exp(exp(10))))", "x*sqrt(-1)"])
+def test_a_constant_that_is_not_a_finite_real_number_is_refused_naming_its_equation(eq):
+    spec = parse_spec({"states": ["x"], "equations": {"x": eq}})
+    with pytest.raises(ConfigError, match=r"^model\.spec\.equations\.x: .* is not a finite real number"):
+        EquationField(spec)
+
+
+def test_a_spec_file_reads_exponent_notation_as_numbers(tmp_path):
+    """PyYAML's YAML 1.1 reads `1e-3` as text; a spec file means what the same keys inline in a config mean."""
+    path = tmp_path / "spec.yaml"
+    path.write_text("states: [x]\nequations: {x: -k*x}\nparams: {k: 2e-3}\ndt: 1E2\nname: 1e\n")
+    spec = load_spec_file(path)
+    assert spec["params"]["k"] == 0.002 and spec["dt"] == 100.0 and spec["name"] == "1e"
+    assert float(parse_spec(spec, extra_keys=["dt", "name"]).params["k"]) == 0.002

@@ -465,6 +465,24 @@ CASES: dict[str, Case] = {
     ),
     "spec_unknown_name": Case(lambda w, d: _spec(d, SPEC.format(eq="-kk*x")), 2, "Did you mean 'k'"),
     "spec_wrong_states": Case(lambda w, d: _spec(d, SPEC.format(eq="-k*x"), "system=lorenz3"), 2, "has 1 states"),
+    # a power of constants is computed exactly when it is read: 9**9**9**9 used to hang mpsim, taking all memory
+    "spec_power_tower": Case(lambda w, d: _spec(d, SPEC.format(eq="-k*x*9**9**9**9")), 2, "beyond float64"),
+    "spec_infinite_constant": Case(
+        lambda w, d: (
+            (d / "sys.yaml").write_text(SPEC.format(eq="-k*x*1e309") + "nodes: 2\ngraph: chain\n"),
+            ["simulate", "system=equations", f"system.spec={d / 'sys.yaml'}", "n=2"],
+        )[1],
+        2,
+        "system.spec.equations.x: -oo is not a finite real number",
+    ),
+    "spec_huge_graph": Case(  # used to end in a MemoryError traceback while building the graph
+        lambda w, d: (
+            (d / "sys.yaml").write_text(SPEC.format(eq="-k*x") + "nodes: 100000000000\ngraph: chain\n"),
+            ["simulate", "system=equations", f"system.spec={d / 'sys.yaml'}", "n=2"],
+        )[1],
+        5,
+        "a chain graph on 100000000000 nodes needs about",
+    ),
 }
 
 

@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import ast
 import keyword
+import math
+import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -72,8 +74,20 @@ MODEL_KEYS = ("states", "equations", "params", "learnable", "kinematic", "nodes"
 SYSTEM_KEYS = ("name", "graph", "graph_params", "edges", "directed", "init", "dt", "horizon", "integrator", "substep")
 
 
+class _SpecLoader(yaml.SafeLoader):
+    """`yaml.SafeLoader` that also reads `1e-3` and `2E5` as numbers (YAML 1.2 and OmegaConf do; PyYAML's YAML 1.1
+    reads them as text without a dot), so a spec file means what the same keys inline in a config mean."""
+
+
+_SpecLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"),
+)
+
+
 def load_spec_file(path: str | Path) -> dict[str, Any]:
-    """Read a spec from a YAML file (`yaml.safe_load`: plain data only, no tags that build objects).
+    """Read a spec from a YAML file (safe loading: plain data only, no tags that build objects).
 
     Raises:
         ConfigError: the file is missing, unreadable or not a YAML mapping.
@@ -85,7 +99,7 @@ def load_spec_file(path: str | Path) -> dict[str, Any]:
             "the directory you started mpsim from)."
         )
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.load(path.read_text(), Loader=_SpecLoader)  # noqa: S506 (a SafeLoader)
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise ConfigError(f"cannot read spec file {path}: {first}. Fix the YAML (states, equations, params).") from None
@@ -109,6 +123,7 @@ class Spec:
         kinematic: states whose equation is another state (θ̇ = ω) or that the spec declares so.
         n_nodes: N when the spec fixes it (a per-node or matrix parameter, or `nodes:`), else None.
         raw: the spec as plain data (what checkpoints store).
+        where: the config key it was given as (messages name it).
     """
 
     states: tuple[str, ...]
@@ -118,6 +133,7 @@ class Spec:
     kinematic: tuple[str, ...]
     n_nodes: int | None
     raw: dict[str, Any] = field(repr=False)
+    where: str = "model.spec"
 
     @property
     def state_dim(self) -> int:
@@ -262,7 +278,7 @@ def parse_spec(spec: Mapping[str, Any], where: str = "model.spec", extra_keys: S
         if name not in states:
             raise ConfigError(f"{where}.kinematic names {name!r}, which is not a state.{did_you_mean(name, states)}")
     plain = {k: _plain(v) for k, v in spec.items()}
-    return Spec(tuple(states), rhs, params, tuple(learnable), tuple(kinematic), n_nodes, plain)
+    return Spec(tuple(states), rhs, params, tuple(learnable), tuple(kinematic), n_nodes, plain, where)
 
 
 def _plain(value: Any) -> Any:
@@ -339,7 +355,10 @@ class _Parser:
         if isinstance(node, ast.Constant) and isinstance(node.value, int | float) and not isinstance(node.value, bool):
             return sympy.Integer(node.value) if isinstance(node.value, int) else sympy.Float(node.value)
         if isinstance(node, ast.BinOp) and type(node.op) in self.BINOPS:
-            return self.BINOPS[type(node.op)](self.visit(node.left, in_nbr), self.visit(node.right, in_nbr))
+            left, right = self.visit(node.left, in_nbr), self.visit(node.right, in_nbr)
+            if isinstance(node.op, ast.Pow):
+                self.check_power(node, left, right)
+            return self.BINOPS[type(node.op)](left, right)
         if isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.USub | ast.UAdd):
             inner = self.visit(node.operand, in_nbr)
             return -inner if isinstance(node.op, ast.USub) else inner
@@ -353,6 +372,18 @@ class _Parser:
             f"{what} is not allowed; use numbers, names, + - * / ** and the functions "
             f"{', '.join(FUNCS)}, sum_nbr, mean_nbr, lin",
         )
+
+    def check_power(self, node: ast.BinOp, base: sympy.Expr, exponent: sympy.Expr) -> None:
+        """A power of two numbers is computed exactly when it is read (9**9**9**9 would take forever and all
+        memory): refuse one whose value passes 1e300 (a float64's range) in size."""
+        if not (base.is_Number and exponent.is_Number) or base in (0, 1, -1):
+            return
+        size = float(exponent) * math.log10(abs(float(base)))  # log10 of |value|
+        if abs(size) > 300:
+            raise self.fail(
+                node,
+                f"the constant {base}**{exponent} is about 10^{size:.3g}, beyond float64; write a number within range",
+            )
 
     def name(self, node: ast.Name, in_nbr: bool) -> sympy.Expr:
         n = node.id
@@ -450,7 +481,12 @@ class EquationField:
                 self.counts[sub] = self.counts.get(sub, 0) + 1
         self.uses_graph = any(e.has(SUM_NBR) or e.has(MEAN_NBR) or e.has(DEG) for e in spec.rhs)
         self.matrices = sorted({str(a.args[0]) for e in spec.rhs for a in e.atoms(LIN)})
-        self.columns = [self.node(e, i)[1] for i, e in enumerate(spec.rhs)]
+        self.columns = []
+        for i, e in enumerate(spec.rhs):
+            try:
+                self.columns.append(self.node(e, i)[1])
+            except ConfigError as err:
+                raise ConfigError(f"{spec.where}.equations.{spec.states[i]}: {err}") from None
 
     def __call__(
         self,
@@ -484,8 +520,12 @@ class EquationField:
         if not expr.free_symbols and not expr.has(SUM_NBR, MEAN_NBR, LIN):
             try:
                 c = float(expr)
-            except TypeError:
-                raise ConfigError(f"{expr} is not a real number; check the spec's constants.") from None
+            except (TypeError, OverflowError, ValueError):
+                c = math.nan
+            if not math.isfinite(c):
+                raise ConfigError(
+                    f"{str(expr)[:80]} is not a finite real number (float64); check the spec's constants."
+                ) from None
             return 0, lambda env: c
         if isinstance(expr, sympy.Symbol):
             name = expr.name

@@ -103,7 +103,9 @@ def training_bytes(
     return params + data + activations
 
 
-def check_fits(need: int, what: str, device: str = "cpu", enabled: bool = True, fix: str = "") -> None:
+def check_fits(
+    need: int, what: str, device: str = "cpu", enabled: bool = True, fix: str = "", forced: bool = True
+) -> None:
     """Refuse (before anything starts) a job whose estimate `need` exceeds the memory available on `device`.
 
     Args:
@@ -112,6 +114,7 @@ def check_fits(need: int, what: str, device: str = "cpu", enabled: bool = True, 
         device: where the memory is needed.
         enabled: `memory_check` from the config (False: never refuse).
         fix: the config keys that make the job smaller.
+        forced: whether `memory_check=false` lets the job try anyway (the message says so only then).
 
     Raises:
         ResourceError: the estimate does not fit.
@@ -124,5 +127,6 @@ def check_fits(need: int, what: str, device: str = "cpu", enabled: bool = True, 
     hint = f" ({fix})" if fix else ""
     raise ResourceError(
         f"{what} needs about {fmt_bytes(need)} of memory, but only {fmt_bytes(avail)} is available on {device}. "
-        f"Make the job smaller{hint} or split it into several runs; memory_check=false tries anyway."
+        f"Make the job smaller{hint} or split it into several runs"
+        + ("; memory_check=false tries anyway." if forced else ".")
     )

@@ -1,7 +1,18 @@
+import pytest
 import torch
 
+from mpsim.errors import ResourceError
 from mpsim.graphs import batch_graph, mean_aggregate, sum_aggregate
-from mpsim.graphs.topology import chain, complete, erdos_renyi, from_adjacency, grid, ring
+from mpsim.graphs.topology import (
+    chain,
+    complete,
+    erdos_renyi,
+    from_adjacency,
+    grid,
+    make_topology,
+    ring,
+    topology_bytes,
+)
 
 
 def test_edge_counts():
@@ -53,3 +64,11 @@ def test_self_loops_join_the_mean():
     values = torch.tensor([[[2.0], [4.0]]])
     out = mean_aggregate(values, batch_graph(ei, 1, 2, self_loops=True))
     assert out[0, :, 0].tolist() == [2.0, 3.0]
+
+
+def test_a_graph_too_large_for_memory_is_refused_before_anything_is_allocated():
+    with pytest.raises(ResourceError, match="a chain graph on 100000000000 nodes needs about 300 TB"):
+        make_topology("chain", 10**11)
+    with pytest.raises(ResourceError, match="a complete graph on 10000000 nodes"):
+        make_topology("complete", 10**7)
+    assert topology_bytes("complete", 10) == 4000 and make_topology("complete", 10).shape == (2, 90)

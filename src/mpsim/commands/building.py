@@ -17,7 +17,7 @@ from mpsim.commands.splits import load_splits
 from mpsim.config import plain_dict
 from mpsim.data.dataset import SPLITS, Splits, fit_normalisation
 from mpsim.data.trajectories import Trajectories
-from mpsim.errors import ConfigError, IncompatibleError, MpsimError
+from mpsim.errors import ConfigError, IncompatibleError, MpsimError, ResourceError
 from mpsim.models.base import Model
 from mpsim.solvers.odeint import ODESolver
 from mpsim.systems.base import System
@@ -31,7 +31,13 @@ def build(node: DictConfig, where: str, **kwargs: Any) -> Any:
         cause = err.__cause__
         if isinstance(cause, MpsimError):
             raise cause from None
-        text = str(cause or err).strip().splitlines()[-1]
+        if isinstance(cause, MemoryError):
+            raise ResourceError(
+                f"building {where} ({node.get('_target_')}) ran out of memory; make it smaller (fewer nodes, a "
+                "sparser graph)."
+            ) from None
+        lines = str(cause or err).strip().splitlines()
+        text = lines[-1] if lines else type(cause or err).__name__
         raise ConfigError(f"cannot build {where} ({node.get('_target_')}): {text}") from None
 
 

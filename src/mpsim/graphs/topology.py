@@ -10,6 +10,7 @@ import networkx as nx
 import torch
 
 from mpsim.errors import ConfigError
+from mpsim.memory import check_fits
 
 
 def from_networkx(graph: nx.Graph) -> torch.Tensor:
@@ -87,8 +88,27 @@ def watts_strogatz(n: int, k: int, p: float, seed: int = 0) -> torch.Tensor:
 TOPOLOGIES = ("complete", "chain", "ring", "grid", "erdos_renyi", "barabasi_albert", "watts_strogatz")
 
 
+def topology_bytes(kind: str, n: int, **kwargs) -> int:
+    """Memory that building a topology takes, roughly: the dense [N, N] adjacency and its index for `complete`;
+    networkx's dictionaries (about 1 kB per node and per edge) for the others."""
+    if kind == "complete":
+        return 40 * n * n
+    k = int(kwargs.get("k") or 2)
+    if kind == "erdos_renyi":
+        edges = int(kwargs["m"]) if kwargs.get("m") is not None else int(float(kwargs.get("p") or 0) * n * n)
+    else:
+        edges = {"chain": 2, "ring": 2, "grid": 4, "barabasi_albert": 2 * k, "watts_strogatz": k}.get(kind, 2) * n
+    return 1000 * (n + edges)
+
+
 def make_topology(kind: str, n: int, **kwargs) -> torch.Tensor:
-    """`edge_index` for a named topology; `kwargs` are the family's parameters (p, m, k, seed, rows...)."""
+    """`edge_index` for a named topology; `kwargs` are the family's parameters (p, m, k, seed, rows...).
+
+    Raises:
+        ResourceError: building it would take more memory than there is (before anything is allocated).
+    """
+    if kind in TOPOLOGIES:
+        check_fits(topology_bytes(kind, n, **kwargs), f"a {kind} graph on {n} nodes", fix="fewer nodes", forced=False)
     if kind == "complete":
         return complete(n, **kwargs)
     if kind == "chain":
