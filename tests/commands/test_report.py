@@ -2,6 +2,7 @@
 or still training) is listed with the epoch it reached, in the generic table and in every layout."""
 
 import json
+import re
 
 import pandas as pd
 import pytest
@@ -128,3 +129,27 @@ def test_an_added_override_groups_under_its_key_and_a_bad_overrides_file_is_refu
     (root / "s2" / ".hydra" / "overrides.yaml").write_text("{seed: 2}")  # a mapping, not a list of overrides
     with pytest.raises(DataError, match="overrides.yaml must be a list of key=value overrides; got dict"):
         run_report(cfg_factory("report", f"runs=[{root}]"), output_dir=tmp_path / "again")
+
+
+@pytest.mark.parametrize(
+    "override, match",
+    [
+        ("target=abc", "target='abc': give a test error > 0"),  # was a ValueError traceback
+        ("target=-1", "target=-1: give a test error > 0"),  # was accepted: a target no run can reach
+        ("target=0", "target=0: give a test error > 0"),
+        ("runs=[]", "runs=[] names no run"),
+        ("layout=curves", "target=max_min applies to the plain table; layout=curves sets its own"),
+    ],
+)
+def test_a_target_no_run_can_reach_or_one_a_layout_ignores_is_refused(cfg_factory, tmp_path, runs, override, match):
+    target = [] if override.startswith("target=") else ["target=max_min"]
+    cfg = cfg_factory("report", f"runs=[{runs}]", *target, override)
+    with pytest.raises(ConfigError, match=re.escape(match)):
+        run_report(cfg, output_dir=tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_positive_target_gives_the_first_epoch_at_or_below_it(cfg_factory, tmp_path, runs):
+    out = run_report(cfg_factory("report", f"runs=[{runs}]", "target=0.5"), output_dir=tmp_path / "out")
+    frame = pd.read_csv(tmp_path / "out" / "report.csv")
+    assert list(frame["epochs_to_target"]) == [1, 1] and out is not None  # test errors 1.0, 0.5, 0.4

@@ -246,11 +246,37 @@ def _pm(m: float, s: float) -> str:
     return f"{m:.4g}" if s is None or math.isnan(s) else f"{m:.4g} ± {s:.2g}"
 
 
+def _check_target(target: Any, layout: str | None) -> None:
+    """`target` is null, max_min or a test error > 0 (a number, or text that reads as one), and only for the plain
+    table (a layout sets its own)."""
+    if target is None:
+        return
+    if layout is not None:
+        raise ConfigError(
+            f"target={target} applies to the plain table; layout={layout} sets its own (the best level every "
+            "curve reaches). Drop target= or layout=."
+        )
+    if target == "max_min":
+        return
+    try:
+        value = float(target) if not isinstance(target, bool) else math.nan
+    except (TypeError, ValueError):
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise ConfigError(
+            f"target={target!r}: give a test error > 0 (e.g. target=0.05), or target=max_min (the best level every "
+            "run reached)."
+        )
+
+
 def run_report(cfg: DictConfig, output_dir: str | Path | None = None, overrides: list[str] | None = None) -> dict:
     """Scan `runs` for summaries; write report.csv (every run) and report.md (grouped by what varies)."""
     layout = cfg.get("layout")
     if layout is not None and layout not in LAYOUT_FUNCS:
         raise ConfigError(f"layout={layout!r} is unknown; choose one of {', '.join(LAYOUT_FUNCS)} (or null).")
+    _check_target(cfg.target, layout)
+    if not cfg.runs:
+        raise ConfigError("runs=[] names no run; give run or sweep folders, e.g. runs=[outputs/train].")
     start_dir, out_dir = locate(output_dir)
     matches = {str(p): sorted(glob.glob(str(resolve_path(p, start_dir)))) for p in cfg.runs}
     missing = [p for p, found in matches.items() if not found]
