@@ -180,6 +180,12 @@ def test_an_unquoted_call_or_nested_override_gets_the_quoting_advice():
     with pytest.raises(ConfigError) as err:  # a parse error elsewhere gets no quoting advice
         compose_command("train", ["trainer.lr=[1,"], str(CONF))
     assert "quote every expression" not in str(err.value)
+    # a call in any other value (a shell command substitution typed into a title) gets the plain quoting advice
+    with pytest.raises(ConfigError, match=r"In title=\.\.\., quote the value inside the single quotes") as err:
+        compose_command("report", ["title=$(touch x)"], str(CONF))
+    assert "sin(theta)" not in str(err.value)
+    titled = compose_command("report", ['title="$(touch x)"'], str(CONF))
+    assert titled is not None and titled.title == "$(touch x)"  # the advice given works: a plain string
 
 
 def test_a_key_with_no_close_match_lists_each_key_once():

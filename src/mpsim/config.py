@@ -443,6 +443,9 @@ def _quote_hint(overrides: list[str]) -> str:
         try:
             parser.parse_override(arg)
         except Exception:  # noqa: BLE001 - Hydra raises several kinds for one unparsable override
+            if "(" in value and not key.lstrip("+~").endswith(("equations", "spec")):
+                shown = value.replace('"', "'")
+                return f""". In {key}=..., quote the value inside the single quotes: '{key}="{shown}"'"""
             if "(" in value:
                 return (
                     f". In {key}=..., quote every expression that calls a function, inside the single quotes: "
