@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from mpsim.diagnose.heldout import critical
 from tests.helpers import TINY_TRAIN, run_mpsim, run_mpsim_ok
 
 SMALL = ["data.n_train=32", "data.n_val=8", "data.n_test=16", "trainer.progress=false", "diagnose.n_boot=30"]
@@ -35,6 +36,11 @@ def test_hidden_damping_found_added_and_error_drops(tmp_path):
     assert found["vs_truth"]["relative_error"]["coef"] < 0.05
     lo, hi = found["interval"]["coef"]
     assert lo <= found["values"]["coef"] <= hi  # the interval is the reported coefficient's
+    # the acceptance test's own numbers: Student's t bar for 16 held-out recordings, cleared, and shown
+    assert found["n_heldout"] == 16 and found["bar_se"] == pytest.approx(critical(2.0, 16))
+    assert found["log_ratio"] - max(found["null_log_ratio"], 0.0) > found["bar_se"] * found["log_ratio_se"]
+    assert "standard errors above" in found["test"] and found["test"] in (run / "diagnosis.md").read_text()
+    assert "over 16 held-out recordings" in proc.stdout  # on the console too, under the effect
     assert result["screen"]["searched_rows"] == ["omega"]  # θ̇ = ω is kinematic: not searched
     (fixed,) = result["fixed_effects"]
     assert fixed["vs_truth"]["relative_error"]["coef"] < 0.05

@@ -340,17 +340,17 @@ def _markdown(s: dict[str, Any]) -> str:
         "",
         "## Candidates tested on held-out data",
         "",
-        "| effect | fitted (95 % interval) | held-out MSE before → after | gain ± se | null gain | named | why |",
-        "|---|---|---|---|---|---|---|",
+        "| effect | fitted (95 % interval) | held-out MSE before → after | gain ± se | null gain | test | named | why |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for t in j["trials"]:
         lines.append(
             f"| {t['label']} | {_values_text(t['values'], t['interval'])} | {t['error_before']:.4g} → "
             f"{t['error_after']:.4g} | {t['gain']:.3g} ± {t['gain_se']:.2g} | {t['null_gain']:.3g} | "
-            f"{'yes' if t['accepted'] else 'no'} | {t['reason']} |"
+            f"{t.get('test') or '—'} | {'yes' if t['accepted'] else 'no'} | {t['reason']} |"
         )
     if not j["trials"]:
-        lines.append("| (none tested) | | | | | | |")
+        lines.append("| (none tested) | | | | | | | |")
     lines += [f"- {t['label']}: {t['derived']}" for t in j["trials"] if t.get("derived")]
     for k, f in enumerate(s["finetuned"], start=1):
         lines += [
@@ -364,13 +364,13 @@ def _markdown(s: dict[str, Any]) -> str:
             + f"null level {f['error_null']:.4g}; verdict of this round: {f['verdict']}"
             + (f" (share of the control's excess removed: {f['explained']:.0%})." if f["named"] else "."),
             "",
-            "| effect | finetuned value (95 % interval) | held-out MSE control → with it | gain ± se | named | why |",
-            "|---|---|---|---|---|---|",
+            "| effect | finetuned value (95 % interval) | held-out MSE control → with it | gain ± se | test | named | why |",
+            "|---|---|---|---|---|---|---|",
         ]
         for t in f["trials"]:
             lines.append(
                 f"| {t['label']} | {_values_text(t['values'], t['interval'])} | {t['error_before']:.4g} → "
-                f"{t['error_after']:.4g} | {t['gain']:.3g} ± {t['gain_se']:.2g} | "
+                f"{t['error_after']:.4g} | {t['gain']:.3g} ± {t['gain_se']:.2g} | {t.get('test') or '—'} | "
                 f"{'yes' if t['accepted'] else 'no'} | {t['reason']} |"
             )
         lines += [f"- {n}" for n in f["notes"]]
@@ -443,6 +443,8 @@ def _print(s: dict[str, Any], out: Path) -> None:
     for t in s["effects_named"]:
         truth = f"  ({_truth_text(t['vs_truth'])})" if t.get("vs_truth") else ""
         rows.append(("effect", f"{t['label']}: {_values_text(t['values'], t['interval'])}{truth}"))
+        if t.get("test"):
+            rows.append(("", t["test"]))
         if t.get("derived"):
             rows.append(("", t["derived"]))
     if s["finetuned"]:  # a network's candidates were judged by finetuning: its numbers, round by round

@@ -230,6 +230,11 @@ def judge_by_finetune(
                 accepted=not failed,
                 reason=reason,
                 derived="finetuned with the network; compared with the same finetune without it (the control)",
+                log_ratio=log_gain,
+                log_ratio_se=log_se,
+                null_log_ratio=0.0,
+                n_heldout=n_rec,
+                bar_se=bar,
             )
         )
         models[len(trials) - 1] = (tuned, path)

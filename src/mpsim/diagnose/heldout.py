@@ -86,9 +86,26 @@ class Trial:
     accepted: bool
     reason: str
     derived: str = ""  # how derived values (a coupling's phase lag α and strength K) were obtained
+    # the acceptance test: mean and standard error over held-out recordings of log(error before / after), the
+    # same for the null fit (0 when judged by finetuning), the recordings, and the standard errors it had to clear
+    log_ratio: float = math.nan
+    log_ratio_se: float = math.nan
+    null_log_ratio: float = math.nan
+    n_heldout: int = 0
+    bar_se: float = math.nan
 
     def as_dict(self) -> dict[str, Any]:
-        return dict(self.__dict__)
+        return {**self.__dict__, "test": self.test_text()}
+
+    def test_text(self) -> str:
+        """How far the log error ratio cleared the null fit's, in standard errors, against the bar ("" untested)."""
+        if not (self.n_heldout and math.isfinite(self.log_ratio) and self.log_ratio_se > 0):
+            return ""
+        above = (self.log_ratio - max(self.null_log_ratio, 0.0)) / self.log_ratio_se
+        return (
+            f"log error ratio {self.log_ratio:.3g} ± {self.log_ratio_se:.2g} over {self.n_heldout} held-out "
+            f"recordings: {above:.3g} standard errors above {max(self.null_log_ratio, 0.0):.3g} (bar {self.bar_se:.3g})"
+        )
 
 
 @dataclass
@@ -536,5 +553,10 @@ def _trial(
         accepted=not failed,
         reason=reason,
         derived=derived,
+        log_ratio=log_gain,
+        log_ratio_se=log_se,
+        null_log_ratio=null_log,
+        n_heldout=n_rec,
+        bar_se=bar,
     )
     return out, trial, e_after
