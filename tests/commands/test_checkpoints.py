@@ -1,7 +1,11 @@
-import pytest
+import re
 
-from mpsim.commands.checkpoints import check_checkpoint_system
-from mpsim.errors import IncompatibleError
+import pytest
+import torch
+
+from mpsim.commands.checkpoints import check_checkpoint_system, resolve_init
+from mpsim.commands.runtime import Runtime
+from mpsim.errors import CheckpointError, IncompatibleError
 
 QUAD = ["px", "py", "pz", "qw", "qx", "qy", "qz", "vx", "vy", "vz", "wx", "wy", "wz"]
 
@@ -28,3 +32,24 @@ def test_a_model_and_data_that_differ_say_which_side_to_change(trained, data, fi
     with pytest.raises(IncompatibleError, match=rf"was trained on quad3 .* but this data has .*{fix}"):
         check_checkpoint_system(_ckpt(*trained), data[0], data[1], data[2])
     check_checkpoint_system(_ckpt(*trained), *trained)  # matching data pass
+
+
+def test_a_run_directory_given_as_init_is_refused_naming_its_model_file(tmp_path):
+    """init=<run dir> is a common slip: the message names the run's best.ckpt (and a plain folder just as a folder)."""
+    rt = Runtime(torch.device("cpu"), torch.float32, tmp_path, tmp_path / "out", [])
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "checkpoints" / "best.ckpt").write_bytes(b"x")
+    with pytest.raises(
+        CheckpointError,
+        match=re.escape(
+            f"is a folder, not a checkpoint file; a run's model is its checkpoints/best.ckpt: init={run}/checkpoints/best.ckpt"
+        ),
+    ):
+        resolve_init("run", rt, "checkpoints")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(CheckpointError, match=r"empty is a folder, not a checkpoint file\.$"):
+        resolve_init("empty", rt, "checkpoints")
+    with pytest.raises(CheckpointError, match=r"no such checkpoint \(looked for [^,]*/gone, [^,]*/checkpoints/gone, "):
+        resolve_init("gone", rt, "checkpoints")
+    assert resolve_init(f"{run}/checkpoints/best.ckpt", rt, "checkpoints") == run / "checkpoints" / "best.ckpt"

@@ -27,11 +27,18 @@ def resolve_init(init: str, rt: Runtime, ckpt_dir: str) -> Path:
     for candidate in candidates:
         if candidate.is_file():
             return candidate
+    folder = next((c for c in candidates if c.is_dir()), None)
+    if folder is not None:  # a run directory given for its model
+        inside = [folder / "checkpoints" / name for name in ("best.ckpt", "last.ckpt")]
+        found = [str(p) for p in inside if p.is_file()]
+        hint = f"; a run's model is its checkpoints/best.ckpt: init={found[0]}" if found else ""
+        raise CheckpointError(f"init={init}: {folder} is a folder, not a checkpoint file{hint}.")
     available = sorted(p.name for p in ckpt_root.glob("*.ckpt")) if ckpt_root.is_dir() else []
     listing = (
         f" Available in {ckpt_root}: {', '.join(available)}." if available else f" {ckpt_root} has no checkpoints."
     )
-    raise CheckpointError(f"init={init}: no such checkpoint (looked for {', '.join(map(str, candidates))}).{listing}")
+    looked = ", ".join(dict.fromkeys(map(str, candidates)))  # each place once
+    raise CheckpointError(f"init={init}: no such checkpoint (looked for {looked}).{listing}")
 
 
 def load_init(cfg: DictConfig, rt: Runtime) -> dict[str, Any] | None:
