@@ -21,7 +21,7 @@ test "$n" -eq 5 || { echo "expected 5 summaries, found $n"; exit 1; }
 # your own equations, no Python: simulate a spec, fit it from a CSV, diagnose it (clean data: exit 10, nothing missing)
 mkdir -p eq && cd eq
 spec=$REPO/examples/equations/pendulums_linear_spring.yaml
-mpsim simulate system=equations system.spec=$spec n=12 format=csv out=pend hydra.run.dir=data
+mpsim simulate system=equations system.spec=$spec n=20 format=csv out=pend hydra.run.dir=data  # 3 held out for diagnose
 mpsim train model=equations model.spec=$spec 'model.init={g: 9.0, k: 2.5}' data.path=data/pend.csv trainer=whitebox \
   trainer.progress=false eval.horizons=[1,10] > train.txt
 grep -q "fitted parameters     g=9.8" train.txt
