@@ -230,8 +230,7 @@ class Trainer:
             since_best = resume_state["since_best"]
             wall_before = self.history_[-1]["wall_time"] if self.history_ else 0.0
             start_epoch = resume_state["epoch"] + 1
-            before = resume_state.get("max_epochs", self.max_epochs)  # the budget it ran under
-            check_resume(resume_state, self.max_epochs, self.early_stop_patience)
+            before = check_resume(resume_state, self.max_epochs, self.early_stop_patience)
             log.info(
                 f"resuming after epoch {resume_state['epoch']} (best val {self.best_val_:.4g} at epoch "
                 f"{self.best_epoch_})"
@@ -436,10 +435,10 @@ class Trainer:
         save_checkpoint(self._ckpt_dir / "last.ckpt", self._payload(model, metrics={"epoch": epoch}, trainer=state))
 
 
-def check_resume(state: dict[str, Any], max_epochs: int, patience: int) -> None:
+def check_resume(state: dict[str, Any], max_epochs: int, patience: int) -> int:
     """Refuse a resumed budget that cannot be met: fewer epochs than the run in `state` (a last.ckpt's trainer
     state) has run, or more epochs for a run that stopped early (its patience spent, it would stop again at once)
-    without raising its patience.
+    without raising its patience. Returns the budget the run ran under (`max_epochs` for older checkpoints).
 
     Raises:
         ConfigError: naming the budget that would work.
@@ -457,6 +456,7 @@ def check_resume(state: dict[str, Any], max_epochs: int, patience: int) -> None:
             f"epochs, trainer.early_stop_patience={patience}), so trainer.max_epochs={max_epochs} would not train "
             f"it further. Raise trainer.early_stop_patience above {since_best} (0: never stop early) to continue it."
         )
+    return before
 
 
 def _ids(idx: torch.Tensor, limit: int = 8) -> str:
