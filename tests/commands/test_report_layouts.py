@@ -234,7 +234,8 @@ def test_message_size_layout(cfg_factory, tmp_path):
     _run(root, "zs", system="kuramoto10_ba", message_size=7, trained_on="kuramoto10_er", best_val=0.1)  # not trained
     _, out = _report(cfg_factory, tmp_path, "message_size", root)
     text = (out / "report.md").read_text()
-    assert "| 7 | 2 | 0.305 ± 0.0071 |" in text and "| L2S | 1 | 0.6 |" in text
+    assert "| 7 | 2 | 0.305 ± 0.0071 |" in text
+    assert "| L2S | 1 | 0.6 | 6 | 1.2 |" in text  # L2S's final train loss and epochs_x_min_error too (epoch 2 × 0.6)
     table = pd.read_csv(out / "report.csv")
     assert list(table.dropna(subset=["message_size"])["message_size"].astype(int)) == [1, 3, 7, 13]
     assert (out / "message_size.png").is_file() and (out / "message_size_curves.png").is_file()

@@ -968,6 +968,9 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
         for variant, l2s in l2s_all.groupby("variant", sort=False):
             name = f"L2S{variant}"
             ref, ref_sd, n = _stats(l2s["min_test_error"])
+            exm, exm_sd, _ = _stats(l2s["epochs_x_min_error"])
+            l2s_curves = [c for c in (read_metrics(r) for r in l2s["run"]) if c is not None]
+            final_loss = _stats(pd.Series([float(c["train_loss"].iloc[-1]) for c in l2s_curves]))
             axes[0, k].axhline(ref, color="tab:red", linestyle="--", label=name)
             records.append(
                 {
@@ -977,10 +980,13 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
                     "runs": n,
                     "min_test_error": ref,
                     "min_test_error_std": ref_sd,
+                    "epochs_x_min_error": exm,
+                    "epochs_x_min_error_std": exm_sd,
+                    "final_train_loss": final_loss[0],
+                    "final_train_loss_std": final_loss[1],
                 }
             )
-            rows.append([name, n, pm(ref, ref_sd, 3), "", ""])
-            l2s_curves = [c for c in (read_metrics(r) for r in l2s["run"]) if c is not None]
+            rows.append([name, n, pm(ref, ref_sd, 3), pm(final_loss[0], final_loss[1], 3), pm(exm, exm_sd, 4)])
             for c in l2s_curves:
                 caxes[1, k].plot(c["epoch"], c["test_error"], color="tab:red", linestyle="--", linewidth=0.8)
             if l2s_curves and epochs:
