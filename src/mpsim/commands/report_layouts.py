@@ -909,6 +909,24 @@ def _by_epoch_row(
     return [label] + ["–" if values[e].isna().any() else pm(*_stats(values[e])[:2], digits=3) for e in epochs]
 
 
+def _size_stats(label: str, runs: pd.DataFrame, curves: list[pd.DataFrame]) -> tuple[dict[str, Any], list[Any]]:
+    """One message-size table entry (MP-NODE at one size, or L2S) over its seeds: the report.csv fields and the
+    Markdown row (min test error, final train loss, epochs_x_min_error, mean ± std)."""
+    err, err_sd, n = _stats(runs["min_test_error"])
+    exm, exm_sd, _ = _stats(runs["epochs_x_min_error"])
+    loss, loss_sd, _ = _stats(pd.Series([float(c["train_loss"].iloc[-1]) for c in curves]))
+    stats = {
+        "runs": n,
+        "min_test_error": err,
+        "min_test_error_std": err_sd,
+        "epochs_x_min_error": exm,
+        "epochs_x_min_error_std": exm_sd,
+        "final_train_loss": loss,
+        "final_train_loss_std": loss_sd,
+    }
+    return stats, [label, n, pm(err, err_sd, 3), pm(loss, loss_sd, 3), pm(exm, exm_sd, 4)]
+
+
 def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
     """Figures 7 and 8: MP-NODE's minimum test error and learning curves per message size, per system."""
     train = frame[(frame["task"] == "train") & (frame["mode"] != "zeroshot")].copy()  # zero-shot runs train nothing
@@ -928,26 +946,11 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
         for (m, variant), runs in sorted(
             part.groupby(["message_size", "variant"]), key=lambda kv: (int(kv[0][0]), kv[0][1])
         ):
-            err, err_sd, n = _stats(runs["min_test_error"])
-            exm, exm_sd, _ = _stats(runs["epochs_x_min_error"])
             loaded = [curves[r] for r in runs["run"] if r in curves]
-            final_loss = _stats(pd.Series([float(c["train_loss"].iloc[-1]) for c in loaded]))
             label = f"{int(m)}{variant}"
-            records.append(
-                {
-                    "system": system,
-                    "message_size": int(m),
-                    "variant": variant.strip(" ()"),
-                    "runs": n,
-                    "min_test_error": err,
-                    "min_test_error_std": err_sd,
-                    "epochs_x_min_error": exm,
-                    "epochs_x_min_error_std": exm_sd,
-                    "final_train_loss": final_loss[0],
-                    "final_train_loss_std": final_loss[1],
-                }
-            )
-            rows.append([label, n, pm(err, err_sd, 3), pm(final_loss[0], final_loss[1], 3), pm(exm, exm_sd, 4)])
+            stats, row = _size_stats(label, runs, loaded)
+            records.append({"system": system, "message_size": int(m), "variant": variant.strip(" ()")} | stats)
+            rows.append(row)
             if loaded and epochs:
                 by_epoch.append(_by_epoch_row(label, loaded, epochs))
             for key, ax in (("train_loss", caxes[0, k]), ("test_error", caxes[1, k])):
@@ -967,26 +970,11 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
         l2s_all = train[(train["system"] == system) & (train["model_class"] == "L2S")]
         for variant, l2s in l2s_all.groupby("variant", sort=False):
             name = f"L2S{variant}"
-            ref, ref_sd, n = _stats(l2s["min_test_error"])
-            exm, exm_sd, _ = _stats(l2s["epochs_x_min_error"])
             l2s_curves = [c for c in (read_metrics(r) for r in l2s["run"]) if c is not None]
-            final_loss = _stats(pd.Series([float(c["train_loss"].iloc[-1]) for c in l2s_curves]))
-            axes[0, k].axhline(ref, color="tab:red", linestyle="--", label=name)
-            records.append(
-                {
-                    "system": system,
-                    "message_size": None,
-                    "model": name,
-                    "runs": n,
-                    "min_test_error": ref,
-                    "min_test_error_std": ref_sd,
-                    "epochs_x_min_error": exm,
-                    "epochs_x_min_error_std": exm_sd,
-                    "final_train_loss": final_loss[0],
-                    "final_train_loss_std": final_loss[1],
-                }
-            )
-            rows.append([name, n, pm(ref, ref_sd, 3), pm(final_loss[0], final_loss[1], 3), pm(exm, exm_sd, 4)])
+            stats, row = _size_stats(name, l2s, l2s_curves)
+            axes[0, k].axhline(stats["min_test_error"], color="tab:red", linestyle="--", label=name)
+            records.append({"system": system, "message_size": None, "model": name} | stats)
+            rows.append(row)
             for c in l2s_curves:
                 caxes[1, k].plot(c["epoch"], c["test_error"], color="tab:red", linestyle="--", linewidth=0.8)
             if l2s_curves and epochs:
