@@ -229,3 +229,22 @@ def test_valid_command_lines_compose():
     cfg = compose_command("train", ["-m", "system=lorenz3,lorenz10", "trainer.lr=1e-3"], str(CONF))
     assert cfg.system.name == "lorenz3" and cfg.trainer.lr == 1e-3
     assert compose_command("train", ["--cfg", "job"], str(CONF)) is None  # left to Hydra
+
+
+def test_a_runs_overrides_record_is_read_as_data_and_a_damaged_one_is_named(tmp_path):
+    from mpsim.config import read_overrides_file
+    from mpsim.errors import DataError
+
+    assert read_overrides_file(tmp_path) is None  # the run kept no record
+    record = tmp_path / ".hydra" / "overrides.yaml"
+    record.parent.mkdir()
+    record.write_text("- seed=1\n- trainer.lr=0.01\n")
+    assert read_overrides_file(tmp_path) == ["seed=1", "trainer.lr=0.01"]
+    record.write_text("")
+    assert read_overrides_file(tmp_path) == []  # Hydra writes [] for no overrides; an empty file is the same
+    record.write_text("- seed=1\n- {data: 2}\n")
+    with pytest.raises(DataError, match="must be a list of key=value overrides; got a list with nested values"):
+        read_overrides_file(tmp_path)
+    record.write_bytes(b"- seed=\xff\n")
+    with pytest.raises(DataError, match="overrides.yaml is not valid YAML"):
+        read_overrides_file(tmp_path)

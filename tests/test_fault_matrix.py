@@ -190,6 +190,14 @@ def _resume_fewer_epochs(ws: Path, d: Path) -> list[str]:
     return ["train", f"resume={run_dir}", "trainer.max_epochs=1"]
 
 
+def _resume_damaged_record(ws: Path, d: Path, text: str) -> list[str]:
+    """A copy of the trained run whose `.hydra/overrides.yaml` is not the list of overrides Hydra wrote."""
+    run_dir = d / "run"
+    shutil.copytree(lorenz_run(ws), run_dir)
+    (run_dir / ".hydra" / "overrides.yaml").write_text(text)
+    return ["train", f"resume={run_dir}"]
+
+
 def _replace_export(ws, d):
     (d / "checkpoints").mkdir()
     shutil.copy(ws / "checkpoints" / "lorenz3.ckpt", d / "checkpoints" / "pendulum2.ckpt")
@@ -281,6 +289,16 @@ CASES: dict[str, Case] = {
     "resume_other_lr": Case(_resume_other_lr, 2, "trainer.lr=0.5 (not set in the run)"),
     "resume_fewer_epochs": Case(_resume_fewer_epochs, 2, "has already run 3 epochs; trainer.max_epochs=1 is fewer"),
     "resume_damaged_state": Case(_resume_damaged_state, 2, "'trainer.epoch' is 'many'"),
+    "resume_overrides_python_tag": Case(
+        lambda w, d: _resume_damaged_record(w, d, "!!python/object/apply:os.system ['touch pwned.txt']\n"),
+        2,
+        "run/.hydra/overrides.yaml is not valid YAML",
+    ),
+    "resume_overrides_not_a_list": Case(
+        lambda w, d: _resume_damaged_record(w, d, "{seed: 0}\n"),
+        2,
+        "run/.hydra/overrides.yaml must be a list of key=value overrides; got dict",
+    ),
     "resume_true_no_run": Case(lambda w, d: ["train", "resume=true", "seed=7"], 2, "no earlier run"),
     # -- checkpoints: data, never code
     "init_missing": Case(lambda w, d: ["eval", "init=nowhere.ckpt", "system=lorenz3", *EVAL], 2, "no such checkpoint"),

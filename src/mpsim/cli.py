@@ -20,8 +20,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from mpsim.errors import MpsimError, OutputError, ResourceError
 from mpsim.process import configure_process
 
@@ -186,14 +184,10 @@ def _own(args: list[str]) -> list[str]:
 
 
 def _saved_overrides(run: Path) -> list[str] | None:
-    path = run / ".hydra" / "overrides.yaml"
-    if not path.is_file():
-        return None
-    try:
-        saved = yaml.safe_load(path.read_text()) or []
-    except yaml.YAMLError:
-        return None
-    return [str(a) for a in saved] if isinstance(saved, list) else None
+    """The overrides a run was started with; None where it kept none. A damaged record is a DataError."""
+    from mpsim.config import read_overrides_file
+
+    return read_overrides_file(run)
 
 
 def find_resumable(args: list[str], command: str = "train") -> Path | None:
@@ -210,7 +204,10 @@ def find_resumable(args: list[str], command: str = "train") -> Path | None:
     found = []
     for overrides in Path(root).glob(f"{command}/*/*/.hydra/overrides.yaml"):
         run = overrides.parent.parent
-        saved = _saved_overrides(run)
+        try:
+            saved = _saved_overrides(run)
+        except MpsimError:
+            continue  # a damaged record matches nothing; resume=<that run> names the damage
         last = run / "checkpoints" / "last.ckpt"
         if saved is not None and defining(saved) == key and last.is_file():
             found.append((last.stat().st_mtime, run))

@@ -41,7 +41,7 @@ from typing import Any
 import pandas as pd
 import yaml
 
-from mpsim.config import host_only, output_only
+from mpsim.config import host_only, output_only, read_overrides_file
 from mpsim.errors import DataError
 from mpsim.plotting import at_least_a_factor, save_figure, subplots
 
@@ -178,21 +178,9 @@ def _text(value: Any) -> str:
 def read_overrides(run: Path) -> dict[str, str]:
     """A run's `.hydra/overrides.yaml` as key → value ("+"/"~" prefixes dropped); {} where it kept none. A file
     that is not a YAML list of overrides is a DataError."""
-    path = run / ".hydra" / "overrides.yaml"
-    if not path.is_file():
-        return {}
-    try:
-        saved = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as err:
-        raise DataError(
-            f"{path} is not valid YAML ({str(err).splitlines()[0]}). Restore it (a list of key=value overrides) "
-            "or move the run out of the report's runs."
-        ) from None
-    if saved is not None and not isinstance(saved, list):
-        raise DataError(f"{path} must be a list of key=value overrides; got {type(saved).__name__}.")
     out = {}
-    for item in saved or []:
-        key, _, value = str(item).partition("=")
+    for item in read_overrides_file(run) or []:
+        key, _, value = item.partition("=")
         out[key.lstrip("+~")] = value
     return out
 

@@ -22,8 +22,8 @@ from mpsim.commands.console import duration, fmt, print_summary
 from mpsim.commands.evaluation import evaluate_checkpoint, evaluate_model, horizon_rows
 from mpsim.commands.runtime import Runtime, describe_device, is_multirun, resolve_path, setup_runtime
 from mpsim.commands.splits import check_training_memory, noisy_train
-from mpsim.config import check_target_node, plain_dict
-from mpsim.errors import CheckpointError, ConfigError, OutputError
+from mpsim.config import check_target_node, plain_dict, read_overrides_file
+from mpsim.errors import CheckpointError, ConfigError, DataError, OutputError
 from mpsim.files import atomic_write, child_path, file_sha256, keep_previous, safe_name, write_json
 from mpsim.metrics import epochs_x_min_error
 from mpsim.training import distributed
@@ -287,10 +287,10 @@ def _record_stopping(cfg: DictConfig, run_dir: Path) -> None:
     record = run_dir / ".hydra"
     try:
         config = yaml.safe_load((record / "config.yaml").read_text())
-        overrides = yaml.safe_load((record / "overrides.yaml").read_text()) or []
-    except (OSError, yaml.YAMLError):
-        return  # no record to keep up to date (the CLI warned that the run kept none)
-    if not isinstance(config, dict) or not isinstance(config.get("trainer"), dict) or not isinstance(overrides, list):
+        overrides = read_overrides_file(run_dir)
+    except (OSError, yaml.YAMLError, DataError):
+        return  # no record to keep up to date (the CLI refused a damaged one and warned of a missing one)
+    if not isinstance(config, dict) or not isinstance(config.get("trainer"), dict) or overrides is None:
         return
     changed = {
         key: int(cfg.trainer[key])
