@@ -183,18 +183,11 @@ def _own(args: list[str]) -> list[str]:
     return [a for a in args if not _key(a).startswith(("resume", "hydra")) and a not in ("-m", "--multirun")]
 
 
-def _saved_overrides(run: Path) -> list[str] | None:
-    """The overrides a run was started with; None where it kept none. A damaged record is a DataError."""
-    from mpsim.config import read_overrides_file
-
-    return read_overrides_file(run)
-
-
 def find_resumable(args: list[str], command: str = "train") -> Path | None:
     """The newest earlier run of `mpsim <command>` with the same overrides (ignoring `resume` and when training
     stops: `trainer.max_epochs=` raised with resume=true trains the same run further) that has a `last.ckpt`,
     under `paths.output_root`."""
-    from mpsim.config import stopping_rule
+    from mpsim.config import read_overrides_file, stopping_rule
 
     def defining(overrides: list[str]) -> list[str]:
         return sorted(a for a in _own(overrides) if not stopping_rule(_key(a)))
@@ -205,7 +198,7 @@ def find_resumable(args: list[str], command: str = "train") -> Path | None:
     for overrides in Path(root).glob(f"{command}/*/*/.hydra/overrides.yaml"):
         run = overrides.parent.parent
         try:
-            saved = _saved_overrides(run)
+            saved = read_overrides_file(run)
         except MpsimError:
             continue  # a damaged record matches nothing; resume=<that run> names the damage
         last = run / "checkpoints" / "last.ckpt"
@@ -249,7 +242,9 @@ def _with_resume(args: list[str]) -> list[str]:
                 f"resume={value}: {run}/checkpoints/last.ckpt does not exist. Pass the directory of an "
                 "earlier train run (it holds checkpoints/last.ckpt)."
             )
-    saved = _saved_overrides(run)
+    from mpsim.config import read_overrides_file
+
+    saved = read_overrides_file(run)  # a damaged record is refused here, by name (a DataError)
     if saved is None:
         print(
             f"mpsim train: warning: {run}/.hydra/overrides.yaml is missing; resuming with the overrides given "
