@@ -27,11 +27,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
 
+import yaml
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
 from mpsim.diagnose.params import DiagnoseParams
-from mpsim.errors import ConfigError
+from mpsim.errors import ConfigError, DataError
 from mpsim.process import DEVICE
 
 
@@ -189,10 +190,6 @@ def read_overrides_file(run: str | Path) -> list[str] | None:
     """A run's `.hydra/overrides.yaml` (the overrides it was started with) as a list of `key=value` strings, or
     None where the run kept none. A file that is not a YAML list of overrides is a DataError that names it: the
     record is read as data only, and a damaged one is never taken as "no overrides"."""
-    import yaml
-
-    from mpsim.errors import DataError
-
     path = Path(run) / ".hydra" / "overrides.yaml"
     if not path.is_file():
         return None
