@@ -884,7 +884,7 @@ def _checkpoint_epochs(curves: Sequence[pd.DataFrame]) -> list[int]:
     return sorted({max(1, round(last * q / 4)) for q in (1, 2, 3, 4)}) if last >= 1 else []
 
 
-def _min_so_far(curve: pd.DataFrame, epochs: Sequence[int], key: str = "test_error") -> list[float]:
+def min_so_far(curve: pd.DataFrame, epochs: Sequence[int], key: str = "test_error") -> list[float]:
     """The curve's minimum `key` over epochs 1..e for each e (NaN where the run stopped before e)."""
     trained = curve[curve["epoch"] >= 1].set_index("epoch")[key].sort_index().cummin()
     return [float(trained[trained.index <= e].iloc[-1]) if trained.index.max() >= e else math.nan for e in epochs]
@@ -893,7 +893,7 @@ def _min_so_far(curve: pd.DataFrame, epochs: Sequence[int], key: str = "test_err
 def _by_epoch_row(
     label: Any, curves: Sequence[pd.DataFrame], epochs: Sequence[int], key: str = "test_error"
 ) -> list[Any]:
-    values = pd.DataFrame([_min_so_far(c, epochs, key) for c in curves], columns=list(epochs))
+    values = pd.DataFrame([min_so_far(c, epochs, key) for c in curves], columns=list(epochs))
     return [label] + ["–" if values[e].isna().any() else pm(*_stats(values[e])[:2], digits=3) for e in epochs]
 
 
