@@ -153,3 +153,20 @@ def test_a_positive_target_gives_the_first_epoch_at_or_below_it(cfg_factory, tmp
     out = run_report(cfg_factory("report", f"runs=[{runs}]", "target=0.5"), output_dir=tmp_path / "out")
     frame = pd.read_csv(tmp_path / "out" / "report.csv")
     assert list(frame["epochs_to_target"]) == [1, 1] and out is not None  # test errors 1.0, 0.5, 0.4
+
+
+def test_a_report_names_folders_under_where_it_was_started_relative_to_it(cfg_factory, tmp_path, runs, monkeypatch):
+    """A report committed beside its runs names no machine's folders: paths under the start folder are printed
+    relative to it; paths outside it stay whole."""
+    monkeypatch.chdir(tmp_path)
+    run_report(cfg_factory("report", f"runs=[{runs}]"), output_dir=tmp_path / "out")
+    text = (tmp_path / "out" / "report.md").read_text()
+    assert "2 runs under runs." in text
+    assert "runs/s2 (epoch 195 of 4000); runs/s3 (no epoch logged)" in text
+    assert str(tmp_path) not in text
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    run_report(cfg_factory("report", "layout=curves", f"runs=[{runs}]"), output_dir=tmp_path / "out2")
+    text = (tmp_path / "out2" / "report.md").read_text()
+    assert f"runs under {runs}." in text and f"{runs / 's2'} (epoch 195 of 4000)" in text

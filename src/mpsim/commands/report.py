@@ -145,8 +145,20 @@ def _duration(seconds: float) -> str:
     return f"{seconds / 3600:.1f} h"
 
 
-def unfinished_note(runs: list[dict[str, Any]]) -> str:
-    """One paragraph naming the unfinished runs a report leaves out ("" when there are none)."""
+def shown(path: str | Path, start_dir: Path | None) -> str:
+    """`path` as a report prints it: relative to `start_dir` when it lies under it (so a committed report names
+    no machine's folders), else as given."""
+    if start_dir is not None:
+        try:
+            return str(Path(path).relative_to(start_dir))
+        except ValueError:
+            pass
+    return str(path)
+
+
+def unfinished_note(runs: list[dict[str, Any]], start_dir: Path | None = None) -> str:
+    """One paragraph naming the unfinished runs a report leaves out ("" when there are none), their folders
+    relative to `start_dir` where they lie under it."""
     if not runs:
         return ""
 
@@ -161,7 +173,7 @@ def unfinished_note(runs: list[dict[str, Any]]) -> str:
                 text += f", about {_duration(left * r['s_per_epoch'])} left at its last epochs' pace"
         return text
 
-    items = "; ".join(f"{r['run']} ({where(r)})" for r in runs)
+    items = "; ".join(f"{shown(r['run'], start_dir)} ({where(r)})" for r in runs)
     return (
         f"Not in the table: {len(runs)} run{'s' * (len(runs) != 1)} without summary.json (interrupted or still "
         f"training; resume one with `mpsim train resume=<run dir>`): {items}.\n\n"
@@ -296,7 +308,7 @@ def run_report(cfg: DictConfig, output_dir: str | Path | None = None, overrides:
         )
     frame = frame[~frame["run"].str.startswith(str(out_dir))].reset_index(drop=True)
     if layout is not None:
-        return _run_layout(cfg, layout, frame, roots, out_dir, pending)
+        return _run_layout(cfg, layout, frame, roots, start_dir, out_dir, pending)
     if cfg.target is not None:
         add_epochs_to_target(frame, cfg.target)
     fixed = {"run", "seed", "target_error", "status", *NUMERIC}
@@ -314,8 +326,8 @@ def run_report(cfg: DictConfig, output_dir: str | Path | None = None, overrides:
     atomic_write(out_dir / "report.csv", lambda f: frame.to_csv(f, index=False), mode="w")
     note = f" Target test error {frame['target_error'].iloc[0]:.4g} ({cfg.target})." if cfg.target is not None else ""
     text = (
-        f"# {cfg.title}\n\n{len(frame)} runs under {', '.join(map(str, roots))}.{note}\n\n"
-        f"{unfinished_note(pending)}{markdown(table)}\n"
+        f"# {cfg.title}\n\n{len(frame)} runs under {', '.join(shown(r, start_dir) for r in roots)}.{note}\n\n"
+        f"{unfinished_note(pending, start_dir)}{markdown(table)}\n"
     )
     atomic_write(out_dir / "report.md", lambda f: f.write(text), mode="w")
     print(text)
@@ -331,7 +343,13 @@ def _split_note(split: list[str]) -> str:
 
 
 def _run_layout(
-    cfg: DictConfig, layout: str, frame: pd.DataFrame, roots: list[Path], out_dir: Path, pending: list[dict[str, Any]]
+    cfg: DictConfig,
+    layout: str,
+    frame: pd.DataFrame,
+    roots: list[Path],
+    start_dir: Path,
+    out_dir: Path,
+    pending: list[dict[str, Any]],
 ) -> dict:
     """Write one built-in layout: report.md, report.csv (its table), runs.csv (every run) and its figures."""
     frame, split = mark_variants(frame)  # runs with other settings are kept apart, not averaged as seeds
@@ -339,8 +357,9 @@ def _run_layout(
     title = cfg.title if cfg.title != "mpsim report" else DEFAULT_TITLES[layout]
     figures = "".join(f"\n\n![{p.stem}]({p.name})" for p in result.figures)
     text = (
-        f"# {title}\n\n{len(frame)} runs under {', '.join(map(str, roots))}. Settings of the runs:\n\n"
-        f"{settings_caption(frame)}\n\n{_split_note(split)}{unfinished_note(pending)}{result.markdown}{figures}\n"
+        f"# {title}\n\n{len(frame)} runs under {', '.join(shown(r, start_dir) for r in roots)}. Settings of the "
+        f"runs:\n\n{settings_caption(frame)}\n\n{_split_note(split)}{unfinished_note(pending, start_dir)}"
+        f"{result.markdown}{figures}\n"
     )
     atomic_write(out_dir / "report.md", lambda f: f.write(text), mode="w")
     atomic_write(out_dir / "report.csv", lambda f: result.table.to_csv(f, index=False), mode="w")
