@@ -275,6 +275,25 @@ def test_message_size_figure_does_not_magnify_a_few_percent(cfg_factory, tmp_pat
     assert hi / lo == pytest.approx(4.0) and lo < 0.142 and 0.148 < hi
 
 
+def test_message_size_curves_name_l2s_in_both_panels(cfg_factory, tmp_path, monkeypatch):
+    # the curves figure drew L2S's test error unnamed and left its train loss out
+    from mpsim.commands import report_layouts
+
+    saved = []
+    monkeypatch.setattr(report_layouts, "save_figure", lambda fig, path: saved.append((path.name, fig)) or path)
+    root = tmp_path / "runs"
+    _run(root, "m7", system="quad3", message_size=7, errors=[1.0, 0.5, 0.3])
+    for seed in (0, 1):
+        _run(root, f"l2s{seed}", system="quad3", model="L2S", seed=seed, message_size=None, errors=[1.0, 0.4, 0.2])
+    _report(cfg_factory, tmp_path, "message_size", root)
+    train_ax, test_ax = dict(saved)["message_size_curves.png"].axes
+    for ax in (train_ax, test_ax):
+        dashed = [line for line in ax.get_lines() if line.get_linestyle() == "--"]
+        assert len(dashed) == 2  # one per L2S seed
+    assert [t.get_text() for t in train_ax.get_legend().get_texts()] == ["m=7", "L2S"]
+    assert list(train_ax.get_lines()[-1].get_ydata()) == [10.0, 4.0, 2.0]  # train loss is 10x the error (see _run)
+
+
 def test_messages_layout_compares_messages_on_and_off(cfg_factory, tmp_path):
     root = tmp_path / "runs"
     for seed in (0, 1):  # train loss is 10× the error (see _run)

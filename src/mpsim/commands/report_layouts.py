@@ -960,11 +960,13 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
             name = f"L2S{variant}"
             l2s_curves = [c for c in (read_metrics(r) for r in l2s["run"]) if c is not None]
             stats, row = _size_stats(name, l2s, l2s_curves)
-            axes[0, k].axhline(stats["min_test_error"], color="tab:red", linestyle="--", label=name)
+            axes[0, k].axhline(stats["min_test_error"], color="black", linestyle="--", label=name)
             records.append({"system": system, "message_size": None, "model": name} | stats)
             rows.append(row)
-            for c in l2s_curves:
-                caxes[1, k].plot(c["epoch"], c["test_error"], color="tab:red", linestyle="--", linewidth=0.8)
+            for i, c in enumerate(l2s_curves):  # each seed its own dashed line, named once in the legend
+                for key, ax in (("train_loss", caxes[0, k]), ("test_error", caxes[1, k])):
+                    seed_label = name if i == 0 else None
+                    ax.plot(c["epoch"], c[key], color="black", linestyle="--", linewidth=0.8, label=seed_label)
             if l2s_curves and epochs:
                 by_epoch.append(_by_epoch_row(name, l2s_curves, epochs))
         axes[0, k].set(xlabel="message size", ylabel="min test rollout RMSE", title=system, yscale="log")
@@ -983,7 +985,7 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
                 + md_table(["message size", *(f"by epoch {e}" for e in epochs)], by_epoch)
             )
     fig.suptitle("Effect of message size (Figure 8; Figure 7 for quadrotors)")
-    cfig.suptitle("Train loss and test error per message size (mean over seeds; L2S dashed)")
+    cfig.suptitle("Train loss and test error per message size (mean over seeds; L2S dashed black, one line per seed)")
     figures = [save_figure(fig, out_dir / "message_size.png"), save_figure(cfig, out_dir / "message_size_curves.png")]
     return LayoutResult("\n\n".join(sections), pd.DataFrame(records), figures)
 
