@@ -260,33 +260,40 @@ def test_message_size_layout_compares_runs_at_matched_epochs(cfg_factory, tmp_pa
     assert "| L2S | 0.7 | 0.7 | 0.7 | 0.65 |" in text  # at MP-NODE's epochs, not the quarters of its own 12
 
 
-def test_message_size_figure_does_not_magnify_a_few_percent(cfg_factory, tmp_path, monkeypatch):
-    # Figure 7's three message sizes ended 4 % apart; the report's panel must show them on at least a factor 4
+@pytest.fixture
+def saved_figures(monkeypatch):
+    """The figures a layout saves, by file name, kept open instead of written."""
     from mpsim.commands import report_layouts
 
-    saved = []
-    monkeypatch.setattr(report_layouts, "save_figure", lambda fig, path: saved.append((path.name, fig)) or path)
+    saved = {}
+
+    def keep(fig, path):
+        saved[path.name] = fig
+        return path
+
+    monkeypatch.setattr(report_layouts, "save_figure", keep)
+    return saved
+
+
+def test_message_size_figure_does_not_magnify_a_few_percent(cfg_factory, tmp_path, saved_figures):
+    # Figure 7's three message sizes ended 4 % apart; the report's panel must show them on at least a factor 4
     root = tmp_path / "runs"
     for m, err in ((7, 0.148), (13, 0.142), (20, 0.146)):
         _run(root, f"m{m}", system="quad3", message_size=m, errors=[1.0, 0.5, err])
     _report(cfg_factory, tmp_path, "message_size", root)
-    fig = dict(saved)["message_size.png"]
+    fig = saved_figures["message_size.png"]
     lo, hi = fig.axes[0].get_ylim()
     assert hi / lo == pytest.approx(4.0) and lo < 0.142 and 0.148 < hi
 
 
-def test_message_size_curves_name_l2s_in_both_panels(cfg_factory, tmp_path, monkeypatch):
+def test_message_size_curves_name_l2s_in_both_panels(cfg_factory, tmp_path, saved_figures):
     # the curves figure drew L2S's test error unnamed and left its train loss out
-    from mpsim.commands import report_layouts
-
-    saved = []
-    monkeypatch.setattr(report_layouts, "save_figure", lambda fig, path: saved.append((path.name, fig)) or path)
     root = tmp_path / "runs"
     _run(root, "m7", system="quad3", message_size=7, errors=[1.0, 0.5, 0.3])
     for seed in (0, 1):
         _run(root, f"l2s{seed}", system="quad3", model="L2S", seed=seed, message_size=None, errors=[1.0, 0.4, 0.2])
     _report(cfg_factory, tmp_path, "message_size", root)
-    train_ax, test_ax = dict(saved)["message_size_curves.png"].axes
+    train_ax, test_ax = saved_figures["message_size_curves.png"].axes
     for ax in (train_ax, test_ax):
         dashed = [line for line in ax.get_lines() if line.get_linestyle() == "--"]
         assert len(dashed) == 2  # one per L2S seed

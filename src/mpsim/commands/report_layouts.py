@@ -931,6 +931,7 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
         # compared at the quarters of the longest MP-NODE run (L2S may run longer: 10000 epochs against 4000)
         curves = {r: c for r in part["run"] if (c := read_metrics(r)) is not None}  # each metrics.csv read once
         epochs = _checkpoint_epochs(list(curves.values()))
+        panels = (("train_loss", caxes[0, k]), ("test_error", caxes[1, k]))  # the curves figure's column
         for (m, variant), runs in sorted(
             part.groupby(["message_size", "variant"]), key=lambda kv: (int(kv[0][0]), kv[0][1])
         ):
@@ -941,7 +942,7 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
             rows.append(row)
             if loaded and epochs:
                 by_epoch.append(_by_epoch_row(label, loaded, epochs))
-            for key, ax in (("train_loss", caxes[0, k]), ("test_error", caxes[1, k])):
+            for key, ax in panels:
                 if loaded:
                     mean = pd.concat([c.set_index("epoch")[key] for c in loaded], axis=1).mean(axis=1).dropna()
                     ax.plot(mean.index, mean.values, label=f"m={label}")
@@ -964,7 +965,7 @@ def message_size(frame: pd.DataFrame, out_dir: Path) -> LayoutResult:
             records.append({"system": system, "message_size": None, "model": name} | stats)
             rows.append(row)
             for i, c in enumerate(l2s_curves):  # each seed its own dashed line, named once in the legend
-                for key, ax in (("train_loss", caxes[0, k]), ("test_error", caxes[1, k])):
+                for key, ax in panels:
                     seed_label = name if i == 0 else None
                     ax.plot(c["epoch"], c[key], color="black", linestyle="--", linewidth=0.8, label=seed_label)
             if l2s_curves and epochs:
