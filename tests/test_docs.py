@@ -10,6 +10,12 @@ ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 PAGES = [README, *sorted((ROOT / "docs").glob("*.md"))]
 MAX_README_BYTES = 12 * 1024
+MAX_PAGE_BYTES = 15 * 1024
+# Pages still over MAX_PAGE_BYTES, each to be reworked by its own issue; remove a name once its page fits.
+OVERSIZED_PAGES = {
+    "residual_loop.md",  # the residual loop's page, rewritten by the issues that rework `mpsim diagnose`
+    "scaling_out.md",  # DDP, SLURM, Optuna, loggers, GPUs: reworked with scaling out
+}
 
 LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
 FENCE = re.compile(r"^(```|~~~).*?^\1[ \t]*$", re.S | re.M)
@@ -48,6 +54,23 @@ def test_readme_is_a_page():
     assert size <= MAX_README_BYTES, (
         f"README.md is {size} bytes, over {MAX_README_BYTES}: move the detail into a docs/ page and link it."
     )
+
+
+@pytest.mark.parametrize("page", PAGES[1:], ids=lambda p: str(p.relative_to(ROOT)))
+def test_docs_page_is_a_topic_page(page):
+    """A docs/ page says what holds today in at most MAX_PAGE_BYTES; dated history goes to results/history/."""
+    size = len(page.read_bytes())
+    if page.name in OVERSIZED_PAGES:
+        pytest.skip(f"{page.name} is allowed over {MAX_PAGE_BYTES} bytes until its issue reworks it")
+    assert size <= MAX_PAGE_BYTES, (
+        f"docs/{page.name} is {size} bytes, over {MAX_PAGE_BYTES}: split it by topic, or move the dated history "
+        "into results/history/."
+    )
+
+
+def test_oversized_allow_list_names_pages_that_exist():
+    missing = sorted(name for name in OVERSIZED_PAGES if not (ROOT / "docs" / name).exists())
+    assert not missing, f"OVERSIZED_PAGES names pages that do not exist: {missing}"
 
 
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(ROOT)))
