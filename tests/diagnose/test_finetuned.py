@@ -11,9 +11,9 @@ import torch
 from mpsim.diagnose.finetuned import PHASES_AGREE, finetune_candidates, judge_by_finetune, serial, shared_phase
 from mpsim.diagnose.heldout import EFFECTS_NAMED, UNEXPLAINED
 from mpsim.diagnose.library import Candidate
-from mpsim.diagnose.loop import Diagnosis, Finding
+from mpsim.diagnose.loop import screen
 from mpsim.diagnose.params import DiagnoseParams
-from mpsim.diagnose.rounds import screen
+from mpsim.diagnose.search import Diagnosis, Finding
 from mpsim.diagnose.shooting import shooting_fit, window_error
 from mpsim.effects import LinearDamping
 from mpsim.systems import CoupledPendulums

@@ -1,6 +1,6 @@
 """`mpsim diagnose init=<ckpt> (system=<name> | data.path=<file>) [fix=true]`: the residual loop.
 
-A thin shell around `mpsim.diagnose.rounds.run_loop`: read the config, build the model and the splits, supply
+A thin shell around `mpsim.diagnose.loop.run_loop`: read the config, build the model and the splits, supply
 the finetune (a trainer run under fix/round<k>/), and write diagnosis.json, diagnosis.md and plots/. The
 verdict sets the exit code: 0 effects named, 10 nothing missing, 11 unexplained structured residual (errors
 keep theirs: 2 bad input, 3 a diverged fix, ...).
@@ -29,8 +29,8 @@ from mpsim.data.dataset import Splits
 from mpsim.data.trajectories import Trajectories
 from mpsim.diagnose.finetuned import serial
 from mpsim.diagnose.heldout import EFFECTS_NAMED, NOTHING_MISSING
+from mpsim.diagnose.loop import LoopResult, holdout_metrics, run_loop
 from mpsim.diagnose.params import DiagnoseParams
-from mpsim.diagnose.rounds import LoopResult, holdout_metrics, run_loop
 from mpsim.errors import ConfigError, DataError, DivergenceError
 from mpsim.files import atomic_write, write_json
 from mpsim.models.base import Model

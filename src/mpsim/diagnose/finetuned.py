@@ -32,8 +32,8 @@ import torch
 from mpsim.data.trajectories import Trajectories
 from mpsim.diagnose.heldout import EFFECTS_NAMED, UNEXPLAINED, Trial, critical, level_text, log_ratio, reported
 from mpsim.diagnose.library import Candidate
-from mpsim.diagnose.loop import Diagnosis, Finding
 from mpsim.diagnose.params import DiagnoseParams
+from mpsim.diagnose.search import Diagnosis, Finding
 from mpsim.diagnose.shooting import sandwich_stderr, window_error, with_effect
 from mpsim.errors import DivergenceError
 from mpsim.models.base import Model

@@ -28,8 +28,8 @@ import torch
 from mpsim import effects as fx
 from mpsim.data.trajectories import Trajectories
 from mpsim.diagnose.library import Candidate, evaluate_effect, step_average
-from mpsim.diagnose.loop import Diagnosis, Finding, model_sensitivities
 from mpsim.diagnose.params import KIND_COMPLEXITY, DiagnoseParams
+from mpsim.diagnose.search import Diagnosis, Finding, model_sensitivities
 from mpsim.diagnose.shooting import (
     horizon_from_data,
     null_data,
