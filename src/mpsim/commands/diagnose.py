@@ -221,7 +221,7 @@ def _workers(jobs: int | None, rt: Runtime) -> int:
 
 
 #: held-out trajectories a diagnosis needs: a candidate's gain is a mean over them with a standard error taken
-#: from them (Student's t, `mpsim.diagnose.heldout.critical`); with 1 there is no standard error, with 2 the bar
+#: from them (Student's t, `mpsim.diagnose.stats.critical`); with 1 there is no standard error, with 2 the bar
 #: is 14 standard errors (margin 2)
 MIN_HELDOUT = 3
 

@@ -18,13 +18,15 @@ import torch
 
 from mpsim.data.dataset import Splits
 from mpsim.data.trajectories import Trajectories
+from mpsim.diagnose.findings import Diagnosis
 from mpsim.diagnose.finetuned import FinetuneAll, FinetuneJudgement, judge_by_finetune, serial
-from mpsim.diagnose.heldout import EFFECTS_NAMED, EXIT_CODES, NOTHING_MISSING, Judgement, Trial, dynamic_rows, judge
+from mpsim.diagnose.heldout import EFFECTS_NAMED, EXIT_CODES, NOTHING_MISSING, Judgement, dynamic_rows, judge
 from mpsim.diagnose.library import Candidate, build_library
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.diagnose.residual import one_step_residual
-from mpsim.diagnose.search import Diagnosis, find_effects
+from mpsim.diagnose.search import find_effects
 from mpsim.diagnose.shooting import horizon_from_data, own_parameters, window_error
+from mpsim.diagnose.trial import Trial
 from mpsim.errors import DivergenceError
 from mpsim.metrics import rollout_metrics, valid_prediction_time
 from mpsim.models.base import Model
@@ -153,23 +155,32 @@ def run_loop(
             }
         )
         return result
-    current, current_err = model, float(window_error(model, test, judgement.horizon).mean())
-    j = judgement
+    result.model = _white_box_fix(model, splits, params, seed, finetune, save, log, result)
+    if result.model is not model:
+        result.after = _after_metrics(result.model, test, horizons, params)
+    return result
+
+
+def _white_box_fix(
+    model: Model,
+    splits: Splits,
+    params: DiagnoseParams,
+    seed: int,
+    finetune: Finetune,
+    save: Save,
+    log: Callable[[str], None],
+    result: LoopResult,
+) -> Model:
+    """fix=true with effects named by the held-out judgement: each round adds them (finetuning a model that has
+    more than named parameters), keeps the better of the fits if it beats the current model on held-out data, and
+    judges the kept model again. Records the rounds in `result`; returns the model handed back."""
+    train, test = splits.train, splits.test
+    j = result.judgement
+    current, current_err = model, float(window_error(model, test, j.horizon).mean())
     for k in range(1, params.rounds + 1):
         names = [t.label for t in j.named]
         log(f"round {k}: adding {'; '.join(names)} and finetuning")
-        fitted = j.model
-        assert fitted is not None  # a judgement that names effects carries the model they were fitted into
-        options: list[tuple[str, Model, str | None]] = [("multiple-shooting fit", fitted, None)]
-        if not white_box(fitted):  # a network must relearn what it made up for; a white-box fit is already done
-            try:
-                tuned, tuned_path = finetune(copy.deepcopy(fitted), f"round{k}")
-            except DivergenceError as exc:
-                raise DivergenceError(
-                    f"the fix of round {k} ({'; '.join(names)}) diverged while finetuning: {exc}"
-                ) from None
-            options.insert(0, ("finetuned", tuned, tuned_path))
-        scored = [(name, m, path, float(window_error(m, test, j.horizon).mean())) for name, m, path in options]
+        scored = _scored_fixes(j, k, names, test, finetune)
         finite = [s for s in scored if math.isfinite(s[3])]
         if not finite:
             raise DivergenceError(
@@ -207,15 +218,37 @@ def run_loop(
         result.rounds.append(entry)
         if j.verdict != EFFECTS_NAMED:
             break
-    result.model = current
-    if current is not model:
-        result.after = holdout_metrics(current, test, horizons, params.vpt_threshold)
-        if result.after["n_diverged"]:
+    return current
+
+
+def _scored_fixes(
+    j: Judgement, k: int, names: list[str], test: Trajectories, finetune: Finetune
+) -> list[tuple[str, Model, str | None, float]]:
+    """The fixes of round `k` with their held-out multi-step MSE: (how it was fitted, model, checkpoint or None,
+    MSE), the finetuned one first when the model has more than named parameters."""
+    fitted = j.model
+    assert fitted is not None  # a judgement that names effects carries the model they were fitted into
+    options: list[tuple[str, Model, str | None]] = [("multiple-shooting fit", fitted, None)]
+    if not white_box(fitted):  # a network must relearn what it made up for; a white-box fit is already done
+        try:
+            tuned, tuned_path = finetune(copy.deepcopy(fitted), f"round{k}")
+        except DivergenceError as exc:
             raise DivergenceError(
-                f"the fixed model's held-out rollouts diverged on {result.after['n_diverged']} "
-                "trajectories; it is not handed back."
-            )
-    return result
+                f"the fix of round {k} ({'; '.join(names)}) diverged while finetuning: {exc}"
+            ) from None
+        options.insert(0, ("finetuned", tuned, tuned_path))
+    return [(name, m, path, float(window_error(m, test, j.horizon).mean())) for name, m, path in options]
+
+
+def _after_metrics(model: Model, test: Trajectories, horizons: list[int], params: DiagnoseParams) -> dict[str, Any]:
+    """Held-out metrics of the model handed back; raises if any of its held-out rollouts diverged."""
+    after = holdout_metrics(model, test, horizons, params.vpt_threshold)
+    if after["n_diverged"]:
+        raise DivergenceError(
+            f"the fixed model's held-out rollouts diverged on {after['n_diverged']} "
+            "trajectories; it is not handed back."
+        )
+    return after
 
 
 def _black_box_fix(
@@ -280,12 +313,7 @@ def _black_box_fix(
             break
     if named:
         result.verdict, result.named, result.model = EFFECTS_NAMED, named, current
-        result.after = holdout_metrics(current, test, horizons, params.vpt_threshold)
-        if result.after["n_diverged"]:
-            raise DivergenceError(
-                f"the fixed model's held-out rollouts diverged on {result.after['n_diverged']} "
-                "trajectories; it is not handed back."
-            )
+        result.after = _after_metrics(current, test, horizons, params)
     else:
         result.verdict, result.named = result.finetuned[0].verdict, []
     return result
