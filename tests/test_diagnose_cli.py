@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from mpsim.diagnose.heldout import critical
+from mpsim.diagnose.stats import critical
 from tests.helpers import TINY_TRAIN, run_mpsim, run_mpsim_ok
 
 SMALL = ["data.n_train=32", "data.n_val=8", "data.n_test=16", "trainer.progress=false", "diagnose.n_boot=30"]

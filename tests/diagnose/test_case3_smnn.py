@@ -16,8 +16,8 @@ import torch
 
 from mpsim.data.dataset import fit_normalisation
 from mpsim.data.trajectories import Inputs
-from mpsim.diagnose.loop import find_effects
 from mpsim.diagnose.residual import one_step_residual
+from mpsim.diagnose.search import find_effects
 from mpsim.effects import CubicStiffness
 from mpsim.models.smnn_discovery import SMNNDiscovery
 from mpsim.solvers import ODESolver

@@ -8,12 +8,12 @@ import math
 import pytest
 import torch
 
+from mpsim.diagnose.findings import Diagnosis, Finding
 from mpsim.diagnose.finetuned import PHASES_AGREE, finetune_candidates, judge_by_finetune, serial, shared_phase
 from mpsim.diagnose.heldout import EFFECTS_NAMED, UNEXPLAINED
 from mpsim.diagnose.library import Candidate
-from mpsim.diagnose.loop import Diagnosis, Finding
+from mpsim.diagnose.loop import screen
 from mpsim.diagnose.params import DiagnoseParams
-from mpsim.diagnose.rounds import screen
 from mpsim.diagnose.shooting import shooting_fit, window_error
 from mpsim.effects import LinearDamping
 from mpsim.systems import CoupledPendulums

@@ -69,7 +69,7 @@ def test_a_drive_with_a_phase_per_recording_is_found_by_the_incoherent_periodogr
 
 def test_phase_lag_alpha_and_k_from_cos_coefficient_and_the_models_sin_coupling():
     """K·Σ sin(θj − θi − α): the model's sin coupling holds K cos α, the named cos coefficient −K sin α."""
-    from mpsim.diagnose.heldout import phase_lag
+    from mpsim.diagnose.trial import phase_lag
     from mpsim.models.equations import EquationsModel
     from mpsim.systems.equations import EquationsSystem
 

@@ -54,7 +54,7 @@ def test_windows_too_short_for_a_phased_drive_say_so():
     import torch
 
     from mpsim.data.trajectories import Trajectories
-    from mpsim.diagnose.heldout import phased_heldout
+    from mpsim.diagnose.trial import phased_heldout
     from mpsim.errors import DataError
 
     data = Trajectories(t=torch.arange(3) * 0.1, x=torch.zeros(2, 3, 2, 1), edge_index=torch.zeros(2, 0).long())
@@ -70,7 +70,8 @@ def test_a_phased_drive_that_cannot_be_tested_is_rejected_with_its_reason_and_th
 
     import torch
 
-    from mpsim.diagnose.heldout import Trial, _best_text, _trial, phase_warmup
+    from mpsim.diagnose.heldout import _best_text
+    from mpsim.diagnose.trial import Trial, TrialSetting, phase_warmup, try_candidate
 
     assert phase_warmup(2, 3) is None and phase_warmup(3, 13) == 3 and phase_warmup(50, 201) == 50
     finding = SimpleNamespace(label="dv/dt: PeriodicForcing(ω=3.1, a phase per recording)", kind="PeriodicForcing",
@@ -78,9 +79,9 @@ def test_a_phased_drive_that_cannot_be_tested_is_rejected_with_its_reason_and_th
     e = torch.tensor([2e-3, 1e-3])
     short, long = SimpleNamespace(n_times=3), SimpleNamespace(n_times=41)
     phased = SimpleNamespace(params={"phased": True})
-    args = (None, e, None, e, e / 100, phased, finding, None)
     for test, null_test in ((short, long), (long, short)):  # the null records may be the shorter ones
-        trial, model, e_after = _trial(*args, test, None, null_test, 2, None, ["x", "v"])
+        setting = TrialSetting(None, e, e / 100, None, test, None, null_test, 2, None, ["x", "v"])
+        trial, model, e_after = try_candidate(setting, None, e, phased, finding)
         assert not trial.accepted and trial.reason.startswith("not tested: the held-out windows are 2 steps")
         assert "diagnose.horizon=3 or more" in trial.reason and model is None and e_after is e
     other = Trial(

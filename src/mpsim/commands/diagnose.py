@@ -1,9 +1,9 @@
 """`mpsim diagnose init=<ckpt> (system=<name> | data.path=<file>) [fix=true]`: the residual loop.
 
-A thin shell around `mpsim.diagnose.rounds.run_loop`: read the config, build the model and the splits, supply
-the finetune (a trainer run under fix/round<k>/), and write diagnosis.json, diagnosis.md and plots/. The
-verdict sets the exit code: 0 effects named, 10 nothing missing, 11 unexplained structured residual (errors
-keep theirs: 2 bad input, 3 a diverged fix, ...).
+A thin shell around `mpsim.diagnose.loop.run_loop`: read the config, build the model and the splits, supply
+the finetune (a trainer run under fix/round<k>/), and write diagnosis.json, diagnosis.md and plots/ (their text
+and figures: `mpsim.diagnose.report`). The verdict sets the exit code: 0 effects named, 10 nothing missing, 11
+unexplained structured residual (errors keep theirs: 2 bad input, 3 a diverged fix, ...).
 """
 
 from __future__ import annotations
@@ -20,17 +20,16 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from mpsim import plotting
 from mpsim.commands.building import Shape, build, build_model_for, build_system, model_and_data
 from mpsim.commands.checkpoints import checkpoint_base, load_init
-from mpsim.commands.console import fmt, print_summary
+from mpsim.commands.console import print_summary
 from mpsim.commands.runtime import Runtime, setup_runtime
 from mpsim.data.dataset import Splits
-from mpsim.data.trajectories import Trajectories
+from mpsim.diagnose import report
 from mpsim.diagnose.finetuned import serial
-from mpsim.diagnose.heldout import EFFECTS_NAMED, NOTHING_MISSING
+from mpsim.diagnose.heldout import EFFECTS_NAMED
+from mpsim.diagnose.loop import LoopResult, holdout_metrics, run_loop
 from mpsim.diagnose.params import DiagnoseParams
-from mpsim.diagnose.rounds import LoopResult, holdout_metrics, run_loop
 from mpsim.errors import ConfigError, DataError, DivergenceError
 from mpsim.files import atomic_write, write_json
 from mpsim.models.base import Model
@@ -147,10 +146,10 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
         write_json(rt.output_dir / "diagnosis.json", {"task": "diagnose", "init": ckpt["path"], "error": str(error)})
         raise error  # type: ignore[misc]
     out = _summary(cfg, ckpt, splits, result, truths)
-    _plots(result, splits.test, rt.output_dir)
+    report.plots(result, splits.test.t, rt.output_dir)
     write_json(rt.output_dir / "diagnosis.json", out)
-    atomic_write(rt.output_dir / "diagnosis.md", lambda f: f.write(_markdown(out)), mode="w")
-    _print(out, rt.output_dir)
+    atomic_write(rt.output_dir / "diagnosis.md", lambda f: f.write(report.markdown(out)), mode="w")
+    print_summary(f"mpsim diagnose: {out['data']['name']}", report.summary_rows(out, rt.output_dir))
     return out
 
 
@@ -221,7 +220,7 @@ def _workers(jobs: int | None, rt: Runtime) -> int:
 
 
 #: held-out trajectories a diagnosis needs: a candidate's gain is a mean over them with a standard error taken
-#: from them (Student's t, `mpsim.diagnose.heldout.critical`); with 1 there is no standard error, with 2 the bar
+#: from them (Student's t, `mpsim.diagnose.stats.critical`); with 1 there is no standard error, with 2 the bar
 #: is 14 standard errors (margin 2)
 MIN_HELDOUT = 3
 
@@ -286,209 +285,3 @@ def _summary(cfg, ckpt, splits, result: LoopResult, truths) -> dict[str, Any]:
         "fixed_checkpoint": result.checkpoint,
         "true_effects": truths,
     }
-
-
-def _plots(result: LoopResult, test: Trajectories, out: Path) -> None:
-    diag = result.diagnosis
-    res = diag.residual
-    if res is None:
-        return
-    plotting.residuals(res.t_mid, res.r, diag.state_names, out / "plots" / "residual.png")
-    if diag.periodograms:
-        plotting.periodograms(diag.periodograms, diag.state_names, out / "plots" / "periodogram.png")
-    plotting.explained_variance(diag.explained, diag.state_names, out / "plots" / "explained_variance.png")
-    curves = {"before": result.before["per_step_rmse"]}
-    if result.after:
-        curves["after"] = result.after["per_step_rmse"]
-    plotting.error_curves(test.t, curves, out / "plots" / "before_after.png")
-
-
-def _values_text(values: dict[str, float], interval: dict[str, Any]) -> str:
-    return ", ".join(f"{k} {v:.4g} [{interval[k][0]:.4g}, {interval[k][1]:.4g}]" for k, v in values.items())
-
-
-def _markdown(s: dict[str, Any]) -> str:
-    j, screen = s["judgement"], s["screen"]
-    lines = [
-        f"# mpsim diagnose: {s['data']['name']}",
-        "",
-        f"Model: `{s['init']}`. Held-in trajectories: {s['data']['n_heldin']}; held-out: {s['data']['n_heldout']}.",
-        "",
-        f"**Verdict: {s['verdict']}** (exit code {s['exit_code']}). {s['verdict_note']}",
-        "",
-        "## How to read the verdict",
-        "",
-        "- *effects named*: each named effect, fitted by multiple shooting through the model's own integrator, "
-        "lowered the held-out multi-step error by more than the same fit does on null data, and together they "
-        "remove most of the error above the null level.",
-        "- *nothing missing*: the model (its own parameters refit) predicts held-out data at the null level.",
-        "- *unexplained structured residual*: the error is above the null level and no candidate explains it; "
-        "nothing is claimed (the best candidate and what it would leave are shown).",
-        "- With `fix=true` and a model that has a network, a candidate is named only if the model finetuned with "
-        "it beats the same finetune without it (the control) on held-out recordings, and removes most of the "
-        "control's error above the null level.",
-        "",
-        "## Held-out multi-step error (MSE, normalised)",
-        "",
-        f"Windows of {j['horizon']} steps. Model as given {j['error_given']:.4g}; its own parameters refit "
-        f"{j['error_refit']:.4g}; null level {j['error_null']:.4g}; with the named effects {j['error_final']:.4g} "
-        f"(share of the excess removed: {j['explained']:.0%}).",
-        "",
-    ]
-    lines += [f"- {n}" for n in j["notes"]]
-    lines += [
-        "",
-        "## Candidates tested on held-out data",
-        "",
-        "| effect | fitted (95 % interval) | held-out MSE before → after | gain ± se | null gain | test | named | why |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for t in j["trials"]:
-        lines.append(
-            f"| {t['label']} | {_values_text(t['values'], t['interval'])} | {t['error_before']:.4g} → "
-            f"{t['error_after']:.4g} | {t['gain']:.3g} ± {t['gain_se']:.2g} | {t['null_gain']:.3g} | "
-            f"{t.get('test') or '—'} | {'yes' if t['accepted'] else 'no'} | {t['reason']} |"
-        )
-    if not j["trials"]:
-        lines.append("| (none tested) | | | | | | | |")
-    lines += [f"- {t['label']}: {t['derived']}" for t in j["trials"] if t.get("derived")]
-    for k, f in enumerate(s["finetuned"], start=1):
-        lines += [
-            "",
-            f"## Candidates finetuned with the network (fix, round {k})",
-            "",
-            "The model has trainable parameters beyond its named physical ones, so each screened candidate is added "
-            "and the model finetuned, against the same finetune without a candidate (the control). "
-            f"Held-out MSE over {f['horizon']}-step windows: model as given {f['error_given']:.4g}; "
-            + (f"control {f['error_control']:.4g}; " if f["trials"] else "no control (nothing to compare); ")
-            + f"null level {f['error_null']:.4g}; verdict of this round: {f['verdict']}"
-            + (f" (share of the control's excess removed: {f['explained']:.0%})." if f["named"] else "."),
-            "",
-            "| effect | finetuned value (95 % interval) | held-out MSE control → with it | gain ± se | test | named | why |",
-            "|---|---|---|---|---|---|---|",
-        ]
-        for t in f["trials"]:
-            lines.append(
-                f"| {t['label']} | {_values_text(t['values'], t['interval'])} | {t['error_before']:.4g} → "
-                f"{t['error_after']:.4g} | {t['gain']:.3g} ± {t['gain_se']:.2g} | {t.get('test') or '—'} | "
-                f"{'yes' if t['accepted'] else 'no'} | {t['reason']} |"
-            )
-        lines += [f"- {n}" for n in f["notes"]]
-    lines += [
-        "",
-        "## One-step screen",
-        "",
-        f"Rows searched: {', '.join(screen['searched_rows'])} (kinematic rows are "
-        "not searched unless `diagnose.targets` names them).",
-        "",
-        "| state | residual RMS | null residual RMS | null level | estimated noise |",
-        "|---|---|---|---|---|",
-    ]
-    for d, n in enumerate(screen["state_names"]):
-        lines.append(
-            f"| {n} | {screen['residual_rms'][d]:.4g} | {screen['null_rms'][d]:.4g} | "
-            f"{screen['null_level'][d]:.3g} | {screen['noise_std_estimate'][d]:.3g} |"
-        )
-    lines += [
-        "",
-        "| target: effect | one-step coefficients | share of its row | bootstrap | screened | why |",
-        "|---|---|---|---|---|---|",
-    ]
-    for f in screen["candidates_considered"]:
-        lines.append(
-            f"| {f['label']} | {', '.join(f'{c:.4g}' for c in f['coef'])} | {f['gain']:.1%} | "
-            f"{f['inclusion']:.0%} | {'yes' if f['accepted'] else 'no'} | {f['reason']} |"
-        )
-    for r in s["rounds"]:
-        lines += [
-            "",
-            f"## Fix, round {r['round']}",
-            "",
-            f"Added {'; '.join(r['added'])}; held-out MSE before {r['heldout_mse_before']:.4g}, "
-            + ", ".join(f"{k} {v:.4g}" for k, v in r["heldout_mse"].items())
-            + f"; kept: {r['kept']}.",
-        ]
-        if "then" in r:
-            lines.append(f"Then: {r['then']['verdict']} ({'; '.join(r['then']['named']) or 'nothing named'}).")
-    for r in s["rejected_fixes"]:
-        lines += ["", f"Rejected fix (round {r['round']}): {r['why']}."]
-    if s["fixed_effects"]:
-        lines += ["", "## Effects in the returned model", ""]
-        lines += [
-            f"- {e['describe']}" + (f" ({_truth_text(e['vs_truth'])})" if e["vs_truth"] else "")
-            for e in s["fixed_effects"]
-        ]
-        lines.append(f"- checkpoint: `{s['fixed_checkpoint']}`")
-    lines += ["", "## Held-out error (normalised)", "", "| | before | after |", "|---|---|---|"]
-    before, after = s["before"], s["after"] or {}
-    for label, key in (
-        ("one-step RMSE", "one_step_rmse"),
-        ("rollout RMSE (full horizon)", "rollout_rmse"),
-        ("valid prediction time", "valid_prediction_time"),
-    ):
-        lines.append(f"| {label} | {fmt(before[key])} | {fmt(after.get(key))} |")
-    for h, v in before["horizons"].items():
-        a = (after.get("horizons") or {}).get(h, {}).get("rmse")
-        lines.append(f"| rollout RMSE at {h} steps (t={v['t']:.3g}) | {fmt(v['rmse'])} | {fmt(a)} |")
-    return "\n".join(lines) + "\n"
-
-
-def _truth_text(truth: dict[str, Any]) -> str:
-    return ", ".join(f"true {k} {truth['true'][k]:.4g}, off by {v:.1%}" for k, v in truth["relative_error"].items())
-
-
-def _print(s: dict[str, Any], out: Path) -> None:
-    j = s["judgement"]
-    rows = [("verdict", s["verdict"] + (f" ({s['verdict_note']})" if s["verdict_note"] else ""))]
-    for t in s["effects_named"]:
-        truth = f"  ({_truth_text(t['vs_truth'])})" if t.get("vs_truth") else ""
-        rows.append(("effect", f"{t['label']}: {_values_text(t['values'], t['interval'])}{truth}"))
-        if t.get("test"):
-            rows.append(("", t["test"]))
-        if t.get("derived"):
-            rows.append(("", t["derived"]))
-    if s["finetuned"]:  # a network's candidates were judged by finetuning: its numbers, round by round
-        for k, f in enumerate(s["finetuned"], start=1):
-            rows.append(
-                (
-                    f"held-out MSE ({k})",
-                    f"given {f['error_given']:.3g}, "
-                    + (f"control (finetuned without a candidate) {f['error_control']:.3g}, " if f["trials"] else "")
-                    + f"null level {f['error_null']:.3g}"
-                    + (f", finetuned with the effect {f['error_final']:.3g}" if f["named"] else ""),
-                )
-            )
-            rows += [("", note) for note in f["notes"]]
-    else:
-        rows.append(
-            (
-                "held-out MSE",
-                f"given {j['error_given']:.3g}, own parameters refit {j['error_refit']:.3g}, null "
-                f"level {j['error_null']:.3g}"
-                + (f", with the effects {j['error_final']:.3g}" if s["verdict"] == EFFECTS_NAMED else ""),
-            )
-        )
-        rows += [("", note) for note in j["notes"]]
-    if s["verdict"] != EFFECTS_NAMED and s["verdict"] != NOTHING_MISSING:
-        rows.append(("claim", "none: no candidate explains the structured residual"))
-    for r in s["rounds"]:
-        rows.append((f"round {r['round']}", f"added {'; '.join(r['added'])}; kept {r['kept']}"))
-    for e in s["fixed_effects"]:
-        rows.append(("returned model", e["describe"] + (f"  ({_truth_text(e['vs_truth'])})" if e["vs_truth"] else "")))
-    before, after = s["before"], s["after"]
-    for label, key in (
-        ("one-step RMSE", "one_step_rmse"),
-        ("rollout RMSE", "rollout_rmse"),
-        ("valid pred. time", "valid_prediction_time"),
-    ):
-        value = before[key]
-        rows.append(
-            (
-                label,
-                f"{fmt(value)}"
-                + (f" → {fmt(after[key])}" if after else "")
-                + ("" if math.isfinite(value) else " (diverged)"),
-            )
-        )
-    rows.append(("report", str(out / "diagnosis.md")))
-    print_summary(f"mpsim diagnose: {s['data']['name']}", rows)

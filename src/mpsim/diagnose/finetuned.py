@@ -30,11 +30,13 @@ from typing import Any
 import torch
 
 from mpsim.data.trajectories import Trajectories
-from mpsim.diagnose.heldout import EFFECTS_NAMED, UNEXPLAINED, Trial, critical, level_text, log_ratio, reported
+from mpsim.diagnose.findings import Diagnosis, Finding
+from mpsim.diagnose.heldout import EFFECTS_NAMED, UNEXPLAINED
 from mpsim.diagnose.library import Candidate
-from mpsim.diagnose.loop import Diagnosis, Finding
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.diagnose.shooting import sandwich_stderr, window_error, with_effect
+from mpsim.diagnose.stats import level_text, paired
+from mpsim.diagnose.trial import Trial, reported
 from mpsim.errors import DivergenceError
 from mpsim.models.base import Model
 
@@ -177,90 +179,117 @@ def judge_by_finetune(
     e_control = window_error(control, test, horizon)
     err_control = float(e_control.mean())
     excess = max(err_control - error_null, 1e-300)
-    floor = max(error_null, 1e-14)
     trials: list[Trial] = []
     models: dict[int, tuple[Model, str]] = {}
     for (_, cand, _, label), effect, outcome in zip(candidates, effects, outcomes[1:], strict=True):
         if isinstance(outcome, DivergenceError):  # a wrong candidate can derail training: rejected, not an error
             trials.append(_diverged(label, cand.kind, effect, err_control, str(outcome)))
             continue
-        tuned, path = outcome
-        e_after = window_error(tuned, test, horizon)
-        log_gain, log_se, n_rec = log_ratio(e_control, e_after, floor)
-        bar = critical(params.margin, n_rec)
-        diff = (e_control - e_after)[torch.isfinite(e_control - e_after)]
-        gain = float(diff.mean()) if diff.numel() else -math.inf
-        gain_se = float(diff.std() / math.sqrt(diff.numel())) if diff.numel() > 1 else math.inf
-        share = gain / excess
-        fitted = tuned.effects[-1]
-        free = [p for p in fitted.parameters() if p.requires_grad]
-        values_now = torch.cat([p.detach().reshape(-1).double().cpu() for p in free]).tolist()
-        stderr = sandwich_stderr(tuned, train.subset(slice(0, params.fit_trajectories)), params.fit_window, free)
-        values, interval = reported(fitted, values_now, stderr)
-        checks = [
-            (math.isfinite(gain), "the finetuned model's held-out rollouts diverged"),
-            (
-                log_gain > bar * log_se,
-                f"held-out error ratio against the control e^{log_gain:.3g} (± {log_se:.2g} in log) is not above "
-                f"{bar:.3g} standard errors ({level_text(params.margin, n_rec)})",
-            ),
-            (
-                share >= params.min_gain,
-                f"removes {share:.1%} of the control's held-out error above the null level, below {params.min_gain:.0%}",
-            ),
-        ]
-        failed = [why for ok, why in checks if not ok]
-        reason = "; ".join(failed) or (
-            f"finetuned with it, held-out MSE {err_control:.3g} (control, finetuned without it) → "
-            f"{float(e_after.mean()):.3g}"
-        )
         trials.append(
-            Trial(
-                label=label,
-                kind=cand.kind,
-                screened=True,
-                effect=fitted.config(),
-                values=values,
-                interval=interval,
-                error_before=err_control,
-                error_after=float(e_after.mean()),
-                gain=gain,
-                gain_se=gain_se,
-                null_gain=0.0,
-                accepted=not failed,
-                reason=reason,
-                derived="finetuned with the network; compared with the same finetune without it (the control)",
-                log_ratio=log_gain,
-                log_ratio_se=log_se,
-                null_log_ratio=0.0,
-                n_heldout=n_rec,
-                bar_se=bar,
-            )
+            _finetuned_trial(label, cand.kind, outcome[0], e_control, train, test, horizon, error_null, excess, params)
         )
-        models[len(trials) - 1] = (tuned, path)
+        models[len(trials) - 1] = outcome
+    best = _best_of_round(trials)
+    levels = (horizon, given, err_control, error_null)
+    if best is None:
+        return FinetuneJudgement(UNEXPLAINED, *levels, err_control, 0.0, trials, None, None, control_path, notes)
+    chosen = trials[best]
+    tuned, path = models[best]
+    explained, rest = _check_named(chosen, tuned, err_control, excess, given, params, rescreen)
+    if not chosen.accepted:
+        return FinetuneJudgement(UNEXPLAINED, *levels, err_control, explained, trials, None, None, control_path, notes)
+    return FinetuneJudgement(
+        EFFECTS_NAMED, *levels, chosen.error_after, explained, trials, tuned, path, control_path, notes, rest
+    )
+
+
+def _finetuned_trial(
+    label: str,
+    kind: str,
+    tuned: Model,
+    e_control: torch.Tensor,  # [B] held-out MSE of the control
+    train: Trajectories,
+    test: Trajectories,
+    horizon: int,
+    error_null: float,
+    excess: float,
+    params: DiagnoseParams,
+) -> Trial:
+    """The trial of a candidate finetuned with the network (`tuned`, its last effect) against the control."""
+    err_control = float(e_control.mean())
+    floor = max(error_null, 1e-14)
+    e_after = window_error(tuned, test, horizon)
+    p = paired(e_control, e_after, floor, params.margin)
+    share = p.gain / excess
+    fitted = tuned.effects[-1]
+    free = [q for q in fitted.parameters() if q.requires_grad]
+    values_now = torch.cat([q.detach().reshape(-1).double().cpu() for q in free]).tolist()
+    stderr = sandwich_stderr(tuned, train.subset(slice(0, params.fit_trajectories)), params.fit_window, free)
+    values, interval = reported(fitted, values_now, stderr)
+    checks = [
+        (math.isfinite(p.gain), "the finetuned model's held-out rollouts diverged"),
+        (
+            p.log_ratio > p.bar * p.log_ratio_se,
+            f"held-out error ratio against the control e^{p.log_ratio:.3g} (± {p.log_ratio_se:.2g} in log) is not "
+            f"above {p.bar:.3g} standard errors ({level_text(params.margin, p.n)})",
+        ),
+        (
+            share >= params.min_gain,
+            f"removes {share:.1%} of the control's held-out error above the null level, below {params.min_gain:.0%}",
+        ),
+    ]
+    failed = [why for ok, why in checks if not ok]
+    reason = "; ".join(failed) or (
+        f"finetuned with it, held-out MSE {err_control:.3g} (control, finetuned without it) → "
+        f"{float(e_after.mean()):.3g}"
+    )
+    return Trial(
+        label=label,
+        kind=kind,
+        screened=True,
+        effect=fitted.config(),
+        values=values,
+        interval=interval,
+        error_before=err_control,
+        error_after=float(e_after.mean()),
+        gain=p.gain,
+        gain_se=p.gain_se,
+        null_gain=0.0,
+        accepted=not failed,
+        reason=reason,
+        derived="finetuned with the network; compared with the same finetune without it (the control)",
+        log_ratio=p.log_ratio,
+        log_ratio_se=p.log_ratio_se,
+        null_log_ratio=0.0,
+        n_heldout=p.n,
+        bar_se=p.bar,
+    )
+
+
+def _best_of_round(trials: list[Trial]) -> int | None:
+    """The index of the passing trial with the lowest held-out error (None if none passes); one effect per round:
+    the other passing ones are reported, not named."""
     passing = [i for i, t in enumerate(trials) if t.accepted]
     best = min(passing, key=lambda i: trials[i].error_after) if passing else None
-    for i in passing:  # one effect per round: the best; the others are reported, not named
+    for i in passing:
         if i != best:
             trials[i].accepted = False
             trials[i].reason = f"helps, but less than {trials[best].label} (named this round)"  # type: ignore[index]
-    if best is None:
-        return FinetuneJudgement(
-            UNEXPLAINED,
-            horizon,
-            given,
-            err_control,
-            error_null,
-            err_control,
-            0.0,
-            trials,
-            None,
-            None,
-            control_path,
-            notes,
-        )
-    chosen = trials[best]
-    tuned, path = models[best]
+    return best
+
+
+def _check_named(
+    chosen: Trial,
+    tuned: Model,
+    err_control: float,
+    excess: float,
+    given: float,
+    params: DiagnoseParams,
+    rescreen: Callable[[Model], Screened] | None,
+) -> tuple[float, Screened | None]:
+    """Whether the round's best candidate (finetuned model `tuned`) is named: it must beat the model as given
+    and remove `min_explained` of the control's error above the null level, or leave nothing the screen of the
+    finetuned model recognises. Rejects `chosen` in place if not; returns (its share explained, that screen)."""
     explained = (err_control - chosen.error_after) / excess
     rest: Screened | None = None
     left: list[str] = []
@@ -285,14 +314,7 @@ def judge_by_finetune(
                 f"helps against the control but leaves {1 - explained:.0%} of its error above the null level "
                 f"unexplained (needs ≥ {params.min_explained:.0%}): a partial fit, not a finding"
             ) + (f"; the screen of the finetuned model still finds {'; '.join(left)}" if left else "")
-        return FinetuneJudgement(
-            UNEXPLAINED, horizon, given, err_control, error_null, err_control, explained, trials, None, None,
-            control_path, notes,
-        )  # fmt: skip
-    return FinetuneJudgement(
-        EFFECTS_NAMED, horizon, given, err_control, error_null, chosen.error_after, explained, trials, tuned, path,
-        control_path, notes, rest,
-    )  # fmt: skip
+    return explained, rest
 
 
 def _diverged(label: str, kind: str, effect: Any, before: float, why: str) -> Trial:

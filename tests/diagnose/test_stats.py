@@ -1,11 +1,12 @@
-"""The held-out acceptance test's statistics: the log error ratio over recordings and the bar it must clear."""
+"""The held-out acceptance test's statistics (`mpsim.diagnose.stats`): the paired gain and log error ratio over
+recordings and the bar they must clear."""
 
 import math
 
 import pytest
 import torch
 
-from mpsim.diagnose.heldout import critical, log_ratio
+from mpsim.diagnose.stats import critical, log_ratio, paired
 
 
 def test_the_bar_is_students_t_at_the_gaussian_level_of_the_margin():
@@ -27,3 +28,18 @@ def test_log_ratio_counts_only_the_recordings_where_it_is_finite():
     assert mean == pytest.approx(float(logs.mean()))
     assert se == pytest.approx(float(logs.std() / math.sqrt(3)))
     assert log_ratio(before[2:3], after[2:3], 0.0) == (-math.inf, math.inf, 0)
+
+
+def test_paired_gain_counts_only_the_finite_differences_and_carries_the_log_ratio_and_its_bar():
+    before = torch.tensor([1.0, 2.0, float("inf"), 4.0], dtype=torch.float64)  # [B]
+    after = torch.tensor([0.5, 1.0, 1.0, 1.0], dtype=torch.float64)  # [B]
+    p = paired(before, after, 0.0, 2.0)
+    diffs = torch.tensor([0.5, 1.0, 3.0], dtype=torch.float64)
+    assert p.gain == pytest.approx(float(diffs.mean()))
+    assert p.gain_se == pytest.approx(float(diffs.std() / math.sqrt(3)))
+    assert (p.log_ratio, p.log_ratio_se, p.n) == log_ratio(before, after, 0.0)
+    assert p.bar == critical(2.0, 3)
+    one = paired(before[:1], after[:1], 0.0, 2.0)  # one recording: no standard error, an infinite bar
+    assert one.gain == pytest.approx(0.5) and one.gain_se == math.inf and one.bar == math.inf
+    none = paired(before[2:3], before[2:3], 0.0, 2.0)  # inf - inf: nothing finite to compare
+    assert none.gain == -math.inf and none.n == 0

@@ -1,0 +1,100 @@
+"""The directions a model explains itself, refit beside every candidate but never named.
+
+The screen regresses the one-step residual on candidate columns with these *nuisance* columns projected out: the
+model's sensitivities to its own interpretable parameters, the basis of each effect it already carries, and the
+columns of every effect kind (and state polynomial) it can express by itself.
+"""
+
+from __future__ import annotations
+
+from typing import Any, cast
+
+import torch
+
+from mpsim.data.trajectories import Trajectories
+from mpsim.diagnose.library import Candidate, build_library, delayed, evaluate_effect
+from mpsim.diagnose.residual import Residual
+from mpsim.diagnose.select import project_out
+from mpsim.models.base import Model
+from mpsim.models.capabilities import ExpressesEffects, Interpretable
+from mpsim.polynomials import monomial_features
+
+
+def project(y: torch.Tensor, groups: list[torch.Tensor], base: torch.Tensor | None):
+    """Residual and candidate columns with the nuisance (base) directions projected out, in their shapes."""
+    if base is None:
+        return y, groups
+    n = y.numel()
+    flat = project_out(base.reshape(n, -1), y.reshape(n), *[g.reshape(n, -1) for g in groups])
+    return flat[0].reshape(y.shape), [f.reshape(g.shape) for f, g in zip(flat[1:], groups, strict=True)]
+
+
+def target_rows(library: list[Candidate], res: Residual, d: int, keep: torch.Tensor, base: torch.Tensor | None):
+    """Residual of state d, the candidates' columns and the model's own sensitivity columns for state d,
+    per trajectory (finite trajectories only)."""
+    y = res.r[keep, :, :, d]  # [B', T-1, N]
+    groups = [c.basis[keep] for c in library]  # each [B', T-1, N, K]
+    return y, groups, None if base is None else base[keep][..., d, :]  # [B', T-1, N, P]
+
+
+@torch.no_grad()
+def model_sensitivities(model: Model, data: Trajectories) -> torch.Tensor | None:
+    """[B, T−1, N, D, P] step-averaged sensitivities of the model's field to its own parameters (or None)."""
+    if not isinstance(model, Interpretable):
+        return None
+    b, n_t, n, d = data.x.shape
+    device, dtype = model.state_mean.device, model.state_mean.dtype
+    flat = data.x.reshape(b * n_t, n, d).to(device=device, dtype=dtype)
+    t = data.t[None, :].expand(b, n_t).reshape(b * n_t, 1).to(device=device, dtype=dtype)
+    with torch.enable_grad():
+        sens = model.sensitivities(t, flat, data.edge_index)
+    if sens is None:
+        return None
+    sens = sens.detach().double().cpu().reshape(b, n_t, n, d, -1)
+    return 0.5 * (sens[:, 1:] + sens[:, :-1])
+
+
+def nuisance_columns(model: Model, data: Trajectories, represented: tuple[str, ...]) -> tuple[torch.Tensor | None, int]:
+    """([B, T−1, N, D, P] columns refit but never named, how many of them are the model's own coefficients).
+
+    First the model's own coefficients, one column each across all state variables: its sensitivities to its
+    interpretable parameters (white-box models) and the basis of every effect it already carries (placed in
+    the rows of the effect's target; in a later round of the loop a drive found before is refit, not found
+    again). Then the basis of every effect kind the model can already express (a neural ODE of the node state
+    can learn any state-dependent term, so its residual along those directions is training error, not missing
+    physics) and the polynomials of a node's state, with a coefficient per state variable.
+    """
+    parts = []
+    sens = model_sensitivities(model, data)
+    if sens is not None:
+        parts.append(sens)
+    own = effect_columns(model, data)
+    if own is not None:
+        parts.append(own)
+    n_shared = sum(p.shape[-1] for p in parts)
+    if represented:
+        cols = torch.cat([c.basis for c in build_library(data, {}, [], represented)], dim=-1)  # [B, T-1, N, K]
+        parts.append(cols.unsqueeze(-2).expand(-1, -1, -1, data.state_dim, -1))
+    if isinstance(model, ExpressesEffects) and model.represents_polynomials:
+        cols = monomial_features(data.x.double(), model.represents_polynomials)  # [B, T, N, K]
+        cols = 0.5 * (cols[:, 1:] + cols[:, :-1])
+        parts.append(cols.unsqueeze(-2).expand(-1, -1, -1, data.state_dim, -1))
+    return (torch.cat(parts, dim=-1) if parts else None), n_shared
+
+
+@torch.no_grad()
+def effect_columns(model: Model, data: Trajectories) -> torch.Tensor | None:
+    """[B, T−1, N, D, K] step-averaged basis of each effect the model carries, in its target's rows (or None)."""
+    cols = []
+    for effect in model.effects:
+        effect = cast(Any, effect)  # an Effect (a Module list holds Modules)
+        if type(effect).__name__ == "DelayedFeedback":
+            m = int(round(float(effect.delay) / float(data.t[1] - data.t[0])))
+            values = delayed(data.x.double(), m)[..., effect.source : effect.source + 1]
+        else:
+            values = evaluate_effect(effect, data)
+        feats = 0.5 * (values[:, 1:] + values[:, :-1])  # [B, T-1, N, K]
+        full = feats.new_zeros(*feats.shape[:-1], data.state_dim, feats.shape[-1])
+        full[..., effect.target, :] = feats
+        cols.append(full)
+    return torch.cat(cols, dim=-1) if cols else None

@@ -1,0 +1,326 @@
+"""One candidate's held-out trial: added to the model, fitted by multiple shooting on held-in records, and judged
+by its paired gain on held-out records against the same fit on null data (`heldout.judge` runs the trials)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, cast
+
+import torch
+
+from mpsim import effects as fx
+from mpsim.data.trajectories import Trajectories
+from mpsim.diagnose.findings import Finding
+from mpsim.diagnose.library import Candidate, PhasedDrive, evaluate_effect, step_average
+from mpsim.diagnose.nuisance import model_sensitivities
+from mpsim.diagnose.params import DiagnoseParams
+from mpsim.diagnose.residual import one_step_residual
+from mpsim.diagnose.shooting import ShootingFit, null_data, own_parameters, shooting_fit, window_error, with_effect
+from mpsim.diagnose.stats import Paired, level_text, log_ratio, paired
+from mpsim.errors import DataError
+from mpsim.models.base import Model
+from mpsim.models.capabilities import Interpretable
+
+#: how a candidate that could not be tested on these data begins its reason
+NOT_TESTED = "not tested"
+
+
+@dataclass
+class Trial:
+    """One candidate tested on held-out data."""
+
+    label: str
+    kind: str
+    screened: bool  # passed the one-step screen (only screened candidates can be named)
+    effect: dict[str, Any]  # Hydra config with the multiple-shooting coefficients
+    values: dict[str, float]  # the reported parameters (coef; or amplitude, omega, phase of a drive)
+    interval: dict[str, tuple[float, float]]  # their 95 % intervals (cluster-robust Gauss–Newton, delta method)
+    error_before: float  # held-out multi-step MSE (normalised) of the model it was added to
+    error_after: float
+    gain: float  # mean paired held-out MSE reduction
+    gain_se: float
+    null_gain: float  # the same fit's gain on null data
+    accepted: bool
+    reason: str
+    derived: str = ""  # how derived values (a coupling's phase lag α and strength K) were obtained
+    # the acceptance test: mean and standard error over held-out recordings of log(error before / after), the
+    # same for the null fit (0 when judged by finetuning), the recordings, and the standard errors it had to clear
+    log_ratio: float = math.nan
+    log_ratio_se: float = math.nan
+    null_log_ratio: float = math.nan
+    n_heldout: int = 0
+    bar_se: float = math.nan
+
+    def as_dict(self) -> dict[str, Any]:
+        return {**self.__dict__, "test": self.test_text()}
+
+    def test_text(self) -> str:
+        """How far the log error ratio cleared the null fit's, in standard errors, against the bar ("" untested)."""
+        if not (self.n_heldout and math.isfinite(self.log_ratio) and self.log_ratio_se > 0):
+            return ""
+        above = (self.log_ratio - max(self.null_log_ratio, 0.0)) / self.log_ratio_se
+        return (
+            f"log error ratio {self.log_ratio:.3g} ± {self.log_ratio_se:.2g} over {self.n_heldout} held-out "
+            f"recordings: {above:.3g} standard errors above {max(self.null_log_ratio, 0.0):.3g} (bar {self.bar_se:.3g})"
+        )
+
+
+@dataclass(frozen=True)
+class TrialSetting:
+    """What the trials of one judgement share: the refit model's levels, the records and the settings."""
+
+    base: Model  # the model as given with its own parameters refit by multiple shooting
+    e_base: torch.Tensor  # [B] its held-out multi-step MSE per recording
+    e_null: torch.Tensor  # [B'] ... on the null held-out records
+    train: Trajectories  # held-in records the candidates are fitted on
+    test: Trajectories  # held-out records
+    null_train: Trajectories  # the base model's own simulation of `train`, plus the data's noise level
+    null_test: Trajectories  # ... of `test`
+    horizon: int  # steps of a held-out window
+    params: DiagnoseParams
+    names: list[str]  # state names
+
+
+def try_candidate(
+    s: TrialSetting, current: Model, e_current: torch.Tensor, cand: Candidate, finding: Finding
+) -> tuple[Trial, Model, torch.Tensor]:
+    """Add `cand` (the screen's `finding`) to `current` ([B] held-out MSE `e_current`), fit it by multiple shooting
+    and judge it on held-out records: (the trial, the model with it, [B] its held-out MSE)."""
+    # the error the given model (own parameters refit) had above the null level: what effects may explain
+    excess = max(float(s.e_base.mean()) - float(s.e_null.mean()), 0.0)
+    phased = bool(cand.params.get("phased"))
+    shortest = min(s.test.n_times, s.null_test.n_times)  # null records may be cut window by window
+    if phased and phase_warmup(s.horizon, shortest) is None:  # not testable here: rejected, the others go on
+        return (
+            _untested(finding, f"{NOT_TESTED}: {_too_short_for_phases(shortest, s.horizon)}", e_current),
+            current,
+            e_current,
+        )
+    coef = list(finding.coef)[: 2 * len(s.train)] if phased else list(finding.coef)  # the fit's recordings only
+    effect = cand.make_effect(coef, finding.target, s.names)
+    trial, fit = fit_with(current, effect, s.train, min(s.horizon, s.params.fit_window), s.params.shooting_iters)
+    if phased:  # phases belong to recordings: held-out ones get theirs from a warm-up window
+        e_current, e_after, _ = phased_heldout(current, trial, s.test, s.horizon, s.params.shooting_iters)
+    else:
+        e_after = window_error(trial, s.test, s.horizon)
+    # the test is on log error ratios per held-out recording: errors differ by orders of magnitude between
+    # recordings, a multiplicative improvement does not
+    floor = max(float(s.e_null.mean()), 1e-14)
+    p = paired(e_current, e_after, floor, s.params.margin)
+    null_gain, null_log = _null_gain(s, current, cand, finding, coef, floor)
+    values, interval, derived = _reported_values(cand, trial, fit, s.train, finding.target)
+    failed = _failed_checks(fit, p, null_log, excess, s.params)
+    reason = (
+        "; ".join(failed)
+        if failed
+        else (
+            f"lowers the held-out MSE {float(e_current.mean()):.3g} → "
+            f"{float(e_after.mean()):.3g}, above the null fit's gain"
+        )
+    )
+    out = Trial(
+        label=finding.label,
+        kind=finding.kind,
+        screened=finding.accepted,
+        effect=trial.effects[-1].config(),
+        values=values,
+        interval=interval,
+        error_before=float(e_current.mean()),
+        error_after=float(e_after.mean()),
+        gain=p.gain,
+        gain_se=p.gain_se,
+        null_gain=null_gain,
+        accepted=not failed,
+        reason=reason,
+        derived=derived,
+        log_ratio=p.log_ratio,
+        log_ratio_se=p.log_ratio_se,
+        null_log_ratio=null_log,
+        n_heldout=p.n,
+        bar_se=p.bar,
+    )
+    return out, trial, e_after
+
+
+def _untested(finding: Finding, reason: str, e_current: torch.Tensor) -> Trial:
+    """The trial of a candidate that cannot be tested on these records: rejected with `reason`, errors unchanged."""
+    before = float(e_current.mean())
+    return Trial(
+        label=finding.label, kind=finding.kind, screened=finding.accepted, effect={}, values={}, interval={},
+        error_before=before, error_after=before, gain=0.0, gain_se=math.inf, null_gain=0.0, accepted=False,
+        reason=reason,
+    )  # fmt: skip
+
+
+def _null_gain(
+    s: TrialSetting, current: Model, cand: Candidate, finding: Finding, coef: list[float], floor: float
+) -> tuple[float, float]:
+    """(mean held-out MSE gain, mean log error ratio) of the same fit on null records, where nothing is missing."""
+    phased = bool(cand.params.get("phased"))
+    null_train, null_test, e_null = s.null_train, s.null_test, s.e_null
+    if current is not s.base:  # null data of the model the candidate is added to (its integrator included)
+        noise = (null_train.x - null_train.x).new_zeros(null_train.state_dim)  # clean: the comparison is paired
+        null_train, null_test = null_data(current, null_train, noise, 21), null_data(current, null_test, noise, 22)
+        e_null = window_error(current, null_test, s.horizon)
+    # a phased drive carries one phase per fitted recording: the null records (window by window for short
+    # horizons) get theirs from the same starting pairs, repeated
+    null_coef = (coef * math.ceil(2 * len(null_train) / len(coef)))[: 2 * len(null_train)] if phased else coef
+    iters = max(5, s.params.shooting_iters // 3)
+    null_effect = cand.make_effect(null_coef, finding.target, s.names)
+    null_trial, _ = fit_with(current, null_effect, null_train, min(s.horizon, s.params.fit_window), iters)
+    if phased:
+        before, after, _ = phased_heldout(current, null_trial, null_test, s.horizon, iters)
+        return float((before - after).mean()), log_ratio(before, after, floor)[0]
+    null_after = window_error(null_trial, null_test, s.horizon)
+    return float((e_null - null_after).mean()), log_ratio(e_null, null_after, floor)[0]
+
+
+def _reported_values(
+    cand: Candidate, trial: Model, fit: ShootingFit, train: Trajectories, target: int
+) -> tuple[dict[str, float], dict[str, tuple], str]:
+    """(the fitted effect's reported values, their 95 % intervals, how derived values were obtained)."""
+    k = len(fit.values) - sum(p.numel() for p in own_parameters(trial))
+    values, interval = reported(trial.effects[-1], fit.values[:k], fit.stderr[:k])
+    derived = ""
+    if cand.kind == "CosineCoupling" and math.isfinite(values.get("coef", math.nan)):
+        lag = phase_lag(trial, train, target, values["coef"], (interval["coef"][1] - values["coef"]) / 1.96)
+        if lag is not None:
+            values, interval, derived = {**values, **lag[0]}, {**interval, **lag[1]}, lag[2]
+        else:
+            derived = "phase lag not separated: the model has no single sin-coupling parameter to pair with c"
+    return values, interval, derived
+
+
+def _failed_checks(fit: ShootingFit, p: Paired, null_log: float, excess: float, params: DiagnoseParams) -> list[str]:
+    """Why a candidate is not named (empty: it passed)."""
+    checks = [
+        (fit.converged and math.isfinite(p.gain), "the multiple-shooting fit diverged"),
+        (
+            p.log_ratio > max(null_log, 0.0) + p.bar * p.log_ratio_se,
+            f"held-out error ratio e^{p.log_ratio:.3g} (± {p.log_ratio_se:.2g} in log) is not above the null fit's "
+            f"e^{max(null_log, 0):.3g} + {p.bar:.3g} standard errors ({level_text(params.margin, p.n)})",
+        ),
+        (
+            p.gain >= params.min_gain * excess,
+            f"removes {p.gain / max(excess, 1e-300):.1%} of the held-out error the model had above the null level, "
+            f"below {params.min_gain:.0%}: too small to be an effect (an integrator artefact or a detail of another "
+            "term)",
+        ),
+    ]
+    return [why for ok, why in checks if not ok]
+
+
+def fit_with(model: Model, effect, train: Trajectories, horizon: int, iters: int):
+    """(model + effect with the effect's and the model's own parameters fitted by multiple shooting, fit)."""
+    trial = with_effect(model, effect)
+    free = [p for p in trial.effects[-1].parameters() if p.requires_grad] + own_parameters(trial)
+    return trial, shooting_fit(trial, train, horizon, free, iters)
+
+
+def reported(effect, values: list[float], stderr: list[float]) -> tuple[dict[str, float], dict[str, tuple]]:
+    """The parameters a report shows for a fitted effect, with 95 % intervals around exactly these values: the
+    coefficient(s), or for a drive its amplitude, angular frequency and phase (delta method from a, b, log ω)."""
+    if type(effect).__name__ == "PhasedDrive":  # amplitude, log ω, then one phase per recording
+        amp, omega = values[0], math.exp(values[1])
+        vals = {"amplitude": amp, "omega": omega}
+        ses = {"amplitude": stderr[0], "omega": omega * stderr[1]}
+    elif type(effect).__name__ == "PeriodicForcing" and len(values) >= 3:
+        a, b, log_w = values[:3]
+        sa, sb, sw = stderr[:3]
+        amp, omega = math.hypot(a, b), math.exp(log_w)
+        se_amp = math.hypot(a * sa, b * sb) / max(amp, 1e-300)
+        se_phase = math.hypot(b * sa, a * sb) / max(amp**2, 1e-300)
+        vals = {"amplitude": amp, "omega": omega, "phase": math.atan2(b, a)}
+        ses = {"amplitude": se_amp, "omega": omega * sw, "phase": se_phase}
+    else:
+        keys = ["coef"] if len(values) == 1 else [f"coef[{i}]" for i in range(len(values))]
+        vals = dict(zip(keys, values, strict=True))
+        ses = dict(zip(keys, stderr, strict=True))
+    return vals, {k: (v - 1.96 * ses[k], v + 1.96 * ses[k]) for k, v in vals.items()}
+
+
+def phase_lag(
+    model: Model, data: Trajectories, row: int, c: float, c_se: float
+) -> tuple[dict[str, float], dict[str, tuple], str] | None:
+    """α and K of K·Σ_j sin(θ_j − θ_i − α) = K cos α·Σ sin(θ_j − θ_i) − K sin α·Σ cos(θ_j − θ_i), from a named
+    cos-coupling coefficient c (= −K sin α) and the model's own sin coupling (= K cos α, refit beside c).
+
+    The model's sin coupling is found among its own parameters as the one whose sensitivity on `row` is
+    proportional to Σ_j sin(θ_j − θ_i) (cosine similarity ≥ 0.999); None when no parameter is (a black-box
+    model, or a coupling written another way): the report then gives c alone. The intervals carry c's
+    uncertainty only (the sin coupling held at its fitted value), which the returned note says.
+    """
+    values_now = getattr(model, "parameters_now", None)
+    sens = model_sensitivities(model, data)  # [B, T-1, N, D, P] or None
+    if sens is None or values_now is None or not isinstance(model, Interpretable):
+        return None
+    sine = fx.SineCoupling(1.0, target=row, source=row).bind(data.state_names)
+    feat = step_average(evaluate_effect(sine, data))[..., 0].flatten()  # [B·(T−1)·N]
+    current = values_now()
+    for j, label in enumerate(model.sensitivity_names()):
+        col = sens[..., row, j].flatten()
+        ok = torch.isfinite(col) & torch.isfinite(feat)
+        f, g = feat[ok], col[ok]
+        norm = float(f.norm() * g.norm())
+        if label not in current or current[label].numel() != 1 or norm == 0.0:
+            continue  # per-node entries cannot be one coupling constant
+        if float(f @ g) / norm < 0.999:
+            continue
+        k_cos = float(current[label].detach()) * float(f @ g) / float(f @ f)  # K cos α, in the library's Σ sin units
+        k = math.hypot(k_cos, c)
+        alpha = math.atan2(-c, k_cos)
+        se_alpha = abs(k_cos) * c_se / max(k * k, 1e-300)
+        se_k = abs(c) * c_se / max(k, 1e-300)
+        vals = {"alpha": alpha, "K": k}
+        interval = {
+            "alpha": (alpha - 1.96 * se_alpha, alpha + 1.96 * se_alpha),
+            "K": (k - 1.96 * se_k, k + 1.96 * se_k),
+        }
+        note = (
+            f"phase lag from the cos coefficient c = {c:.4g} and the model's own sin coupling `{label}` refit to "
+            f"K cos α = {k_cos:.4g}: α = atan2(−c, K cos α), K = hypot; intervals from c's uncertainty only"
+        )
+        return vals, interval, note
+    return None
+
+
+def phase_warmup(horizon: int, n_times: int) -> int | None:
+    """Steps at the start of each held-out record that fit a per-recording drive's phase (at most one horizon, a
+    quarter of the record); None when no step would be left to test the drive on."""
+    warm = max(2, min(horizon, (n_times - 1) // 4))
+    return warm if n_times >= warm + 2 else None
+
+
+def _too_short_for_phases(n_times: int, horizon: int) -> str:
+    return (
+        f"the held-out windows are {n_times - 1} steps (the model tracks the data for only {horizon} before its "
+        "error passes diagnose.vpt_threshold), too short to fit a periodic drive's phase per recording and then "
+        "test it; give diagnose.horizon=3 or more, or leave PeriodicForcing out of diagnose.kinds"
+    )
+
+
+def phased_heldout(current: Model, trial: Model, data: Trajectories, horizon: int, iters: int):
+    """([B] MSE without, [B] MSE with a per-recording drive, the model with it) on `data` after a warm-up window.
+
+    The drive's amplitude and frequency come from `trial` (fitted on held-in recordings); each recording's
+    phase is estimated from its first quarter (at most one horizon): a least-squares fit of the one-step
+    residual on sin ωt, cos ωt gives a start, multiple shooting over the warm-up window refines it. Both
+    errors are measured on the rest of the record only."""
+    drive = cast(Any, trial.effects[-1])  # the candidate drive (a Module list holds Modules)
+    warm = phase_warmup(horizon, data.n_times)
+    if warm is None:  # no step left to test on after the warm-up (`try_candidate` skips the candidate before this)
+        raise DataError(f"diagnose: {_too_short_for_phases(data.n_times, horizon)}")
+    head, tail = data.time_slice(0, warm + 1), data.time_slice(warm, data.n_times)
+    res = one_step_residual(current, head)
+    r = res.r[..., drive.target].mean(dim=2).nan_to_num()  # [B, warm]
+    w = drive.omega
+    x = torch.stack([torch.sin(w * res.t_mid), torch.cos(w * res.t_mid)], dim=1)  # [warm, 2]
+    ab = torch.linalg.lstsq(x, r.T).solution  # [2, B]: A cos φ, A sin φ
+    phases = torch.atan2(ab[1], ab[0]).tolist()
+    amp = float(drive.coef.detach()[0])
+    test_drive = PhasedDrive(amp, w, phases, target=drive.target, learnable=True)
+    test_drive.bind(getattr(drive, "state_names", None) or [str(i) for i in range(data.state_dim)])
+    model = with_effect(current, test_drive)
+    shooting_fit(model, head, warm, [cast(PhasedDrive, model.effects[-1]).phases], iters)
+    return window_error(current, tail, horizon), window_error(model, tail, horizon), model

@@ -1,0 +1,75 @@
+"""The diagnosis report from the summary dict alone (`mpsim.diagnose.report`): diagnosis.md and the summary rows."""
+
+import math
+from pathlib import Path
+
+from mpsim.diagnose.report import markdown, summary_rows, truth_text, values_text
+
+
+def _summary(verdict: str, exit_code: int, one_step: float = 0.01) -> dict:
+    """The smallest diagnosis.json a report is written from: nothing tested, screened or fixed."""
+    return {
+        "data": {"name": "pendulums", "n_heldin": 8, "n_heldout": 3},
+        "init": "p.ckpt",
+        "verdict": verdict,
+        "verdict_note": "",
+        "exit_code": exit_code,
+        "effects_named": [],
+        "judgement": {
+            "horizon": 20,
+            "error_given": 2e-3,
+            "error_refit": 1e-3,
+            "error_null": 1e-5,
+            "error_final": 1e-3,
+            "explained": 0.0,
+            "notes": ["best candidate none"],
+            "trials": [],
+        },
+        "finetuned": [],
+        "screen": {
+            "searched_rows": ["omega"],
+            "state_names": ["theta", "omega"],
+            "residual_rms": [0.1, 0.2],
+            "null_rms": [0.01, 0.02],
+            "null_level": [0.001, 0.002],
+            "noise_std_estimate": [0.0, 0.0],
+            "candidates_considered": [],
+        },
+        "rounds": [],
+        "rejected_fixes": [],
+        "fixed_effects": [],
+        "before": {
+            "one_step_rmse": one_step,
+            "rollout_rmse": 0.5,
+            "valid_prediction_time": 1.25,
+            "horizons": {"5": {"t": 0.5, "rmse": 0.05}},
+        },
+        "after": None,
+    }
+
+
+def test_markdown_of_an_unexplained_verdict_shows_its_levels_and_an_empty_after_column():
+    text = markdown(_summary("unexplained structured residual", 11))
+    assert text.startswith("# mpsim diagnose: pendulums\n")
+    assert "**Verdict: unexplained structured residual** (exit code 11)." in text
+    assert "Windows of 20 steps. Model as given 0.002; its own parameters refit 0.001; null level 1e-05" in text
+    assert "\n- best candidate none\n" in text
+    assert "| (none tested) | | | | | | | |" in text
+    assert "| omega | 0.2 | 0.02 | 0.002 | 0 |" in text
+    assert "| one-step RMSE | 0.01 | - |" in text and "| rollout RMSE at 5 steps (t=0.5) | 0.05 | - |" in text
+    assert "## Fix, round" not in text and "## Candidates finetuned" not in text and text.endswith("|\n")
+
+
+def test_summary_rows_claim_nothing_without_a_named_effect_and_mark_a_diverged_rollout():
+    rows = dict(summary_rows(_summary("unexplained structured residual", 11, math.nan), Path("run")))
+    assert rows["verdict"] == "unexplained structured residual"
+    assert rows["claim"] == "none: no candidate explains the structured residual"
+    assert rows["held-out MSE"] == "given 0.002, own parameters refit 0.001, null level 1e-05"
+    assert rows["one-step RMSE"] == "nan (diverged)" and rows["report"] == str(Path("run") / "diagnosis.md")
+    assert "claim" not in dict(summary_rows(_summary("nothing missing", 10), Path("run")))
+
+
+def test_values_and_truth_text():
+    assert values_text({"coef": 0.2}, {"coef": (0.19, 0.21)}) == "coef 0.2 [0.19, 0.21]"
+    truth = {"true": {"coef": 0.2}, "relative_error": {"coef": 0.01}}
+    assert truth_text(truth) == "true coef 0.2, off by 1.0%"
