@@ -20,14 +20,19 @@ graph must still be acyclic):
     4  models     models                                         learnable simulators
     5  training   training                                       the trainer, checkpoints, loggers, DDP
     6  analysis   diagnose, bench, plotting                      the residual loop, benchmarks, plots
-    7  commands   commands, config                               `run_<cmd>(cfg) -> dict`; config -> objects
-    8  entry      cli, __main__, mpsim (the package facade)        command dispatch, process set-up
+    7  config     config                                         config -> objects; keys and run records
+    8  report     report                                         reports of finished runs (plain values, no cfg)
+    9  commands   commands                                       `run_<cmd>(cfg) -> dict`
+   10  entry      cli, __main__, mpsim (the package facade)        command dispatch, process set-up
 
 A command (one of `COMMANDS`) never imports another command: what two commands share lives in a helper module of
 `mpsim.commands` (`runtime`, `building`, `console`, ...) or in a library module below; a helper never imports a command.
 
 A private name (`_x`, not a dunder) defined in one module is never imported or used (`module._x`) from another;
 a private module (`_x.py`) may be imported only from inside its own package.
+
+The scripts under `results/` (records of how a result was made) import the library (`mpsim.report`, ...), never
+`mpsim.commands`: a command's helpers may change without notice, a library function keeps its name.
 """
 
 from __future__ import annotations
@@ -46,6 +51,7 @@ import pytest
 from mpsim.process import configure_process
 
 SRC = Path(__file__).resolve().parents[1] / "src"
+RESULTS = Path(__file__).resolve().parents[1] / "results"
 ROOT = "mpsim"
 
 LAYERS: list[tuple[str, list[str]]] = [
@@ -67,7 +73,9 @@ LAYERS: list[tuple[str, list[str]]] = [
     ("models", ["mpsim.models"]),
     ("training", ["mpsim.training"]),
     ("analysis", ["mpsim.diagnose", "mpsim.bench", "mpsim.plotting"]),
-    ("commands", ["mpsim.commands", "mpsim.config"]),
+    ("config", ["mpsim.config"]),
+    ("report", ["mpsim.report"]),
+    ("commands", ["mpsim.commands"]),
     ("entry", ["mpsim.cli", "mpsim.__main__", "mpsim"]),
 ]
 # The command modules (`mpsim <command>`); every other module of `mpsim.commands` is a helper.
@@ -360,12 +368,46 @@ def test_checker_finds_private_names_used_across_modules(tmp_path):
     ]
 
 
+def command_imports(root: Path) -> list[str]:
+    """Every import of `mpsim.commands` (or of a module in it) in the Python files under `root`, as
+    "path:line module"."""
+    bad = []
+    for path in sorted(root.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and not node.level:
+                names = [node.module or "", *(f"{node.module}.{a.name}" for a in node.names)]
+            else:
+                continue
+            if any(n == "mpsim.commands" or n.startswith("mpsim.commands.") for n in names):
+                bad.append(f"{path.relative_to(root)}:{node.lineno} {names[0]}")
+    return bad
+
+
+def test_results_scripts_import_no_command():
+    bad = command_imports(RESULTS)
+    assert not bad, "scripts under results/ import the command layer (import mpsim.report instead):\n" + "\n".join(bad)
+
+
+def test_checker_finds_a_results_script_that_imports_a_command(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "old.py").write_text("from mpsim.commands.report_layouts import min_so_far\n")
+    (tmp_path / "b.py").write_text("import os\nfrom mpsim import commands\nimport mpsim.commands.report as r\n")
+    (tmp_path / "ok.py").write_text("from mpsim.report import min_so_far\nimport mpsim.commands_like\n")
+    assert command_imports(tmp_path) == [
+        "a/old.py:1 mpsim.commands.report_layouts",
+        "b.py:2 mpsim",
+        "b.py:3 mpsim.commands.report",
+    ]
+
+
 IMPORT_PROBE = """
 import json, os, sys
 import matplotlib
 matplotlib.use("svg")  # the caller's own choice, which importing mpsim must keep
 env = dict(os.environ)
-import mpsim, mpsim.cli, mpsim.plotting, mpsim.commands.report_layouts, mpsim.commands.train
+import mpsim, mpsim.cli, mpsim.plotting, mpsim.report, mpsim.commands.report, mpsim.commands.train
 mpsim.Trajectories, mpsim.System
 changed = sorted(k for k in set(env) | set(os.environ) if env.get(k) != os.environ.get(k))
 print(json.dumps({"changed": changed, "backend": matplotlib.get_backend(), "version": mpsim.__version__}))

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from mpsim.commands.report_layouts import min_so_far  # the message-size report's own "lowest so far"
+from mpsim.report import min_so_far  # the message-size report's own "lowest so far"
 
 R = Path(__file__).parent  # results/message_size_paper
 runs = {n: R / p / "metrics.csv" for n, p in [

@@ -10,6 +10,8 @@ import yaml
 
 from mpsim.commands.report import run_report
 from mpsim.errors import ConfigError, DataError
+from mpsim.report import DEFAULT_TITLES
+from tests.report.fake_runs import table2_runs as make_table2_runs
 
 
 def _finished(run, seed):
@@ -170,3 +172,30 @@ def test_a_report_names_folders_under_where_it_was_started_relative_to_it(cfg_fa
     run_report(cfg_factory("report", "layout=curves", f"runs=[{runs}]"), output_dir=tmp_path / "out2")
     text = (tmp_path / "out2" / "report.md").read_text()
     assert f"runs under {runs}." in text and f"{runs / 's2'} (epoch 195 of 4000)" in text
+
+
+@pytest.fixture
+def table2_runs(tmp_path):
+    return make_table2_runs(tmp_path / "runs")
+
+
+def test_unknown_layout_is_refused(cfg_factory, tmp_path, table2_runs):
+    cfg = cfg_factory("report", "layout=table3", f"runs=[{table2_runs}]")
+    with pytest.raises(ConfigError, match="layout='table3' is unknown; choose one of table2, table1"):
+        run_report(cfg, output_dir=tmp_path / "report_table3")
+
+
+def test_generic_report_is_unchanged_without_a_layout(cfg_factory, tmp_path, table2_runs):
+    cfg = cfg_factory("report", f"runs=[{table2_runs}]")
+    result = run_report(cfg, output_dir=tmp_path / "plain")
+    assert "model_class" not in pd.read_csv(tmp_path / "plain" / "report.csv").columns
+    assert result["n_runs"] == 15
+
+
+def test_a_layout_report_has_its_own_title_unless_one_is_given(cfg_factory, tmp_path, table2_runs):
+    run_report(cfg_factory("report", "layout=table2", f"runs=[{table2_runs}]"), output_dir=tmp_path / "own")
+    assert (tmp_path / "own" / "report.md").read_text().startswith(f"# {DEFAULT_TITLES['table2']}\n\n15 runs under ")
+    cfg = cfg_factory("report", "layout=table2", f"runs=[{table2_runs}]", "title='Table 2 (paper-sized)'")
+    result = run_report(cfg, output_dir=tmp_path / "given")
+    assert (tmp_path / "given" / "report.md").read_text().startswith("# Table 2 (paper-sized)\n\n15 runs under ")
+    assert result["n_runs"] == 15 and result["figures"] == [str(tmp_path / "given" / "table2.png")]

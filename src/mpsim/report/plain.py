@@ -1,0 +1,82 @@
+"""The plain report (no layout): one row per group of runs that differ only by seed, its metrics as mean ± std
+(`plain_table`), and the first epoch each run reached a target test error (`add_epochs_to_target`)."""
+
+from __future__ import annotations
+
+import math
+
+import pandas as pd
+
+from mpsim.config import output_only
+from mpsim.metrics import first_epoch_below
+from mpsim.report.common import read_metrics
+
+NUMERIC = (
+    "epochs_to_target",
+    "min_test_error",
+    "min_test_error_epoch",
+    "epochs_x_min_error",
+    "initial_test_error",
+    "test_error",
+    "epochs_run",
+    "wall_time",
+)
+
+
+def add_epochs_to_target(frame: pd.DataFrame, target: str | float) -> float:
+    """Add `epochs_to_target`: the first epoch (≥ 1) whose test error is at or below `target`.
+
+    `target` is a number, or "max_min": the largest of the runs' minimum test errors, i.e. the best level
+    that every run reached (so each run has an answer and the slowest run's is its min epoch).
+    """
+    curves = {}
+    for run in frame["run"]:
+        m = read_metrics(run)
+        if m is not None:
+            curves[run] = m[m["epoch"] >= 1]
+    if target == "max_min":
+        value = max(float(c["test_error"].min()) for c in curves.values()) if curves else math.nan
+    else:
+        value = float(target)
+    frame["target_error"] = value
+    frame["epochs_to_target"] = [
+        first_epoch_below(curves[r]["epoch"].tolist(), curves[r]["test_error"].tolist(), value) if r in curves else None
+        for r in frame["run"]
+    ]
+    return value
+
+
+def aggregate(frame: pd.DataFrame, group_by: list[str]) -> pd.DataFrame:
+    """Mean ± std of the numeric metrics over rows that share `group_by`."""
+    numeric = [c for c in NUMERIC if c in frame.columns]
+    grouped = frame.groupby(group_by, dropna=False)[numeric]
+    mean, std = grouped.mean(), grouped.std()
+    out = pd.DataFrame(
+        {c: [_pm(m, s) for m, s in zip(mean[c], std[c], strict=True)] for c in numeric}, index=mean.index
+    )
+    out["runs"] = grouped.size()
+    return out.reset_index()
+
+
+def _pm(m: float, s: float) -> str:
+    if m is None or math.isnan(m):
+        return "nan"
+    return f"{m:.4g}" if s is None or math.isnan(s) else f"{m:.4g} ± {s:.2g}"
+
+
+def plain_table(frame: pd.DataFrame, group_by: list[str], columns: list[str]) -> pd.DataFrame:
+    """The plain report's table of `frame` (one row per run): rows grouped by `group_by` (default: every
+    override that varies), metrics as mean ± std, only `columns` of them if given."""
+    fixed = {"run", "seed", "target_error", "status", *NUMERIC}
+    varying = [c for c in frame.columns if c not in fixed and not output_only(c) and frame[c].astype(str).nunique() > 1]
+    group_by = group_by or varying
+    if group_by:
+        table = aggregate(frame, group_by)
+    elif len(frame) > 1:  # the runs differ only by seed (or where they wrote): one row, mean ± std
+        table = aggregate(frame.assign(all_runs=""), ["all_runs"]).drop(columns=["all_runs"])
+    else:
+        table = frame.drop(columns=["run"])
+    if columns:
+        order = [*group_by, *columns, "runs"]
+        table = table[[c for c in order if c in table.columns]]
+    return table
