@@ -501,7 +501,35 @@ CASES: dict[str, Case] = {
         5,
         "a chain graph on 100000000000 nodes needs about",
     ),
+    # -- model sizes from a checkpoint or the config: checked on the meta device before anything is allocated
+    "ckpt_config_declares_other_sizes": Case(
+        lambda w, d: ["eval", f"init={_declaring(w, d, hidden=3000)}", "system=lorenz3", *EVAL],
+        2,
+        "bad.ckpt: its model.config does not describe its weights: model.state_dict['net.0.weight'] is [32, 6] but "
+        "the config builds [3000, 6]",
+    ),
+    "ckpt_override_too_large": Case(  # used to try to allocate 4 TB, then 'cannot build model ... can't allocate'
+        lambda w, d: [
+            "eval",
+            f"init={w / 'checkpoints/lorenz3.ckpt'}",
+            "system=lorenz3",
+            "model.hidden=1000000",
+            *EVAL,
+        ],
+        2,
+        "does not fit this model (model.hidden: checkpoint 32, config 1000000)",
+    ),
+    "memory_model_weights": Case(
+        lambda w, d: ["train", "system=lorenz3", "model.hidden=1000000", *TINY_TRAIN],
+        5,
+        "1,000,014,000,006 weights with their gradients and optimiser state",
+    ),
 }
+
+
+def _declaring(ws: Path, d: Path, **sizes: int) -> Path:
+    """The lorenz3 checkpoint with its model config declaring `sizes` its weights do not have."""
+    return altered(ws, d, lambda p: p["model"]["config"].update(sizes))
 
 
 @pytest.mark.parametrize("name", list(CASES))
@@ -728,3 +756,52 @@ def test_resume_uses_the_runs_own_overrides_and_keeps_its_record(ws, tmp_path):
     assert res.code == 0, res.err
     assert "mpsim train: lorenz3" in res.out  # the run's own system=lorenz3, not the default pendulum2
     assert {p.name: p.read_bytes() for p in (run_dir / ".hydra").iterdir()} == record
+
+
+# ---- model sizes and data metadata from files ------------------------------------------------------------------
+@pytest.fixture
+def allocations(monkeypatch):
+    """The element counts of every parameter created with storage (not on the meta device) while a test runs."""
+    sizes: list[int] = []
+    real_new = torch.nn.Parameter.__new__
+
+    def spy(cls, data=None, requires_grad=True):
+        if data is not None and data.device.type != "meta":
+            sizes.append(data.numel())
+        return real_new(cls, data, requires_grad)
+
+    monkeypatch.setattr(torch.nn.Parameter, "__new__", staticmethod(spy))
+    return sizes
+
+
+@pytest.mark.parametrize("command", ["eval", "train"])
+def test_sizes_a_checkpoint_declares_are_refused_before_they_are_allocated(command, ws, tmp_path, allocations):
+    """An 11 kB checkpoint declaring hidden=12000 used to cost ~600 MB before its weights were found not to fit:
+    no parameter of the declared size [3000, 3000] may now be created at all."""
+    bad = _declaring(ws, tmp_path, hidden=3000)
+    extra = TINY_TRAIN if command == "train" else []
+    res = run_mpsim([command, f"init={bad}", "system=lorenz3", *EVAL, *extra], tmp_path)
+    assert max(allocations, default=0) <= 32 * 32, max(allocations)  # the checkpoint's own largest weight
+    assert res.code == 2 and "its model.config does not describe its weights" in res.err, res.err[-2000:]
+
+
+def test_large_data_metadata_is_not_copied_into_the_checkpoints_or_the_summary(tmp_path):
+    """A data file's `meta` of megabytes used to be copied into best.ckpt, last.ckpt (every epoch), the export and
+    summary.json; checkpoints keep what mpsim reads back, and the rest up to 64 kB."""
+    meta = {"system": "measured", "state_names": ["theta", "omega"], "notes": "x" * 2_000_000}
+    meta["params"] = {"k": 1.0, "calibration": [0.5] * 200_000}
+    path = write_npz(tmp_path, meta=np.array(json.dumps(meta)))
+    res = run_mpsim([*data_args(path), "trainer.max_epochs=2"], tmp_path)
+    assert res.code == 0, res.err[-2000:]
+    (run,) = (tmp_path / "outputs" / "train").glob("*/*")
+    files = [
+        run / "checkpoints" / "best.ckpt",
+        run / "checkpoints" / "last.ckpt",
+        tmp_path / "checkpoints" / "measured.ckpt",
+    ]
+    sizes = {p.name: p.stat().st_size for p in [*files, run / "summary.json"]}
+    assert max(sizes.values()) < 100_000, sizes
+    kept = torch.load(files[0], weights_only=True)["system"]
+    assert kept["system"] == "measured" and kept["state_names"] == ["theta", "omega"] and "notes" not in kept
+    assert json.loads((run / "summary.json").read_text())["system"]["params"] == {"k": 1.0}
+    assert "data metadata not copied into the checkpoints" in res.err and "notes (2 MB)" in res.err

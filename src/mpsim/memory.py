@@ -85,6 +85,11 @@ def simulation_bytes(sizes: list[int], n_times: int, n_nodes: int, state_dim: in
     return out + SOLVER_STATES * max(sizes) * int(n_nodes) * int(state_dim) * FLOAT64
 
 
+def model_bytes(param_bytes: int, buffer_bytes: int, training: bool) -> int:
+    """A model's weights and buffers; training adds a gradient and Adam's two moments per weight."""
+    return (4 if training else 1) * int(param_bytes) + int(buffer_bytes)
+
+
 def training_bytes(
     n_params: int,
     train_values: int,

@@ -1,9 +1,10 @@
+import json
 import re
 
 import pytest
 import torch
 
-from mpsim.commands.checkpoints import check_checkpoint_system, resolve_init
+from mpsim.commands.checkpoints import capped_meta, check_checkpoint_system, check_weights_fit, resolve_init
 from mpsim.commands.runtime import Runtime
 from mpsim.errors import CheckpointError, IncompatibleError
 
@@ -53,3 +54,61 @@ def test_a_run_directory_given_as_init_is_refused_naming_its_model_file(tmp_path
     with pytest.raises(CheckpointError, match=r"no such checkpoint \(looked for [^,]*/gone, [^,]*/checkpoints/gone, "):
         resolve_init("gone", rt, "checkpoints")
     assert resolve_init(f"{run}/checkpoints/best.ckpt", rt, "checkpoints") == run / "checkpoints" / "best.ckpt"
+
+
+def _with_weights(state: dict, config: dict) -> dict:
+    return {"path": "m.ckpt", "model": {"config": config, "state_dict": state}}
+
+
+def test_weights_that_do_not_fit_name_the_override_or_else_the_tensor_and_both_shapes():
+    own = {"net.0.weight": torch.empty(12000, 6, device="meta"), "effects.0.coef": torch.empty(1, device="meta")}
+    saved = {"net.0.weight": torch.zeros(32, 6)}
+    config = {"_target_": "mpsim.models.mpnode.MPNODE", "hidden": 12000}
+    with pytest.raises(CheckpointError, match=r"m.ckpt does not fit this model \(model.hidden: checkpoint 32, config"):
+        check_weights_fit(own, _with_weights(saved, {**config, "hidden": 32}), config)
+    with pytest.raises(
+        CheckpointError,
+        match=re.escape(
+            "m.ckpt: its model.config does not describe its weights: model.state_dict['net.0.weight'] is [32, 6] "
+            "but the config builds [12000, 6] (1 tensor(s) differ)."
+        ),
+    ):
+        check_weights_fit(own, _with_weights(saved, config), config)
+    with pytest.raises(
+        CheckpointError, match=r"model.state_dict lacks 'net.1.bias' \(\[7\]\), which the config builds"
+    ):
+        check_weights_fit({"net.1.bias": torch.empty(7, device="meta")}, _with_weights(saved, config), config)
+    # effects added on top of a checkpoint start from their configured values; extra checkpoint tensors are unused
+    check_weights_fit({"effects.0.coef": own["effects.0.coef"]}, _with_weights(saved, config), config)
+
+
+def test_large_data_metadata_is_not_copied_into_checkpoints_and_the_warning_names_it(caplog):
+    meta = {
+        "system": "measured",
+        "state_names": ["theta", "omega"],
+        "n_nodes": 2,
+        "notes": "x" * 100_000,
+        "calibration": list(range(20_000)),
+        "units": {"theta": "rad"},
+        "seed": 3,
+    }
+    with caplog.at_level("WARNING"):
+        kept = capped_meta(meta, "the checkpoints")
+    assert kept == {
+        "system": "measured",
+        "state_names": ["theta", "omega"],
+        "n_nodes": 2,
+        "units": {"theta": "rad"},
+        "seed": 3,
+    }
+    assert list(kept) == [k for k in meta if k in kept]  # in the data's order
+    (warning,) = [r.getMessage() for r in caplog.records]
+    assert "not copied into the checkpoints (at most 64 kB" in warning and warning.endswith(
+        "notes (100 kB), calibration (129 kB)"
+    )
+    # the keys read back come first: with room for them only, every other key is left out
+    room = sum(len(json.dumps({k: meta[k]})) for k in ("system", "state_names", "n_nodes"))
+    assert list(capped_meta(meta, "x", budget=room)) == ["system", "state_names", "n_nodes"]
+    caplog.clear()
+    small = {"system": "lorenz3", "dt": 0.05, "params": {"rho": 28.0, "H": [[0.0, 0.1], [0.2, 0.0]]}}
+    assert capped_meta(small, "x") == small and not caplog.records

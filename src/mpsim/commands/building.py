@@ -1,19 +1,22 @@
 """Objects from config: `hydra.utils.instantiate` with one clear message per failure, the system and the solver,
-and the model — from scratch or with a checkpoint's config and weights, checked against the data's shape.
+and the model — from scratch or with a checkpoint's config and weights, checked against the data's shape, its
+sizes planned on the meta device and checked (weights vs config, memory) before anything is allocated.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import logging
+from dataclasses import dataclass, replace
 from typing import Any
 
+import torch
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from mpsim.commands.checkpoints import check_checkpoint_system, load_weights
+from mpsim.commands.checkpoints import check_checkpoint_system, check_weights_fit, load_weights
 from mpsim.commands.runtime import Runtime
-from mpsim.commands.splits import load_splits
+from mpsim.commands.splits import check_model_memory, load_splits
 from mpsim.config import plain_dict
 from mpsim.data.dataset import SPLITS, Splits, fit_normalisation
 from mpsim.data.trajectories import Trajectories
@@ -21,6 +24,8 @@ from mpsim.errors import ConfigError, IncompatibleError, MpsimError, ResourceErr
 from mpsim.models.base import Model
 from mpsim.solvers.odeint import ODESolver
 from mpsim.systems.base import System
+
+log = logging.getLogger(__name__)
 
 
 def build(node: DictConfig, where: str, **kwargs: Any) -> Any:
@@ -111,19 +116,56 @@ class Shape:
 
 
 def build_model_for(
-    cfg: DictConfig, rt: Runtime, shape: Shape, ckpt: dict[str, Any] | None
+    cfg: DictConfig, rt: Runtime, shape: Shape, ckpt: dict[str, Any] | None, training: bool = False
 ) -> tuple[Model, dict[str, Any]]:
-    """Build the model for data of `shape`, from scratch or with `ckpt`'s weights, checking that they fit."""
+    """Build the model for data of `shape`, from scratch or with `ckpt`'s weights, checking that they fit.
+
+    Its sizes are checked before anything is allocated (`planned_model`): a checkpoint's weights must have the
+    shapes its config builds, and the weights (with, when `training`, their gradients and Adam's moments) must
+    fit in memory."""
     if ckpt is not None:
         check_checkpoint_system(ckpt, shape.state_dim, shape.control_dim, shape.state_names)
     model_cfg = model_config(cfg, ckpt, rt.overrides)
-    model = build_model(model_cfg, shape.state_dim, shape.control_dim, build_solver(cfg), rt)
-    model.bind_effects(shape.state_names)
+    solver = build_solver(cfg)
     trained_nodes = None if ckpt is None else ckpt["system"].get("n_nodes")
-    model.check_compatible(shape.state_dim, shape.control_dim, shape.n_nodes, trained_nodes)
+    plan = planned_model(model_cfg, shape, solver, rt, trained_nodes)
+    if plan is not None:
+        if ckpt is not None:
+            check_weights_fit(plan.state_dict(), ckpt, model_cfg)
+        check_model_memory(cfg, rt, plan, model_cfg, training, None if ckpt is None else ckpt["path"])
+    model = _assemble(model_cfg, shape, solver, rt, trained_nodes)
     if ckpt is not None:
         load_weights(model, ckpt, model_cfg)
     return model, model_cfg
+
+
+def _assemble(
+    model_cfg: dict[str, Any], shape: Shape, solver: ODESolver, rt: Runtime, trained_nodes: int | None
+) -> Model:
+    """The model of `model_cfg`, its effects bound to the data's state names, checked to run on data of `shape`."""
+    model = build_model(model_cfg, shape.state_dim, shape.control_dim, solver, rt)
+    model.bind_effects(shape.state_names)
+    model.check_compatible(shape.state_dim, shape.control_dim, shape.n_nodes, trained_nodes)
+    return model
+
+
+def planned_model(
+    model_cfg: dict[str, Any], shape: Shape, solver: ODESolver, rt: Runtime, trained_nodes: int | None
+) -> Model | None:
+    """The model `model_cfg` builds, on PyTorch's meta device: every tensor has its shape and dtype but no
+    storage, so sizes read from a config or a checkpoint are checked before they cost memory.
+
+    None when the model cannot be built that way: its constructor computes with tensor values (`model=physics`
+    builds its system, whose coupling and graph are drawn; `model=equations` tests its spec's values). Such a
+    model is checked once it is built (its weights are values written in its config); any error raised here is
+    raised again, with its message, by the real build.
+    """
+    try:
+        with torch.device("meta"):
+            return _assemble(model_cfg, shape, solver, replace(rt, device=torch.device("meta")), trained_nodes)
+    except Exception as err:  # noqa: BLE001 - the real build reports a genuine error the same way
+        log.debug(f"model sizes not planned on the meta device ({type(err).__name__}: {err}); checked once built")
+        return None
 
 
 def model_and_data(
@@ -133,15 +175,17 @@ def model_and_data(
     ckpt: dict[str, Any] | None,
     refit: bool,
     need: tuple[str, ...] = SPLITS,
+    training: bool = False,
 ) -> tuple[Model, dict[str, Any], Splits]:
     """Model and splits, checked in the order that writes nothing before a bad input is found: the model
     (and checkpoint) is checked against the system before any data is simulated into the cache. `need`: the
-    splits the command uses (a file's other splits may be given no share)."""
+    splits the command uses (a file's other splits may be given no share); `training`: the model will be
+    trained (its memory check counts gradients and optimiser state)."""
     splits = load_splits(cfg, rt, system, need) if cfg.data.path else None
     source = (splits.train if len(splits.train) else splits.test) if splits else system
     if source is None:
         raise ConfigError("no data: pass system=<name> or data.path=<file>.")
-    model, model_cfg = build_model_for(cfg, rt, Shape.of(source), ckpt)
+    model, model_cfg = build_model_for(cfg, rt, Shape.of(source), ckpt, training)
     if splits is None:
         splits = load_splits(cfg, rt, system)
     if ckpt is None or refit:

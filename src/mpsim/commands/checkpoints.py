@@ -4,18 +4,28 @@ the data and the model (naming the config key that differs), and the static part
 
 from __future__ import annotations
 
+import json
 import logging
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import torch
 from omegaconf import DictConfig, OmegaConf
 
 from mpsim.commands.runtime import Runtime, resolve_path
 from mpsim.errors import CheckpointError, IncompatibleError
+from mpsim.memory import fmt_bytes
 from mpsim.models.base import Model
 from mpsim.training.checkpoint import config_targets, load_checkpoint
 
 log = logging.getLogger(__name__)
+
+# the data metadata a checkpoint keeps ("system"): first the keys that name the system and its shape, which mpsim
+# reads back (`system` and `state_names` in messages, `n_nodes` for models tied to one graph size), then the rest
+# within the budget
+META_READ_BACK = ("system", "system_class", "state_names", "control_names", "n_nodes", "dt")
+META_BUDGET = 64_000  # bytes of JSON; best.ckpt, last.ckpt (rewritten every epoch) and the export each hold it
 
 
 def resolve_init(init: str, rt: Runtime, ckpt_dir: str) -> Path:
@@ -54,25 +64,53 @@ def load_init(cfg: DictConfig, rt: Runtime) -> dict[str, Any] | None:
 
 def load_weights(model: Model, ckpt: dict[str, Any], model_cfg: dict[str, Any]) -> None:
     """Load checkpoint weights, naming the config key that makes them not fit."""
-    state = ckpt["model"]["state_dict"]
     own = model.state_dict()
+    check_weights_fit(own, ckpt, model_cfg)
+    state = ckpt["model"]["state_dict"]
+    model.load_state_dict({k: v.to(own[k]) for k, v in state.items() if k in own}, strict=False)
+
+
+def check_weights_fit(own: Mapping[str, torch.Tensor], ckpt: dict[str, Any], model_cfg: dict[str, Any]) -> None:
+    """Refuse a checkpoint whose weights do not fit the model `model_cfg` builds.
+
+    Args:
+        own: the built model's state_dict; tensors on the meta device serve (only shapes are compared), so this
+            runs before the model is allocated.
+        ckpt: the loaded checkpoint.
+        model_cfg: the config the model was built from (the checkpoint's with command-line overrides).
+
+    Raises:
+        CheckpointError: names the `model.*` override(s) that differ from the checkpoint's config or, when the
+            checkpoint's own config does not describe its weights (e.g. `hidden` altered in the file), the
+            first tensor and both shapes.
+    """
+    state = ckpt["model"]["state_dict"]
     mismatched = [k for k in state if k in own and state[k].shape != own[k].shape]
     # effects added on top of a checkpoint (e.g. by `mpsim diagnose fix=true`) start from their configured
     # coefficients; any other missing tensor means the architecture differs
     missing = [k for k in own if k not in state and not k.startswith("effects.")]
-    if mismatched or missing:
-        saved_cfg = ckpt["model"]["config"]
-        differ = [
-            f"model.{k}: checkpoint {saved_cfg[k]!r}, config {model_cfg[k]!r}"
-            for k in saved_cfg
-            if k in model_cfg and saved_cfg[k] != model_cfg[k] and not k.startswith("_")
-        ]
-        detail = "; ".join(differ) if differ else f"tensors {(mismatched + missing)[:3]} do not fit"
+    if not mismatched and not missing:
+        return
+    saved_cfg = ckpt["model"]["config"]
+    differ = [
+        f"model.{k}: checkpoint {saved_cfg[k]!r}, config {model_cfg[k]!r}"
+        for k in saved_cfg
+        if k in model_cfg and saved_cfg[k] != model_cfg[k] and not k.startswith("_")
+    ]
+    if differ:
         raise CheckpointError(
-            f"{ckpt['path']} does not fit this model ({detail}). Drop the override(s) to use the checkpoint's "
-            "architecture, or train from scratch without init=."
+            f"{ckpt['path']} does not fit this model ({'; '.join(differ)}). Drop the override(s) to use the "
+            "checkpoint's architecture, or train from scratch without init=."
         )
-    model.load_state_dict({k: v.to(own[k]) for k, v in state.items() if k in own}, strict=False)
+    if mismatched:
+        key = mismatched[0]
+        detail = f"model.state_dict[{key!r}] is {list(state[key].shape)} but the config builds {list(own[key].shape)}"
+    else:
+        detail = f"model.state_dict lacks {missing[0]!r} ({list(own[missing[0]].shape)}), which the config builds"
+    raise CheckpointError(
+        f"{ckpt['path']}: its model.config does not describe its weights: {detail} ({len(mismatched) + len(missing)} "
+        "tensor(s) differ). The file was altered or written by other code; use another copy, or retrain."
+    )
 
 
 def check_checkpoint_system(ckpt: dict[str, Any], state_dim: int, control_dim: int, state_names: list[str]) -> None:
@@ -106,9 +144,42 @@ def checkpoint_base(
             "mean": model.state_mean.detach().cpu().clone(),
             "std": model.state_std.detach().cpu().clone(),
         },
-        "system": _plain(system_meta),
+        "system": capped_meta(system_meta, "the checkpoints"),
         **(extra or {}),
     }
+
+
+def capped_meta(meta: Mapping[str, Any], where: str, budget: int = META_BUDGET) -> dict[str, Any]:
+    """`meta` reduced to plain values and at most `budget` bytes of JSON, so that a data file's large metadata is
+    not copied into every checkpoint (or summary) written from it.
+
+    The keys in `META_READ_BACK` are kept first, then the others from the smallest up while they fit; those
+    left out are named in one warning (`where`: what is written). A key whose value cannot be serialised
+    (nested too deeply) counts as too large.
+    """
+    plain: dict[str, Any] = {}
+    sizes: dict[str, float] = {}
+    for key, value in meta.items():
+        try:
+            plain[str(key)] = _plain(value)
+            sizes[str(key)] = len(json.dumps({str(key): plain[str(key)]}))
+        except (RecursionError, ValueError, TypeError):
+            plain[str(key)], sizes[str(key)] = None, float("inf")
+    kept, used = set(), 0.0
+    for key in sorted(plain, key=lambda k: (k not in META_READ_BACK, sizes[k])):
+        if used + sizes[key] <= budget:
+            kept.add(key)
+            used += sizes[key]
+    dropped = [k for k in plain if k not in kept]
+    if dropped:
+        named = ", ".join(
+            f"{k} ({fmt_bytes(sizes[k]) if sizes[k] < float('inf') else 'nested too deeply'})" for k in dropped
+        )
+        log.warning(
+            f"data metadata not copied into {where} (at most {fmt_bytes(budget)} of it is; the data file keeps it "
+            f"all): {named}"
+        )
+    return {k: v for k, v in plain.items() if k in kept}
 
 
 def _plain(obj: Any) -> Any:

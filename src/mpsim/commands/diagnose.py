@@ -82,7 +82,7 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
     if not cfg.data.path:  # simulated: its held-out count is known before anything is simulated
         _check_heldout(cfg, int(cfg.data.n_test))
     system = None if cfg.data.path and cfg.data.graph != "system" else build_system(cfg)
-    model, model_cfg, splits = model_and_data(cfg, rt, system, ckpt, refit=False)
+    model, model_cfg, splits = model_and_data(cfg, rt, system, ckpt, refit=False, training=bool(cfg.fix))
     _check_heldout(cfg, len(splits.test), len(splits.train) + len(splits.val) + len(splits.test))
     if isinstance(model, LatentState):
         model.latent_reset = cfg.trainer.window  # latent states (messages) were trained over windows this long

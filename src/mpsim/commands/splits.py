@@ -16,7 +16,7 @@ from mpsim.data.dataset import SPLITS, DatasetSpec, Splits, add_noise, simulate_
 from mpsim.data.io import check_representable, load_trajectories
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError
-from mpsim.memory import check_fits, simulation_bytes, training_bytes
+from mpsim.memory import check_fits, model_bytes, simulation_bytes, training_bytes
 from mpsim.models.base import Model
 from mpsim.systems.base import System
 
@@ -102,6 +102,34 @@ def check_simulation_memory(cfg: DictConfig, system: System, sizes: list[int], n
         "cpu",
         bool(cfg.get("memory_check", True)),
         "fewer trajectories: data.n_train/n_val/n_test or n; a shorter data.horizon; a smaller system",
+    )
+
+
+def check_model_memory(
+    cfg: DictConfig, rt: Runtime, model: Model, model_cfg: dict[str, Any], training: bool, source: str | None = None
+) -> None:
+    """Refuse, before it is allocated, a model whose weights (for `training` with gradients and Adam's moments)
+    do not fit. `model`: the planned model, on the meta device (sizes, no storage); `source`: the checkpoint its
+    config came from."""
+    params = list(model.parameters())
+    param_bytes = sum(p.numel() * p.element_size() for p in params)
+    buffer_bytes = sum(b.numel() * b.element_size() for b in model.buffers())
+    n_params = sum(p.numel() for p in params)
+    sizes = ", ".join(
+        f"{k}={v}" for k, v in model_cfg.items() if isinstance(v, int) and not isinstance(v, bool) and v > 1
+    )
+    what = (
+        f"model {model_cfg.get('_target_')} ({sizes or 'as configured'}{'; from ' + source if source else ''}): "
+        f"{n_params:,} weights{' with their gradients and optimiser state' if training else ''} ({rt.dtype})"
+    )
+    check_fits(
+        model_bytes(param_bytes, buffer_bytes, training),
+        what,
+        str(rt.device),
+        bool(cfg.get("memory_check", True)),
+        "another checkpoint, smaller model.* sizes on the command line, or a device with more memory"
+        if source
+        else "smaller model.* sizes, e.g. model.hidden",
     )
 
 

@@ -17,7 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from mpsim import plotting
 from mpsim.commands.building import build, build_system, model_and_data
-from mpsim.commands.checkpoints import checkpoint_base, load_init
+from mpsim.commands.checkpoints import capped_meta, checkpoint_base, load_init
 from mpsim.commands.console import duration, fmt, print_summary
 from mpsim.commands.evaluation import evaluate_checkpoint, evaluate_model, horizon_rows
 from mpsim.commands.runtime import Runtime, describe_device, is_multirun, resolve_path, setup_runtime
@@ -92,9 +92,11 @@ def _run(cfg: DictConfig, rt: Runtime, ctx: DistContext) -> dict:
     if not ctx.is_main:  # rank 0 simulates (and caches) the data first; the other ranks then read the cache
         ctx.barrier()
     if last is None:
-        model, model_cfg, splits = model_and_data(cfg, rt, system, ckpt, bool(cfg.mode.refit_normalisation))
+        model, model_cfg, splits = model_and_data(
+            cfg, rt, system, ckpt, bool(cfg.mode.refit_normalisation), training=True
+        )
     else:  # the interrupted run's own model (config, weights, normalisation)
-        model, model_cfg, splits = model_and_data(cfg, rt, system, last, refit=False)
+        model, model_cfg, splits = model_and_data(cfg, rt, system, last, refit=False, training=True)
     if ctx.is_main:
         ctx.barrier()
         if last is None and cfg.data.path:  # lets `resume=` accept the same file moved along with the run
@@ -177,7 +179,9 @@ def _run(cfg: DictConfig, rt: Runtime, ctx: DistContext) -> dict:
             "name": train.system_name,
             "n_nodes": train.n_nodes,
             "state_names": train.state_names,
-            "params": {k: v for k, v in train.meta.get("params", {}).items() if k != "H"},
+            "params": capped_meta(
+                {k: v for k, v in train.meta.get("params", {}).items() if k != "H"}, "summary.json's system.params"
+            ),
         },
         "model": {**model.describe(), "config": model_cfg, **model.report()},
         "data": {

@@ -237,7 +237,9 @@ class SMNNDiscovery(Model):
         self._resolve_terms(strict=self.names_given)
         self.register_buffer("mask", torch.ones(n_terms, state_dim))
         # ξ = mask ⊙ deriv_scale ⊙ (precond @ θ): precond whitens the library on the first training batch
-        self.register_buffer("precond", torch.eye(n_terms))
+        # the identity, made without torch.eye: on the meta device (the command layer plans a model's sizes there
+        # before building it) torch.eye is a Python reference that imports torch._dynamo, 1.5 s
+        self.register_buffer("precond", torch.zeros(n_terms, n_terms).fill_diagonal_(1.0))
         self.register_buffer("deriv_scale", torch.ones(state_dim))
         self.register_buffer("initialised", torch.zeros((), dtype=torch.bool))
         self.register_buffer("n_updates", torch.zeros((), dtype=torch.long))
