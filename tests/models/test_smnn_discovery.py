@@ -12,6 +12,7 @@ from mpsim.data.trajectories import Inputs, Trajectories
 from mpsim.errors import ConfigError, IncompatibleError
 from mpsim.metrics import mse_loss
 from mpsim.models.smnn_discovery import SMNNDiscovery, monomial_name
+from mpsim.models.smnn_layer import window_history
 from mpsim.polynomials import monomials
 from tests.helpers import run_cli
 
@@ -201,7 +202,7 @@ def test_delayed_effects_train_on_the_windows_observed_history():
 
     data = linear_data(n_traj=4)
     traj = torch.tensor([2, 0])
-    history = SMNNDiscovery._window_history(data.x, data.t, traj, length=3)
+    history = window_history(data.x, data.t, traj, length=3)
     t_query = torch.tensor([[0.05], [0.035], [-0.5], [0.2], [0.2], [0.2]], dtype=F64)  # one per window point
     past = history(t_query)
     assert torch.allclose(past[0], data.x[2, 5]) and torch.allclose(past[2], data.x[2, 0])  # before t0: x(t0)

@@ -10,7 +10,7 @@ import torch
 from mpsim.errors import ConfigError, IncompatibleError
 from mpsim.systems.quadrotor import QuadrotorSwarm
 from mpsim.systems.quadrotor_dynamics import quat_to_rotation
-from mpsim.systems.quadrotor_scenarios import CEILING, DOOR_CENTRES, DOOR_RADIUS, LOAD_RADIUS, QUAD_RADIUS
+from mpsim.systems.quadrotor_scenarios import CEILING, DOOR_CENTRES, DOOR_RADIUS, LOAD_RADIUS, QUAD_RADIUS, reference
 
 F64 = torch.float64
 
@@ -29,15 +29,15 @@ def short_run(quad3: QuadrotorSwarm):
 def _flight(system: QuadrotorSwarm, scenario, seconds: float):
     """Fly `scenario` with the public controller and RK4 step; return final x, load, energy change, rotor work."""
     x, load = scenario.x0.clone(), scenario.load0.clone()
-    e0 = system.mechanical_energy(x, load)
+    e0 = system.plant.mechanical_energy(x, load)
     work = torch.zeros(len(scenario), dtype=F64)
     h = system.control_dt / system.substeps
     for k in range(round(seconds / system.control_dt)):
-        u, _ = system.control(x, load, scenario, k * system.control_dt)
+        u, _ = system.controller.control(x, load, scenario, k * system.control_dt)
         for _ in range(system.substeps):
-            x, load, _, w = system.step(x, load, u, h)
+            x, load, _, w = system.plant.step(x, load, u, h)
             work = work + w
-    return x, load, system.mechanical_energy(x, load) - e0, work
+    return x, load, system.plant.mechanical_energy(x, load) - e0, work
 
 
 # ---- physics at a single state ------------------------------------------------------------------------------
@@ -46,12 +46,12 @@ def test_static_trim_hovers(n_quads: int) -> None:
     """§7.1: at trim thrusts in the circle formation nothing accelerates and T_i = m_L g/(N cos α)."""
     system = QuadrotorSwarm(n_quads=n_quads)
     r_config = torch.tensor([1.2, 1.0], dtype=F64)
-    x, load, u = system.hover_state(
+    x, load, u = system.controller.hover_state(
         torch.tensor([[0.3, -0.2, 0.5], [-1.0, 0.4, 0.3]], dtype=F64),
         r_config,
         torch.tensor([0.3, 1.1], dtype=F64),
     )
-    d = system.derivatives(x, load, u)
+    d = system.plant.derivatives(x, load, u)
     assert d.dx[..., 7:].abs().max() < 1e-6  # v̇ and ω̇
     assert d.dload[..., 3:].abs().max() < 1e-6
     cos_alpha = torch.sqrt(1 - (r_config / system.cable_length) ** 2)
@@ -70,13 +70,13 @@ def test_single_quad_cannot_lift_the_load() -> None:
     x[..., 2], x[..., 3] = system.cable_length, 1.0  # straight above the load, level
     load = torch.zeros(1, 6, dtype=F64)
     full = torch.full((1, 1, 4), system.rotor_max, dtype=F64)
-    d = system.derivatives(x, load, full)
+    d = system.plant.derivatives(x, load, full)
     assert d.dx[..., 9].item() <= 1e-12 and abs(d.dx[..., 9].item()) < 1e-9
     assert d.dload[..., 5].item() <= 1e-12
     assert d.tension.item() == pytest.approx(system.load_mass * system.gravity, abs=1e-9)
-    assert system.derivatives(x, load, 0.99 * full).dx[..., 9].item() < 0
+    assert system.plant.derivatives(x, load, 0.99 * full).dx[..., 9].item() < 0
     for _ in range(500):  # 1 s at full thrust: no climb
-        x, load, _, _ = system.step(x, load, full, 0.002)
+        x, load, _, _ = system.plant.step(x, load, full, 0.002)
     assert x[..., 2].item() <= system.cable_length + 1e-9
 
 
@@ -88,7 +88,7 @@ def test_momentum_balance(quad3: QuadrotorSwarm) -> None:
     load = torch.randn(4, 6, generator=gen, dtype=F64)
     load[:, 2] -= 3.0  # below the quads
     u = 4 * torch.rand(4, 3, 4, generator=gen, dtype=F64)
-    d = quad3.derivatives(x, load, u)
+    d = quad3.plant.derivatives(x, load, u)
     thrust = (u.sum(-1, keepdim=True) * quat_to_rotation(x[..., 3:7])[..., 2]).sum(1)
     gravity = torch.tensor([0.0, 0.0, -quad3.gravity], dtype=F64) * (3 * quad3.quad_mass + quad3.load_mass)
     lhs = quad3.quad_mass * d.dx[..., 7:10].sum(1) + quad3.load_mass * d.dload[..., 3:]
@@ -100,9 +100,9 @@ def test_reference_derivatives_match_finite_differences(quad3: QuadrotorSwarm) -
     scenario = quad3.sample_scenarios(3, torch.Generator().manual_seed(1))
     eps = 1e-5
     for t in (0.4, 1.7, 2.9, 6.0, 10.3):
-        p, v, a, n, _ = quad3.reference(scenario, t)
-        p_plus, v_plus, *_ = quad3.reference(scenario, t + eps)
-        p_minus, v_minus, *_ = quad3.reference(scenario, t - eps)
+        p, v, a, n, _ = reference(scenario, t, quad3.cable_length)
+        p_plus, v_plus, *_ = reference(scenario, t + eps, quad3.cable_length)
+        p_minus, v_minus, *_ = reference(scenario, t - eps, quad3.cable_length)
         torch.testing.assert_close((p_plus - p_minus) / (2 * eps), v, rtol=0, atol=1e-7)
         torch.testing.assert_close((v_plus - v_minus) / (2 * eps), a, rtol=0, atol=1e-6)
         torch.testing.assert_close(n.norm(dim=-1), torch.ones(3, 3, dtype=F64), rtol=0, atol=1e-14)
@@ -182,7 +182,7 @@ def test_one_tick_resimulation(quad3: QuadrotorSwarm) -> None:
     x, u, load = run.trajectories.x, run.trajectories.u, run.load
     xk, lk = x[:, :-1].flatten(0, 1), load[:, :-1].flatten(0, 1)
     for _ in range(quad3.substeps):
-        xk, lk, _, _ = quad3.step(xk, lk, u[:, :-1].flatten(0, 1), quad3.control_dt / quad3.substeps)
+        xk, lk, _, _ = quad3.plant.step(xk, lk, u[:, :-1].flatten(0, 1), quad3.control_dt / quad3.substeps)
     torch.testing.assert_close(xk, x[:, 1:].flatten(0, 1), rtol=0, atol=1e-8)
     torch.testing.assert_close(lk, load[:, 1:].flatten(0, 1), rtol=0, atol=1e-8)
 

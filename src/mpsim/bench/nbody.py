@@ -113,7 +113,7 @@ class NBodyBench(Suite):
         sim_batch: int = 10,
         model: str = "deltagn",
         k: int = 15,
-        repeats: int = 3,
+        repeats: int = 5,
         memory: bool = True,
         fit_min: int = 1000,
     ) -> None:

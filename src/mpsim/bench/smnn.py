@@ -114,7 +114,7 @@ class SMNNBench(Suite):
         dense_budget_gib: float = 4.0,
         repeats: int = 3,
         memory: bool = True,
-        fit_from: int = 50,
+        fit_from: int = 500,
         fit_memory_from: int = 500,
         per_sample_max_length: int | None = 500,
     ) -> None:

@@ -273,7 +273,6 @@ def build_hierarchy(
 
     # lowest-level integer cell coordinates; binning never needs gradients
     grid = 1 << depth
-    cell_size = box_size / grid
     row, col = (rc.reshape(-1) for rc in grid_cells(pos3, box_size, grid))  # [B*N] each
     sample = torch.arange(b, device=dev).repeat_interleave(n)  # [B*N]
 
@@ -284,38 +283,7 @@ def build_hierarchy(
     particle_cell = dense[key]
     pp_edges = _particle_edges(key, counts, sample, row, col, grid)
 
-    levels: list[dict[str, Any]] = []
-    while True:
-        c_sample, c_code = occupied // (grid * grid), occupied % (grid * grid)
-        c_row, c_col = morton_decode(c_code)
-        centre = torch.stack(
-            [(c_col.to(pos3.dtype) + 0.5) * cell_size, -(c_row.to(pos3.dtype) + 0.5) * cell_size], dim=-1
-        ) + torch.tensor([-box_size / 2, box_size / 2], dtype=pos3.dtype, device=dev)
-        level: dict[str, Any] = dict(
-            grid=grid,
-            cell_size=cell_size,
-            batch=c_sample,
-            row=c_row,
-            col=c_col,
-            centre=centre,
-            count=counts[occupied],
-            edge_index=_near_edges(c_sample, c_row, c_col, dense, grid),
-            parent=None,
-        )
-        levels.append(level)
-        if grid == 4:  # the 2x2 level above is dropped
-            break
-        # next level up: a child's parent is (row // 2, col // 2), Z-order key >> 2; the occupied parents are
-        # those of occupied children
-        grid //= 2
-        cell_size *= 2
-        parent_key = c_sample * (grid * grid) + (c_code >> 2)
-        child_counts = torch.bincount(parent_key, minlength=b * grid * grid)
-        dense, occupied = _compact(child_counts)
-        level["parent"] = dense[parent_key]
-        # particles per parent cell (the bincount above counts children)
-        counts = segment_sum(level["count"], parent_key, child_counts.shape[0])
-
+    levels = _cell_levels(occupied, dense, counts, b, grid, box_size, dtype)
     feats = cell_features(
         particle_cell,
         [lv["parent"] for lv in levels[:-1]],
@@ -337,6 +305,50 @@ def build_hierarchy(
         pp_edge_index=pp_edges,
         cells=cells,
     )
+
+
+def _cell_levels(
+    occupied: torch.Tensor,  # [C] occupied dense keys of the lowest level, in order
+    dense: torch.Tensor,  # [B*G*G] compact id of each dense key, -1 if empty
+    counts: torch.Tensor,  # [B*G*G] particles per dense key
+    n_graphs: int,
+    grid: int,
+    box_size: float,
+    dtype: torch.dtype,
+) -> list[dict[str, Any]]:
+    """`CellLevel` fields but the features, per level: lowest (`grid` per side) first, up to the 4x4 grid."""
+    b, cell_size = n_graphs, box_size / grid
+    levels: list[dict[str, Any]] = []
+    while True:
+        c_sample, c_code = occupied // (grid * grid), occupied % (grid * grid)
+        c_row, c_col = morton_decode(c_code)
+        centre = torch.stack(
+            [(c_col.to(dtype) + 0.5) * cell_size, -(c_row.to(dtype) + 0.5) * cell_size], dim=-1
+        ) + torch.tensor([-box_size / 2, box_size / 2], dtype=dtype, device=occupied.device)
+        level: dict[str, Any] = dict(
+            grid=grid,
+            cell_size=cell_size,
+            batch=c_sample,
+            row=c_row,
+            col=c_col,
+            centre=centre,
+            count=counts[occupied],
+            edge_index=_near_edges(c_sample, c_row, c_col, dense, grid),
+            parent=None,
+        )
+        levels.append(level)
+        if grid == 4:  # the 2x2 level above is dropped
+            return levels
+        # next level up: a child's parent is (row // 2, col // 2), Z-order key >> 2; the occupied parents are
+        # those of occupied children
+        grid //= 2
+        cell_size *= 2
+        parent_key = c_sample * (grid * grid) + (c_code >> 2)
+        child_counts = torch.bincount(parent_key, minlength=b * grid * grid)
+        dense, occupied = _compact(child_counts)
+        level["parent"] = dense[parent_key]
+        # particles per parent cell (the bincount above counts children)
+        counts = segment_sum(level["count"], parent_key, child_counts.shape[0])
 
 
 def _compact(counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:  # counts: [K] per dense key

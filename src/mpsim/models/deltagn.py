@@ -57,7 +57,7 @@ class DeltaGN(ParticleModel):
         charge: bool = False,
         activation: str = "relu",
         dt_feature: bool = True,
-        pairs_per_trajectory: int = 8,
+        pairs_per_trajectory: int = 16,
         energy_horizons: Sequence[int] = (20, 200),
         energy_flag: float = 0.1,
         solver: Any = None,

@@ -8,6 +8,8 @@ compares the integrated window with the observed one. Iterative thresholding (ma
 `threshold_every` steps) makes ξ sparse (Chen et al., Scalable MNN §5.2; `shared/reference/smnn_reference.md`
 §4.2). A rollout integrates the discovered ODE with the model's ODE solver, so the common metrics apply.
 
+The layer and its training windows are in `smnn_layer`, the term library and the vector field in `smnn_library`.
+
 Deviations from the reference notebook, both for speed on a CPU (documented in `conf/model/smnn.yaml`):
 ξ is a direct parameter in a whitened basis instead of the output of a 1024-wide MLP (`param_hidden` > 0
 restores the MLP), and the 1024-wide denoiser is optional (`denoiser_hidden`), residual and zero-initialised.
@@ -27,104 +29,20 @@ from mpsim.graphs.batch import batch_graph
 from mpsim.models.base import Model
 from mpsim.models.capabilities import one_step_by_rollouts
 from mpsim.models.layers import mlp, output_layer
+from mpsim.models.smnn_layer import LAYER_METHODS, sample_windows, solve_linear_ode, uniform_step, window_history
+from mpsim.models.smnn_library import (
+    PolynomialField,
+    equation_text,
+    gather_index,
+    monomial_name,
+    parse_monomial,
+    resolve_terms,
+)
 from mpsim.polynomials import monomials
-from mpsim.solvers.mnn_dense import dense_solve, mnn_dense_solve
 from mpsim.solvers.odeint import ODESolver
-from mpsim.solvers.smnn import METHODS, smnn_solve
 
 if TYPE_CHECKING:
     from mpsim.data.trajectories import Inputs, Trajectories
-
-LAYER_METHODS = (*METHODS, "dense", "mnn")
-
-
-def solve_linear_ode(
-    coefficients: torch.Tensor,  # [*batch, T or 1, E, D, O] equation coefficients
-    rhs: torch.Tensor,  # [*batch, T, E] equation right-hand sides
-    init: torch.Tensor,  # [*batch, 1, D, I] initial values at the first step
-    steps: torch.Tensor | float,  # [*batch, T-1] or one shared step
-    method: str,
-) -> torch.Tensor:  # [*batch, T, D, O]
-    """The MNN layer: least-squares solution of a linear ODE with any of the solvers.
-
-    "banded"/"cyclic"/"auto" are the linear-time S-MNN solves, "dense" the same S-MNN system with a dense
-    Cholesky, "mnn" the original MNN with a slack variable and central smoothness rows (spec §6.1).
-    """
-    if method == "dense":
-        return dense_solve(coefficients, rhs, init, steps)
-    if method == "mnn":
-        return mnn_dense_solve(coefficients, rhs, init, steps)[0]
-    return smnn_solve(coefficients, rhs, init, steps, method=method)
-
-
-def monomial_name(term: tuple[int, ...], names: Sequence[str]) -> str:
-    """ "1", "x", "x^2", "x z" for the index tuple of a monomial."""
-    if not term:
-        return "1"
-    return " ".join(names[v] + (f"^{p}" if p > 1 else "") for v, p in sorted({v: term.count(v) for v in term}.items()))
-
-
-def parse_monomial(text: str) -> list[tuple[str, int]]:
-    """[(name, power), ...] of a monomial written "x^3", "x y^2" or "x*y*z" (names of state variables); "x**3"
-    is read as "x^3" (Hydra's command-line grammar takes it unquoted: model.extra_terms=[x**3])."""
-    factors = []
-    for token in text.replace("**", "^").replace("*", " ").split():
-        name, _, power = token.partition("^")
-        if not name or (power and not power.isdigit()) or (power and int(power) < 1):
-            raise ConfigError(f'model.extra_terms: cannot read {text!r}; write monomials like "x^3", "x y^2" or "x*z".')
-        factors.append((name, int(power) if power else 1))
-    if not factors:
-        raise ConfigError(f'model.extra_terms: {text!r} is empty; write monomials like "x^3".')
-    return factors
-
-
-def uniform_step(t: torch.Tensor) -> float | None:  # t: [T] times
-    """The grid's step when `t` is uniform (to 1e-6 relative), else None."""
-    dt = t[1:] - t[:-1]
-    return float(dt[0]) if bool(((dt - dt[0]).abs() <= 1e-6 * dt[0].abs()).all()) else None
-
-
-def sample_windows(
-    x: torch.Tensor,  # [B, T, N, D] trajectories
-    n_windows: int,
-    length: int,
-    generator: torch.Generator,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # [M, W, N, D] windows, [M] trajectory, [M] start
-    """`n_windows` random windows of `length` consecutive steps (uniform over trajectory and start)."""
-    traj = torch.randint(x.shape[0], (n_windows,), generator=generator).to(x.device)
-    start = torch.randint(x.shape[1] - length + 1, (n_windows,), generator=generator).to(x.device)
-    steps = start[:, None] + torch.arange(length, device=x.device)
-    return x[traj[:, None], steps], traj, start
-
-
-class _PolynomialField(nn.Module):
-    """dx/dt = φ(x) ξ + Σ effects (ξ fixed during one solve), optionally in a rescaled time.
-
-    With `scale` and `start`, each trajectory b runs in τ ∈ [0, 1] over its own step: t = start_b + τ·scale_b
-    and dx/dτ = scale_b · dx/dt (the one-step predictions of `SMNNDiscovery.one_step`).
-    """
-
-    def __init__(
-        self,
-        model: SMNNDiscovery,
-        xi: torch.Tensor,  # [n_terms, D] coefficients
-        graph: Any = None,  # BatchedGraph of the batch (effects that read neighbours), or None
-        scale: torch.Tensor | None = None,  # [B, 1, 1] step length per trajectory (None: plain time)
-        start: torch.Tensor | None = None,  # [B, 1] start time per trajectory (with scale)
-    ) -> None:
-        super().__init__()
-        self.model, self.xi, self.graph, self.scale, self.start = model, xi, graph, scale, start
-
-    def forward(self, t: torch.Tensor, x: torch.Tensor, history=None) -> torch.Tensor:  # t: [], x: [B, N, D]
-        dx = self.model.library(x) @ self.xi
-        if len(self.model.effects):
-            if self.scale is None:
-                when = t  # []
-            else:
-                assert self.start is not None  # given with `scale`
-                when = self.start + t * self.scale[..., 0]  # [B, 1]
-            dx = dx + total(self.model.effects, when, x, EffectContext(self.graph, history))
-        return dx if self.scale is None else self.scale * dx
 
 
 class SMNNDiscovery(Model):
@@ -262,28 +180,10 @@ class SMNNDiscovery(Model):
 
         With `strict=False` (names not known yet), extra terms whose names do not resolve wait for `bind_effects`.
         """
-        d, names = self.state_dim, self.state_names
-        terms = monomials(d, self.degree)
-        for text, factors in zip(self.extra_terms, self.extra, strict=True):
-            unknown = [name for name, _ in factors if name not in names]
-            if unknown:
-                if strict:
-                    raise ConfigError(
-                        f"model.extra_terms: {text!r} names {unknown}, not state variables; choose from {names}."
-                    )
-                self.terms = None
-                return
-            term = tuple(sorted(i for name, p in factors for i in [names.index(name)] * p))
-            if term in terms:
-                raise ConfigError(
-                    f"model.extra_terms: {text!r} is already in the library (degree {self.degree}) or listed twice."
-                )
-            terms.append(term)
-        self.terms = terms
-        # library as a gather from [x, 1]: the constant slot pads lower-degree terms (gradient-safe, no pow)
-        width = max(len(term) for term in terms)
-        index = [list(term) + [d] * (width - len(term)) for term in terms]
-        self.term_index = torch.tensor(index, dtype=torch.long, device=self.term_index.device)
+        self.terms = resolve_terms(self.state_dim, self.degree, self.extra_terms, self.extra, self.state_names, strict)
+        if self.terms is not None:
+            index = gather_index(self.terms, self.state_dim)
+            self.term_index = torch.tensor(index, dtype=torch.long, device=self.term_index.device)
 
     def bind_effects(self, state_names: Sequence[str]) -> None:
         """Take the data's state names (unless `state_names` was given) and resolve `extra_terms` with them."""
@@ -407,7 +307,7 @@ class SMNNDiscovery(Model):
             self._initialise(win, float(t[1] - t[0]))
         times = t[start[:, None] + torch.arange(length, device=t.device)] if len(self.effects) else None
         edges = batch.edge_index if batch.edge_index.dim() == 2 else batch.edge_index[0]
-        history = self._window_history(batch.x, t, traj, length) if min_delay(self.effects) > 0 else None
+        history = window_history(batch.x, t, traj, length) if min_delay(self.effects) > 0 else None
         pred, var = self.integrate_windows(win, steps, times, edges, history)
         loss = loss_fn(self.normalise(pred), self.normalise(win), delta)
         if self.denoiser is not None:
@@ -418,29 +318,6 @@ class SMNNDiscovery(Model):
         bad = ~torch.isfinite(pred.detach()).flatten(1).all(1)
         marked[traj[bad], start[bad]] = torch.nan
         return loss, marked
-
-    @staticmethod
-    def _window_history(
-        x: torch.Tensor,  # [B, T, N, D] the batch's observed trajectories
-        t: torch.Tensor,  # [T] their times
-        traj: torch.Tensor,  # [M] trajectory of each window
-        length: int,  # W
-    ) -> Callable[[torch.Tensor], torch.Tensor]:
-        """history(t_query [M·W, 1]) -> [M·W, N, D]: each window point's trajectory at earlier times, linearly
-        interpolated on the observed grid, constant before its first state (as the delay integrator's)."""
-        dt = uniform_step(t)
-        if dt is None:
-            raise ConfigError("SMNNDiscovery trains delayed effects on uniform time grids only.")
-        rows = traj[:, None].expand(-1, length).reshape(-1)  # [M·W]
-
-        def history(t_query: torch.Tensor) -> torch.Tensor:  # t_query: [M·W, 1]
-            pos = ((t_query[:, 0] - t[0]) / dt).clamp(0, x.shape[1] - 1)
-            lo = pos.floor().long()
-            hi = (lo + 1).clamp(max=x.shape[1] - 1)
-            frac = (pos - lo.to(pos))[:, None, None].to(x)
-            return x[rows, lo] * (1 - frac) + x[rows, hi] * frac
-
-        return history
 
     @torch.no_grad()
     def after_step(self) -> None:
@@ -472,7 +349,7 @@ class SMNNDiscovery(Model):
         inputs: Inputs,  # only the graph, read by effects that couple neighbours (no controls)
     ) -> torch.Tensor:
         """[B, T, N, D] the discovered ODE (plus any effects) integrated from x0 with the model's ODE solver."""
-        field = _PolynomialField(self, self.coefficients().to(x0), self._graph(inputs.edge_index, x0))
+        field = PolynomialField(self, self.coefficients().to(x0), self._graph(inputs.edge_index, x0))
         return self.integrate(field, x0, t.to(x0), self.solver)
 
     def one_step(
@@ -499,7 +376,7 @@ class SMNNDiscovery(Model):
         edge_index = inputs.edge_index
         if edge_index.dim() == 3:  # one graph per trajectory: repeat it for each of its steps
             edge_index = edge_index.repeat_interleave(n_t - 1, dim=0)
-        field = _PolynomialField(self, self.coefficients().to(x), self._graph(edge_index, starts), scale, start)
+        field = PolynomialField(self, self.coefficients().to(x), self._graph(edge_index, starts), scale, start)
         tau = torch.tensor([0.0, 1.0], dtype=x.dtype, device=x.device)
         return self.solver(field, starts, tau)[:, 1].reshape(b, n_t - 1, n, d)
 
@@ -576,11 +453,7 @@ class SMNNDiscovery(Model):
                 for j, term in enumerate(terms)
                 if self.mask[j, i] > 0 and round(float(xi[j, i]), digits) != 0
             ]
-            text = ""
-            for k, (c, term) in enumerate(parts):
-                sign = ("-" if c < 0 else "") if k == 0 else (" - " if c < 0 else " + ")
-                text += f"{sign}{abs(c):.{digits}f}" + ("" if term == "1" else f" {term}")
-            out[name] = f"d{name}/dt = {text or '0'}"
+            out[name] = f"d{name}/dt = {equation_text(parts, digits)}"
         return out
 
     def report(self) -> dict[str, Any]:

@@ -28,7 +28,7 @@ from mpsim.errors import ConfigError
 from mpsim.graphs.batch import batch_graph, mean_aggregate
 from mpsim.models.base import Model
 from mpsim.models.layers import mlp, output_layer
-from mpsim.models.smnn_discovery import LAYER_METHODS, solve_linear_ode, uniform_step
+from mpsim.models.smnn_layer import LAYER_METHODS, solve_linear_ode, uniform_step
 from mpsim.solvers.odeint import ODESolver
 
 if TYPE_CHECKING:

@@ -18,12 +18,11 @@ from mpsim.solvers.smnn import (
     SMNNProblem,
     SolverError,
     assemble_blocks,
-    batch_to_columns,
     check_determined,
-    columns_to_batch,
     prepare_problem,
     taylor_matrix,
 )
+from mpsim.solvers.smnn_layout import batch_to_columns, columns_to_batch
 
 
 class DenseSizeError(SolverError):

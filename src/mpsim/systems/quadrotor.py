@@ -10,17 +10,21 @@ node data. The parts, one module each:
 - `quadrotor_control`: the closed loop (`GeometricController`: SE(3) tracking at 100 Hz with a tension
   feed-forward).
 - `quadrotor_scenarios`: the doorway manoeuvre (`DoorwayScenarios`, the min-jerk reference) and the spec's bounds.
+- `quadrotor_flight`: one closed-loop flight (`fly`: the 100 Hz loop over the RK4 plant) and its record
+  (`SwarmRollout`).
 
 This module composes them into the `System` that data are generated from: `QuadrotorSwarm` flies random
 scenarios in closed loop (the plant integrated with RK4 within each control hold) and rejects and resamples the
 trajectories that break a bound (a slack cable, which this model cannot represent, a collision, saturation, ...).
+Its parts are public: `swarm.plant` (derivatives, RK4 `step`, mechanical energy), `swarm.controller` (`control`,
+`hover_state`) and `quadrotor_scenarios.reference(scenario, t, swarm.cable_length)`.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any
 
 import torch
@@ -30,7 +34,8 @@ from mpsim.errors import ConfigError, IncompatibleError
 from mpsim.graphs.topology import complete
 from mpsim.systems.base import System, check_fixed_steps
 from mpsim.systems.quadrotor_control import GeometricController
-from mpsim.systems.quadrotor_dynamics import Derivatives, QuadrotorPlant
+from mpsim.systems.quadrotor_dynamics import QuadrotorPlant
+from mpsim.systems.quadrotor_flight import SwarmRollout, fly
 from mpsim.systems.quadrotor_scenarios import (
     CEILING,
     DOOR_CENTRES,
@@ -42,55 +47,47 @@ from mpsim.systems.quadrotor_scenarios import (
     DoorwayScenarios,
     bounds_held,
     failed_checks,
-    reference,
-    update_checks,
 )
 
 
-@dataclass
-class SwarmRollout:
-    """A closed-loop simulation: node data plus the load, tensions, scenario and per-trajectory checks.
-
-    Attributes:
-        trajectories: node states x [B, T, N, 13] and applied rotor thrusts u [B, T, N, 4].
-        load: [B, T, 6] load position and velocity at the sample times.
-        tension: [B, T, N] cable tensions at the sample times.
-        scenario: the scenarios that were flown.
-        checks: name → [B] worst value over every 100 Hz tick (tensions over every RK4 step) of the spec's
-            bounds: ``min_tension``, ``min_height_gap`` (z_i − z_L), ``min_quad_distance``,
-            ``min_door_clearance_quad``, ``min_door_clearance_load``, ``max_z``, ``min_z``,
-            ``saturated_ticks``, ``max_cable_error``, ``min_qw``, ``goal_error`` (NaN when the run ends
-            before the manoeuvre has settled).
-        accepted: [B] every bound held.
-    """
-
-    trajectories: Trajectories
-    load: torch.Tensor
-    tension: torch.Tensor
-    scenario: DoorwayScenario
-    checks: dict[str, torch.Tensor]
-    accepted: torch.Tensor
-
-    def subset(self, index: torch.Tensor) -> SwarmRollout:  # index: [k] trajectory indices
-        return SwarmRollout(
-            trajectories=self.trajectories.subset(index),
-            load=self.load[index],
-            tension=self.tension[index],
-            scenario=self.scenario.subset(index),
-            checks={k: v[index] for k, v in self.checks.items()},
-            accepted=self.accepted[index],
+def _check_arguments(
+    n_quads: int,
+    effects: Sequence[Any],
+    u_sampling: str,
+    control_dt: float,
+    substeps: int,
+    quad_mass: float,
+    load_mass: float,
+    arm: float,
+    cable_length: float,
+    inertia: Sequence[float],
+) -> None:
+    """Raise a `ConfigError` for a `QuadrotorSwarm` argument out of range."""
+    if n_quads < 1:
+        raise ConfigError(f"system.n_quads must be >= 1; got {n_quads}.")
+    if effects:
+        raise ConfigError("system=quadrotor does not take effects (its data are closed-loop); set effects=[].")
+    if u_sampling not in ("mean", "first"):
+        raise ConfigError(f"system.u_sampling must be 'mean' or 'first'; got {u_sampling!r}.")
+    if control_dt <= 0 or substeps < 1:
+        raise ConfigError(f"need control_dt > 0 and substeps >= 1; got {control_dt}, {substeps}.")
+    physical = {"quad_mass": quad_mass, "load_mass": load_mass, "arm": arm, "cable_length": cable_length}
+    physical.update({f"inertia[{k}]": v for k, v in enumerate(inertia)})
+    bad = {k: v for k, v in physical.items() if not (math.isfinite(float(v)) and float(v) > 0)}
+    if bad:
+        raise ConfigError(
+            f"system.{', system.'.join(bad)} must be > 0 (masses, lengths, moments of inertia); got "
+            f"{', '.join(str(v) for v in bad.values())}."
         )
 
-    @staticmethod
-    def concat(parts: Sequence[SwarmRollout]) -> SwarmRollout:
-        return SwarmRollout(
-            trajectories=Trajectories.concat([p.trajectories for p in parts]),
-            load=torch.cat([p.load for p in parts]),
-            tension=torch.cat([p.tension for p in parts]),
-            scenario=DoorwayScenario.concat([p.scenario for p in parts]),
-            checks={k: torch.cat([p.checks[k] for p in parts]) for k in parts[0].checks},
-            accepted=torch.cat([p.accepted for p in parts]),
-        )
+
+def _default_fan_half_angle(n_quads: int, cable_length: float) -> tuple[float, float]:
+    """[40, 50] degrees for N ≤ 3; otherwise [b, b + 5] with b = (N − 1)·asin(0.35/L)."""
+    if n_quads <= 3:
+        return (40.0, 50.0)
+    # neighbouring fan slots are 2L·sin(β/(N−1)) apart: keep that ≥ 0.7 m (> 2 quad radii)
+    low = (n_quads - 1) * math.degrees(math.asin(0.35 / cable_length))
+    return (low, low + 5.0)
 
 
 class QuadrotorSwarm(System):
@@ -173,46 +170,18 @@ class QuadrotorSwarm(System):
         threads: int | None = 1,
         effects: Sequence[Any] = (),
     ) -> None:
-        if n_quads < 1:
-            raise ConfigError(f"system.n_quads must be >= 1; got {n_quads}.")
-        if effects:
-            raise ConfigError("system=quadrotor does not take effects (its data are closed-loop); set effects=[].")
-        if u_sampling not in ("mean", "first"):
-            raise ConfigError(f"system.u_sampling must be 'mean' or 'first'; got {u_sampling!r}.")
-        if control_dt <= 0 or substeps < 1:
-            raise ConfigError(f"need control_dt > 0 and substeps >= 1; got {control_dt}, {substeps}.")
-        physical = {"quad_mass": quad_mass, "load_mass": load_mass, "arm": arm, "cable_length": cable_length}
-        physical.update({f"inertia[{k}]": v for k, v in enumerate(inertia)})
-        bad = {k: v for k, v in physical.items() if not (math.isfinite(float(v)) and float(v) > 0)}
-        if bad:
-            raise ConfigError(
-                f"system.{', system.'.join(bad)} must be > 0 (masses, lengths, moments of inertia); got "
-                f"{', '.join(str(v) for v in bad.values())}."
-            )
+        _check_arguments(
+            n_quads, effects, u_sampling, control_dt, substeps, quad_mass, load_mass, arm, cable_length, inertia
+        )
         super().__init__(name, n_quads, complete(n_quads), effects)
         self.dt, self.horizon = float(dt), int(horizon)
         self.control_dt, self.substeps = float(control_dt), int(substeps)
-        self.quad_mass, self.load_mass = float(quad_mass), float(load_mass)
-        self.inertia = tuple(float(v) for v in inertia)
-        self.arm, self.torque_coeff = float(arm), float(torque_coeff)
-        self.cable_length, self.gravity = float(cable_length), float(gravity)
-        self.rotor_max = (self.quad_mass + self.load_mass) * self.gravity / 4 if rotor_max is None else float(rotor_max)
-        self.baumgarte = tuple(float(v) for v in baumgarte)
+        self._set_physics(quad_mass, load_mass, inertia, arm, torque_coeff, cable_length, gravity, rotor_max, baumgarte)
         self.min_tension = float(min_tension)
         self.kp, self.kd = float(kp), float(kd)
         self.k_rot, self.k_omega = tuple(float(v) for v in k_rot), tuple(float(v) for v in k_omega)
         self.ff_damping = float(ff_damping)
-        if fan_half_angle is None:
-            if self.n_nodes <= 3:
-                fan_half_angle = (40.0, 50.0)
-            else:
-                # neighbouring fan slots are 2L·sin(β/(N−1)) apart: keep that ≥ 0.7 m (> 2 quad radii)
-                low = (self.n_nodes - 1) * math.degrees(math.asin(0.35 / self.cable_length))
-                fan_half_angle = (low, low + 5.0)
-        self.fan_half_angle = tuple(float(v) for v in fan_half_angle)
-        self.r_config_range = tuple(float(v) for v in r_config_range)
-        self.z_door_range = tuple(float(v) for v in z_door_range)
-        self.phase_ranges = tuple(tuple(float(v) for v in r) for r in phase_ranges)
+        self._set_scenario_ranges(fan_half_angle, r_config_range, z_door_range, phase_ranges)
         self.attitude_noise, self.velocity_noise = float(attitude_noise), float(velocity_noise)
         self.dither = float(dither)
         self.u_sampling, self.max_rounds = u_sampling, int(max_rounds)
@@ -221,12 +190,58 @@ class QuadrotorSwarm(System):
             raise ConfigError(
                 f"system.r_config_range must lie in (0, cable_length={self.cable_length}); got {self.r_config_range}."
             )
+        self._build_parts()
 
+    def _set_physics(
+        self,
+        quad_mass: float,
+        load_mass: float,
+        inertia: Sequence[float],
+        arm: float,
+        torque_coeff: float,
+        cable_length: float,
+        gravity: float,
+        rotor_max: float | None,
+        baumgarte: Sequence[float],
+    ) -> None:
+        """Store the physical parameters as floats; rotor_max None gives (m_q + m_L) g / 4."""
+        self.quad_mass, self.load_mass = float(quad_mass), float(load_mass)
+        self.inertia = tuple(float(v) for v in inertia)
+        self.arm, self.torque_coeff = float(arm), float(torque_coeff)
+        self.cable_length, self.gravity = float(cable_length), float(gravity)
+        self.rotor_max = (self.quad_mass + self.load_mass) * self.gravity / 4 if rotor_max is None else float(rotor_max)
+        self.baumgarte = tuple(float(v) for v in baumgarte)
+
+    def _set_scenario_ranges(
+        self,
+        fan_half_angle: Sequence[float] | None,
+        r_config_range: Sequence[float],
+        z_door_range: Sequence[float],
+        phase_ranges: Sequence[Sequence[float]],
+    ) -> None:
+        """Store the scenario ranges as float tuples; fan_half_angle None gives the range for N quads."""
+        if fan_half_angle is None:
+            fan_half_angle = _default_fan_half_angle(self.n_nodes, self.cable_length)
+        self.fan_half_angle = tuple(float(v) for v in fan_half_angle)
+        self.r_config_range = tuple(float(v) for v in r_config_range)
+        self.z_door_range = tuple(float(v) for v in z_door_range)
+        self.phase_ranges = tuple(tuple(float(v) for v in r) for r in phase_ranges)
+
+    def _build_parts(self) -> None:
+        """The plant, the controller and the scenario distribution, from the stored parameters."""
         self.plant = QuadrotorPlant(
-            self.n_nodes, quad_mass, load_mass, inertia, arm, torque_coeff, cable_length, gravity, baumgarte
+            self.n_nodes,
+            self.quad_mass,
+            self.load_mass,
+            self.inertia,
+            self.arm,
+            self.torque_coeff,
+            self.cable_length,
+            self.gravity,
+            self.baumgarte,
         )
         self.controller = GeometricController(
-            self.plant, kp, kd, k_rot, k_omega, ff_damping, self.rotor_max, self.dither
+            self.plant, self.kp, self.kd, self.k_rot, self.k_omega, self.ff_damping, self.rotor_max, self.dither
         )
         self.scenarios = DoorwayScenarios(
             self.n_nodes,
@@ -277,7 +292,7 @@ class QuadrotorSwarm(System):
             "ceiling": CEILING,
         }
 
-    # ---- plant ---------------------------------------------------------------------------------------
+    # ---- plant (`self.plant`: `QuadrotorPlant`; `self.controller`: `GeometricController`) -------------------
     def dynamics(
         self,
         t: torch.Tensor,  # [] time
@@ -286,46 +301,10 @@ class QuadrotorSwarm(System):
     ) -> torch.Tensor:
         raise IncompatibleError(
             "QuadrotorSwarm couples its quads through the load, whose state is not part of x [B, N, 13]; "
-            "call `derivatives(x, load, u)` (or `step`) with the load state, e.g. from `generate_full`."
+            "call `plant.derivatives(x, load, u)` (or `plant.step`) with the load state, e.g. from `generate_full`."
         )
 
-    def derivatives(
-        self,
-        x: torch.Tensor,  # [..., N, 13] quad states
-        load: torch.Tensor,  # [..., 6] load position and velocity
-        u: torch.Tensor,  # [..., N, 4] rotor thrusts (N)
-    ) -> Derivatives:
-        """Time derivatives of quads and load, with the cable tensions (`QuadrotorPlant.derivatives`)."""
-        return self.plant.derivatives(x, load, u)
-
-    def step(
-        self,
-        x: torch.Tensor,  # [..., N, 13] quad states
-        load: torch.Tensor,  # [..., 6] load state
-        u: torch.Tensor,  # [..., N, 4] rotor thrusts, held over the step
-        h: float,
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """One RK4 step of length h: (x, load, tensions at its start, input work) (`QuadrotorPlant.step`)."""
-        return self.plant.step(x, load, u, h)
-
-    def mechanical_energy(
-        self,
-        x: torch.Tensor,  # [..., N, 13] quad states
-        load: torch.Tensor,  # [..., 6] load state
-    ) -> torch.Tensor:
-        """[...] kinetic + potential energy of quads and load (`QuadrotorPlant.mechanical_energy`)."""
-        return self.plant.mechanical_energy(x, load)
-
-    # ---- scenario, reference and controller ---------------------------------------------------------------
-    def hover_state(
-        self,
-        load_position: torch.Tensor,  # [B, 3] load position
-        r_config: torch.Tensor,  # [B] circle radius (m)
-        phi: torch.Tensor,  # [B] formation yaw (rad)
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """x [B, N, 13], load [B, 6] and thrusts u [B, N, 4] of the exact static trim in the circle formation."""
-        return self.controller.hover_state(load_position, r_config, phi)
-
+    # ---- scenarios --------------------------------------------------------------------------------------
     def sample_scenarios(self, n: int, generator: torch.Generator) -> DoorwayScenario:
         """`n` random doorway scenarios (spec §5) with their trim initial states, drawn with `generator`."""
         return self.scenarios.sample(n, generator, self.controller.trim_attitude)
@@ -333,23 +312,6 @@ class QuadrotorSwarm(System):
     def sample_initial_states(self, n: int, generator: torch.Generator) -> torch.Tensor:
         """[n, N, 13] initial quad states of `n` random scenarios (use `sample_scenarios` to fly them)."""
         return self.sample_scenarios(n, generator).x0
-
-    def reference(
-        self, scenario: DoorwayScenario, t: float
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Quad position, velocity, acceleration [B, N, 3], cable directions [B, N, 3] and load acceleration
-        [B, 3] of the reference at time t (`quadrotor_scenarios.reference`)."""
-        return reference(scenario, t, self.cable_length)
-
-    def control(
-        self,
-        x: torch.Tensor,  # [B, N, 13] quad states
-        load: torch.Tensor,  # [B, 6] load state
-        scenario: DoorwayScenario,
-        t: float,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Rotor thrusts u [B, N, 4] (clipped) and [B] whether any was saturated (`GeometricController.control`)."""
-        return self.controller.control(x, load, scenario, t)
 
     # ---- data ----------------------------------------------------------------------------------------
     def _ticks_per_sample(self, dt: float) -> int:
@@ -381,43 +343,9 @@ class QuadrotorSwarm(System):
         dt = self.dt if dt is None else float(dt)
         horizon = self.horizon if horizon is None else int(horizon)
         ticks = self._ticks_per_sample(dt)
-        h = self.control_dt / self.substeps
-        x, load = scenario.x0.clone(), scenario.load0.clone()
-        b, n = x.shape[:2]
-        xs = x.new_empty(b, horizon + 1, n, 13)
-        loads, tensions = x.new_empty(b, horizon + 1, 6), x.new_empty(b, horizon + 1, n)
-        us = x.new_empty(b, horizon + 1, n, 4)
-        inf = torch.full((b,), math.inf, dtype=x.dtype)
-        worst = {
-            "min_tension": inf.clone(),
-            "min_height_gap": inf.clone(),
-            "min_quad_distance": inf.clone(),
-            "min_door_clearance_quad": inf.clone(),
-            "min_door_clearance_load": inf.clone(),
-            "max_z": -inf,
-            "min_z": inf.clone(),
-            "saturated_ticks": torch.zeros(b, dtype=x.dtype),
-            "max_cable_error": torch.zeros(b, dtype=x.dtype),
-            "min_qw": inf.clone(),
-        }
-        # the extra sample interval after the last sample only supplies that sample's u
-        for k in range(horizon + 1):
-            xs[:, k], loads[:, k] = x, load
-            u_sum = torch.zeros_like(us[:, 0])
-            for j in range(ticks):
-                t = (k * ticks + j) * self.control_dt
-                u, saturated = self.controller.control(x, load, scenario, t)
-                worst["saturated_ticks"] += saturated.to(x.dtype)
-                update_checks(worst, x, load, self.cable_length)
-                u_sum = u_sum + u if self.u_sampling == "mean" or j == 0 else u_sum
-                for i in range(self.substeps):
-                    x, load, tension, _ = self.plant.step(x, load, u, h)
-                    worst["min_tension"] = torch.minimum(worst["min_tension"], tension.amin(-1))
-                    if j == 0 and i == 0:
-                        tensions[:, k] = tension
-            us[:, k] = u_sum / ticks if self.u_sampling == "mean" else u_sum
-        update_checks(worst, x, load, self.cable_length)
-        worst["min_tension"] = torch.minimum(worst["min_tension"], self.plant.derivatives(x, load, u).tension.amin(-1))
+        xs, loads, tensions, us, worst = fly(
+            self.plant, self.controller, scenario, horizon, ticks, self.substeps, self.control_dt, self.u_sampling
+        )
         # a diverged (NaN) trajectory gets the failing extreme of every check
         worst = {key: torch.nan_to_num(val, nan=-math.inf if key.startswith("min") else math.inf)
                  for key, val in worst.items()}  # fmt: skip

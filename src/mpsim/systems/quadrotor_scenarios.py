@@ -158,35 +158,8 @@ class DoorwayScenarios:
         phi = uniform(0.0, 2 * math.pi / N)
         beta = torch.deg2rad(in_range(self.fan_half_angle))
         durations = torch.stack([in_range(r) for r in self.phase_ranges], dim=-1)  # [n, 3]
-
         n_circ = circle_directions(self.n_quads, self.cable_length, r_config, phi)
-        # Fan slots ψ ∈ linspace(−β, β) go to the quads in order of their circle x-offset, front (largest x,
-        # ψ = −β) to back, so that their paths do not cross during the morph.
-        rank = torch.argsort(torch.argsort(-n_circ[..., 0], dim=1), dim=1).to(f64)  # [n, N]
-        psi = -beta[:, None] + 2 * beta[:, None] * rank / max(N - 1, 1) if N > 1 else torch.zeros(n, 1, dtype=f64)
-        n_fan = torch.stack([-torch.sin(psi), torch.zeros_like(psi), torch.cos(psi)], dim=-1)
-
-        t1, t2, t3 = durations.unbind(-1)
-        t12, zero, one = t1 + t2, torch.zeros_like(t1), torch.ones_like(t1)
-        x0, y0, z0 = start.unbind(-1)
-        # Phases (columns x, y, z, s): 1) creep x by 0.2 m, bring y to 0 and z to the door height over 0.8·T1,
-        # morph circle → fan over [0.35·T1, T1] (lateral moves happen while the circle still locks the load);
-        # 2) traverse in the fan to x = 5.5; 3) morph back over 0.8·T3, go to the goal (y, z over [0.2, 1]·T3).
-        seg_t0 = torch.stack([
-            torch.stack([zero, zero, zero, 0.35 * t1], -1),
-            torch.stack([t1, t1, t1, t1], -1),
-            torch.stack([t12, t12 + 0.2 * t3, t12 + 0.2 * t3, t12], -1),
-        ], dim=1)  # fmt: skip
-        seg_dur = torch.stack([
-            torch.stack([t1, 0.8 * t1, 0.8 * t1, 0.65 * t1], -1),
-            torch.stack([t2, t2, t2, t2], -1),
-            torch.stack([t3, 0.8 * t3, 0.8 * t3, 0.8 * t3], -1),
-        ], dim=1)  # fmt: skip
-        seg_delta = torch.stack([
-            torch.stack([0.2 * one, -y0, z_door - z0, one], -1),
-            torch.stack([TRAVERSE_END_X - x0 - 0.2, zero, zero, zero], -1),
-            torch.stack([goal[:, 0] - TRAVERSE_END_X, goal[:, 1], goal[:, 2] - z_door, -one], -1),
-        ], dim=1)  # fmt: skip
+        seg_t0, seg_dur, seg_delta = _segments(start, goal, z_door, durations)
 
         # Initial state: trim of the controller at t = 0 (zero reference velocity and acceleration), so the
         # first command equals the initial attitude; then small random attitude and common velocity offsets.
@@ -194,46 +167,77 @@ class DoorwayScenarios:
         axis = torch.randn(n, N, 3, generator=generator, dtype=f64)
         half = 0.5 * math.radians(self.attitude_noise) * (2 * torch.rand(n, N, 1, generator=generator, dtype=f64) - 1)
         dq = torch.cat([torch.cos(half), torch.sin(half) * axis / axis.norm(dim=-1, keepdim=True)], dim=-1)
-        q = quat_mul(q, dq)
         vel = uniform(-self.velocity_noise, self.velocity_noise, 3)  # [n, 3], the same on every body
-        p_load = start
-        x0_quads = torch.cat(
-            [
-                p_load[:, None] + self.cable_length * n_circ,
-                q,
-                vel[:, None].expand(-1, N, -1),
-                torch.zeros_like(n_circ),
-            ],
-            dim=-1,
-        )
-        load0 = torch.cat([p_load, vel], dim=-1)
-
+        position = start[:, None] + self.cable_length * n_circ  # [n, N, 3]
+        x0 = torch.cat([position, quat_mul(q, dq), vel[:, None].expand(-1, N, -1), torch.zeros_like(n_circ)], dim=-1)
         # Input dither: 3 sinusoids per rotor, 0.5–5 Hz, amplitudes summing to at most `dither`.
         k = 3
-        dither = torch.stack(
-            [
-                uniform(0.0, self.dither / k, N, 4, k),
-                uniform(0.5, 5.0, N, 4, k),
-                uniform(0.0, 2 * math.pi, N, 4, k),
-            ],
-            dim=-1,
-        )
+        dither = [
+            uniform(0.0, self.dither / k, N, 4, k),
+            uniform(0.5, 5.0, N, 4, k),
+            uniform(0.0, 2 * math.pi, N, 4, k),
+        ]
         return DoorwayScenario(
-            start=torch.cat([start, zero[:, None]], dim=-1),
+            start=torch.cat([start, torch.zeros_like(start[:, :1])], dim=-1),
             goal=goal,
             seg_t0=seg_t0,
             seg_dur=seg_dur,
             seg_delta=seg_delta,
             n_circ=n_circ,
-            n_fan=n_fan,
+            n_fan=fan_directions(n_circ, beta),
             durations=durations,
             z_door=z_door,
             r_config=r_config,
             beta=beta,
-            x0=x0_quads,
-            load0=load0,
-            dither=dither,
+            x0=x0,
+            load0=torch.cat([start, vel], dim=-1),
+            dither=torch.stack(dither, dim=-1),
         )
+
+
+def fan_directions(
+    n_circ: torch.Tensor,  # [B, N, 3] cable directions in the circle formation
+    beta: torch.Tensor,  # [B] fan half-angle (rad)
+) -> torch.Tensor:  # [B, N, 3] cable directions in the doorway fan
+    """The fan in the x-z plane: slots ψ ∈ linspace(−β, β) go to the quads in order of their circle x-offset,
+    front (largest x, ψ = −β) to back, so that their paths do not cross during the morph."""
+    b, n = n_circ.shape[:2]
+    rank = torch.argsort(torch.argsort(-n_circ[..., 0], dim=1), dim=1).to(torch.float64)  # [B, N]
+    psi = -beta[:, None] + 2 * beta[:, None] * rank / max(n - 1, 1) if n > 1 else torch.zeros(b, 1, dtype=torch.float64)
+    return torch.stack([-torch.sin(psi), torch.zeros_like(psi), torch.cos(psi)], dim=-1)
+
+
+def _segments(
+    start: torch.Tensor,  # [B, 3] load position at t = 0
+    goal: torch.Tensor,  # [B, 3] load goal
+    z_door: torch.Tensor,  # [B] load height through the door
+    durations: torch.Tensor,  # [B, 3] phase durations T1, T2, T3
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # [B, 3, 4] each: t0, duration, displacement
+    """The three phases' min-jerk moves of columns (x, y, z, s), as `DoorwayScenario.seg_*`.
+
+    1) creep x by 0.2 m, bring y to 0 and z to the door height over 0.8·T1, morph circle → fan over
+    [0.35·T1, T1] (lateral moves happen while the circle still locks the load); 2) traverse in the fan to
+    x = 5.5; 3) morph back over 0.8·T3, go to the goal (y, z over [0.2, 1]·T3).
+    """
+    t1, t2, t3 = durations.unbind(-1)
+    t12, zero, one = t1 + t2, torch.zeros_like(t1), torch.ones_like(t1)
+    x0, y0, z0 = start.unbind(-1)
+    seg_t0 = torch.stack([
+        torch.stack([zero, zero, zero, 0.35 * t1], -1),
+        torch.stack([t1, t1, t1, t1], -1),
+        torch.stack([t12, t12 + 0.2 * t3, t12 + 0.2 * t3, t12], -1),
+    ], dim=1)  # fmt: skip
+    seg_dur = torch.stack([
+        torch.stack([t1, 0.8 * t1, 0.8 * t1, 0.65 * t1], -1),
+        torch.stack([t2, t2, t2, t2], -1),
+        torch.stack([t3, 0.8 * t3, 0.8 * t3, 0.8 * t3], -1),
+    ], dim=1)  # fmt: skip
+    seg_delta = torch.stack([
+        torch.stack([0.2 * one, -y0, z_door - z0, one], -1),
+        torch.stack([TRAVERSE_END_X - x0 - 0.2, zero, zero, zero], -1),
+        torch.stack([goal[:, 0] - TRAVERSE_END_X, goal[:, 1], goal[:, 2] - z_door, -one], -1),
+    ], dim=1)  # fmt: skip
+    return seg_t0, seg_dur, seg_delta
 
 
 def update_checks(

@@ -157,7 +157,8 @@ class MLflowLogger(Logger):
 
     Args:
         tracking_uri: a directory (a local file store, created if missing) or any MLflow tracking URI, e.g.
-            ``sqlite:///outputs/mlflow.db`` (the database store MLflow recommends since 3.x).
+            ``sqlite:///outputs/mlflow.db`` (the database store MLflow recommends since 3.x); no default here:
+            the command line's is `conf/logger/mlflow.yaml`'s ``${paths.output_root}/mlruns``.
         experiment: experiment name (created if missing).
         run_name: MLflow run name (null: the run directory's name).
 
@@ -165,7 +166,7 @@ class MLflowLogger(Logger):
     a directory given here is that explicit choice, so the variable is set (when unset) for this process.
     """
 
-    def __init__(self, tracking_uri: str = "mlruns", experiment: str = "mpsim", run_name: str | None = None) -> None:
+    def __init__(self, tracking_uri: str, experiment: str = "mpsim", run_name: str | None = None) -> None:
         self.tracking_uri, self.experiment, self.run_name = tracking_uri, experiment, run_name
         self.client: Any = None
         self.run_id: str | None = None
