@@ -57,14 +57,24 @@ class RunFolder:
     def undo(self) -> bool:
         """After a failed command: remove what this invocation added, if that is only Hydra's record, the log and
         empty folders (a command that wrote results keeps them), put back a backup it made, and remove the folders
-        it created if they are empty. Returns whether the folder is as it was before."""
+        it created if they are empty. Returns whether the folder is as it was before (False, with nothing more
+        removed, where a step fails: the folder is then left as the command left it, or partly restored)."""
+        try:
+            return self._undo()
+        except OSError:
+            return False
+
+    def _undo(self) -> bool:
         if not self.path.is_dir():
             return False
         added = [self.path / n for n in sorted(set(os.listdir(self.path)) - self.kept)]
         if not all(p.name in (self.record, self.log) or _holds_no_files(p) for p in added):
             return False
         for p in added:
-            shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p)
+            else:
+                p.unlink()
         if self.log_before is not None:  # a log that was there before: back to its old length and time
             size, mtime_ns = self.log_before
             os.truncate(self.path / self.log, size)
