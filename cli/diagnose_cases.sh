@@ -6,6 +6,7 @@
 #   SEEDS / NOISES: data seeds × measurement-noise levels of the clean runs (false-positive rate)
 #   JOBS: runs at once (default 1). Each run (a case, or one clean seed × noise) keeps its data, checkpoints and
 #         log in its own folder, so runs never share a file; give each a core (the runs are single-threaded).
+#         A run is redone whole: its folder is removed first (mpsim refuses to write over an earlier run).
 set -uo pipefail
 OUT=${OUT:-outputs/diagnose_cases}
 C=examples/diagnose_cases
@@ -33,7 +34,7 @@ opts() { echo "paths.ckpt_dir=$1/checkpoints trainer.progress=false"; }
 spec_case() {
   local name=$1 data=$2 model=$3; shift 3
   local run=$OUT/$name start=$SECONDS
-  mkdir -p "$run"
+  rm -rf "$run" && mkdir -p "$run"
   mpsim simulate system=equations system.spec=$C/$data system.name=$name "$@" n=64 format=npz \
     hydra.run.dir=$run/data > "$run.log" 2>&1 || { echo "$name: simulate failed (see $run.log)"; return; }
   mpsim train model=equations model.spec=$C/$model data.path=$run/data/trajectories.npz trainer=whitebox \
@@ -46,7 +47,7 @@ spec_case() {
 # case 1 (docs/residual_loop.md): pendulum pair, hidden damping 0.2, built-in white-box `physics` model
 case1() {
   local run=$OUT/case1 start=$SECONDS
-  mkdir -p "$run"
+  rm -rf "$run" && mkdir -p "$run"
   { mpsim train experiment=pendulum_damped hydra.run.dir=$run/train $(opts "$run") &&
     mpsim diagnose experiment=pendulum_damped init=pendulum2_damped.ckpt fix=true hydra.run.dir=$run/diagnose \
       $(opts "$run"); } > "$run.log" 2>&1
@@ -59,7 +60,7 @@ case1() {
 # unlearn what it made up for once the drive is explicit)
 case2() {
   local run=$OUT/case2 start=$SECONDS
-  mkdir -p "$run"
+  rm -rf "$run" && mkdir -p "$run"
   { mpsim train experiment=lorenz3_forced hydra.run.dir=$run/train $(opts "$run") &&
     mpsim diagnose experiment=lorenz3_forced init=lorenz3_forced.ckpt fix=true diagnose.fix_lr_factor=1.0 \
       trainer.max_epochs=80 hydra.run.dir=$run/diagnose $(opts "$run"); } > "$run.log" 2>&1
@@ -70,7 +71,7 @@ case2() {
 case2_clean() {
   local run=$OUT/clean/case2_clean start=$SECONDS
   local clean2=(experiment=lorenz3_forced "system.effects=[]" system.name=lorenz3_clean)
-  mkdir -p "$run"
+  rm -rf "$run" && mkdir -p "$run"
   { mpsim train "${clean2[@]}" hydra.run.dir=$run/train $(opts "$run") &&
     mpsim diagnose "${clean2[@]}" init=lorenz3_clean.ckpt fix=true diagnose.fix_lr_factor=1.0 \
       trainer.max_epochs=80 hydra.run.dir=$run/diagnose $(opts "$run"); } > "$run.log" 2>&1
@@ -83,7 +84,7 @@ clean() {
   local run=$OUT/clean/noise$noise/seed$s start=$SECONDS
   local clean=(experiment=pendulum_damped "system.effects=[]" system.name=pendulum2_clean data.seed=$s
     data.noise_std=$noise)
-  mkdir -p "$run"
+  rm -rf "$run" && mkdir -p "$run"
   { mpsim train "${clean[@]}" hydra.run.dir=$run/train $(opts "$run") &&
     mpsim diagnose "${clean[@]}" init=pendulum2_clean.ckpt fix=true hydra.run.dir=$run/diagnose \
       $(opts "$run"); } > "$run.log" 2>&1

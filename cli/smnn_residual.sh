@@ -8,6 +8,8 @@
 set -euo pipefail
 OUT=${OUT:-outputs/smnn_residual}
 common=(experiment=lorenz_cubic_discovery trainer.progress=false paths.ckpt_dir=$OUT/checkpoints)
+# every run is redone: mpsim refuses to train or diagnose into a folder that holds an earlier run
+rm -rf "$OUT/degree2" "$OUT/diagnose_degree2" "$OUT/with_x3" "$OUT/diagnose_with_x3"
 mpsim train "${common[@]}" hydra.run.dir=$OUT/degree2
 mpsim diagnose "${common[@]}" init=lorenz1_cubic.ckpt hydra.run.dir=$OUT/diagnose_degree2
 mpsim train "${common[@]}" 'model.extra_terms=[x**3]' system.name=lorenz1_cubic_x3 hydra.run.dir=$OUT/with_x3

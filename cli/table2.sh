@@ -99,6 +99,7 @@ report=(hydra.run.dir=$OUT/report paths.output_root=$OUT "runs=[$runs]")
 mpsim report layout=table2 "title='Table 2 ($SIZE)'" "${report[@]}"
 cp "$OUT/report/report.md" "$OUT/table2.md"; cp "$OUT/report/report.csv" "$OUT/table2.csv"
 cp "$OUT/report/table2.png" "$OUT/table2.png"
+rm -rf "$OUT/report"  # copied out above; mpsim refuses to write a report over an earlier one
 mpsim report layout=curves "title='Figure 5: finetuned vs from scratch ($SIZE)'" "${report[@]}"
 cp "$OUT/report/report.md" "$OUT/figure5.md"; cp "$OUT/report/curves.png" "$OUT/curves.png"
 echo "tables: $OUT/table2.md, $OUT/figure5.md"

@@ -10,12 +10,16 @@ checkpoint and its run.
 from __future__ import annotations
 
 import errno
+import hashlib
 import json
 import os
+import shlex
 import shutil
+import socket
 import stat
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -214,6 +218,30 @@ def _damaged_metrics(ws: Path, d: Path, text: str) -> list[str]:
 def _damaged_history(p: dict) -> None:
     """A trainer state whose history rows are longer than its columns."""
     p["trainer"] = {"history_json": '{"columns": ["epoch"], "rows": [[1, 2]]}'}
+
+
+def _nan_data_into(d: Path, folder: str, *files: str) -> list[str]:
+    """A folder of the user's holding `files`, and a train run pointed at it whose data file holds a NaN."""
+    (d / folder).mkdir()
+    for name in files:
+        (d / folder / name).write_text(f"the user's own {name}\n")
+    x = np.random.default_rng(0).normal(size=(6, 6, 2, 2))
+    x[0, 0, 0, 0] = np.nan
+    return [*data_args(write_npz(d, x=x)), f"hydra.run.dir={folder}"]
+
+
+def _into_a_run(ws: Path, d: Path, command: list[str]) -> list[str]:
+    """A copy of the trained lorenz3 run, and `command` pointed at its folder."""
+    shutil.copytree(lorenz_run(ws), d / "run")
+    return [*command, f"hydra.run.dir={d / 'run'}"]
+
+
+def _fake_sweep(d: Path) -> Path:
+    """A folder holding an earlier sweep: Hydra's multirun.yaml and one job's record."""
+    (d / "sweep" / "0" / ".hydra").mkdir(parents=True)
+    (d / "sweep" / "multirun.yaml").write_text("hydra: {}\n")
+    (d / "sweep" / "0" / ".hydra" / "overrides.yaml").write_text("- seed=0\n")
+    return d / "sweep"
 
 
 CASES: dict[str, Case] = {
@@ -524,6 +552,45 @@ CASES: dict[str, Case] = {
         5,
         "1,000,014,000,006 weights with their gradients and optimiser state",
     ),
+    # -- run folders (issue 58): a failed command removes only what it made; a folder holding a run is not reused;
+    # an output location that cannot be created names the key to change
+    "run_folder_of_logs_survives_a_bad_input": Case(  # the folder and its log were deleted (harmful)
+        lambda w, d: _nan_data_into(d, "mylogs", "server.log"), 2, "`x` has NaN/inf"
+    ),
+    "run_folder_populated_keeps_no_record_of_a_bad_input": Case(  # .hydra/ was left there, train.log appended
+        lambda w, d: _nan_data_into(d, "mine", "notes.txt", "train.log"), 2, "`x` has NaN/inf"
+    ),
+    "run_folder_holding_a_run_is_refused": Case(  # trained over the run: best.ckpt replaced, no backup (harmful)
+        lambda w, d: _into_a_run(w, d, ["train", "system=lorenz3", *TINY_TRAIN]),
+        2,
+        "already holds a run (.hydra); nothing was written. Continue it with resume=",
+    ),
+    "run_folder_holding_a_run_is_refused_by_simulate": Case(
+        lambda w, d: _into_a_run(w, d, ["simulate", "system=lorenz3", "n=2", "data.horizon=3"]),
+        2,
+        "or add overwrite=true to move its files to",
+    ),
+    "sweep_folder_holding_a_sweep_is_refused": Case(
+        lambda w, d: ["train", "-m", *TINY_TRAIN, "seed=0,1", f"hydra.sweep.dir={_fake_sweep(d)}"],
+        2,
+        "already holds a sweep (multirun.yaml)",
+    ),
+    "run_dir_uncreatable": Case(  # FileNotFoundError traceback, exit 1
+        lambda w, d: ["train", "hydra.run.dir=/proc/x"], 4, "hydra.run.dir=/proc/x: cannot create /proc/x"
+    ),
+    "run_dir_under_a_file": Case(
+        lambda w, d: ((d / "f").write_text("x"), ["train", f"hydra.run.dir={d}/f/x"])[1], 4, "is a file, not a dir"
+    ),
+    "output_root_uncreatable": Case(
+        lambda w, d: ["train", "paths.output_root=/proc/x"],
+        4,
+        "/proc is not writable (permissions, or a read-only or virtual",
+    ),
+    "sweep_dir_uncreatable": Case(
+        lambda w, d: ["train", "-m", *TINY_TRAIN, "seed=0,1", "hydra.sweep.dir=/proc/s"],
+        4,
+        "hydra.sweep.dir=/proc/s: cannot create /proc/s",
+    ),
 }
 
 
@@ -805,3 +872,96 @@ def test_large_data_metadata_is_not_copied_into_the_checkpoints_or_the_summary(t
     assert kept["system"] == "measured" and kept["state_names"] == ["theta", "omega"] and "notes" not in kept
     assert json.loads((run / "summary.json").read_text())["system"]["params"] == {"k": 1.0}
     assert "data metadata not copied into the checkpoints" in res.err and "notes (2 MB)" in res.err
+
+
+# ---- run folders (issue 58) -------------------------------------------------------------------------------------
+def test_overwrite_true_moves_the_earlier_run_to_a_backup_first(ws, tmp_path):
+    """Training into a finished run's folder with overwrite=true: the earlier run, every file of it, is in
+    `backup-<time>/` unchanged; the new run is in the folder."""
+    args = _into_a_run(ws, tmp_path, ["train", "system=lorenz3", *TINY_TRAIN, "eval.plots=false", "export=false"])
+    run = tmp_path / "run"
+    before = {p.relative_to(run): p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    res = run_mpsim([*args, "overwrite=true"], tmp_path)
+    assert res.code == 0, res.err[-2000:]
+    (backup,) = run.glob("backup-*")
+    assert {p.relative_to(backup): p.read_bytes() for p in backup.rglob("*") if p.is_file()} == before
+    assert f"moved the {len(list(backup.iterdir()))} earlier entries of {run} to {backup}" in res.err
+    assert (run / "checkpoints" / "best.ckpt").is_file() and (run / ".hydra" / "overrides.yaml").is_file()
+    assert "overwrite=true" in (run / ".hydra" / "overrides.yaml").read_text()
+
+
+def test_overwrite_true_then_a_bad_input_puts_the_earlier_run_back(ws, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(lorenz_run(ws), run)
+    before = snapshot(run)
+    x = np.random.default_rng(0).normal(size=(6, 6, 2, 2))
+    x[1, 2, 0, 1] = np.inf
+    res = run_mpsim([*data_args(write_npz(tmp_path, x=x)), f"hydra.run.dir={run}", "overwrite=true"], tmp_path)
+    assert res.code == 2 and "`x` has NaN/inf" in res.err, res.err[-2000:]
+    assert snapshot(run) == before and not list(run.glob("backup-*"))
+
+
+def test_the_hint_after_ctrl_c_resumes_a_run_in_a_folder_of_its_own(tmp_path, monkeypatch):
+    """`resume=true` finds runs in the default folders only: a run started with hydra.run.dir= is told to resume
+    with its folder named, and that command does continue it."""
+    from mpsim.training.trainer import Trainer
+
+    train_epoch = Trainer._train_epoch
+
+    def ctrl_c_in_epoch_2(self, model, data, opt, loss_fn, shuffle, epoch):
+        if epoch == 2:
+            raise KeyboardInterrupt
+        return train_epoch(self, model, data, opt, loss_fn, shuffle, epoch)
+
+    monkeypatch.setattr(Trainer, "_train_epoch", ctrl_c_in_epoch_2)
+    cut = run_mpsim(["train", *TINY_TRAIN, "eval.plots=false", "hydra.run.dir=mine/run"], tmp_path)
+    monkeypatch.undo()
+    assert cut.code == 130 and "interrupted" in cut.err, cut.err[-2000:]
+    (hint,) = [ln.strip() for ln in cut.err.splitlines() if ln.strip().startswith("mpsim train ")]
+    res = run_mpsim(shlex.split(hint)[1:], tmp_path)
+    assert res.code == 0, (hint, res.err[-2000:])
+    assert "resuming after epoch 1" in res.err
+    assert len(pd.read_csv(tmp_path / "mine" / "run" / "metrics.csv")) == 4  # epochs 0..3, as one run writes
+
+
+def test_ctrl_c_before_anything_is_saved_leaves_the_folder_as_it_was(tmp_path, monkeypatch):
+    import mpsim.commands.train as train_cmd
+
+    def ctrl_c(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("mine\n")
+    before = snapshot(tmp_path)
+    monkeypatch.setattr(train_cmd, "setup_runtime", ctrl_c)
+    res = run_mpsim(["train", *TINY_TRAIN, "hydra.run.dir=mine/new/run"], tmp_path)
+    assert res.code == 130 and "Nothing was saved yet" in res.err and "resume=" not in res.err, res.err
+    assert snapshot(tmp_path) == before and not (tmp_path / "mine" / "new").exists()
+
+
+def test_orphaned_temporary_files_are_removed_and_live_ones_kept(ws, tmp_path):
+    """kill -9 during an export leaves `.<name>.mpsim-<pid>-<host>.<random>.tmp`; the next write into that folder
+    removes it once its process is gone and it is old, and never a live process's file or another host's."""
+    host = hashlib.sha256(socket.gethostname().encode()).hexdigest()[:8]
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    ckpts = tmp_path / "checkpoints"
+    ckpts.mkdir()
+    old = time.time() - 3600
+
+    def temp(name: str, pid: int, where: str = host, age: float = old) -> Path:
+        path = ckpts / f".{name}.mpsim-{pid}-{where}.k2j_x9ab.tmp"
+        path.write_bytes(b"half a checkpoint")
+        os.utime(path, (age, age))
+        return path
+
+    orphan = temp("pendulum2.ckpt", gone.pid)
+    kept = [
+        temp("a.ckpt", os.getpid()),  # a live process (a parallel sweep job) still writes it
+        temp("b.ckpt", gone.pid, age=time.time()),  # too recent to call orphaned
+        temp("c.ckpt", gone.pid, where="0123abcd"),  # another host's process: cannot be checked from here
+    ]
+    res = run_mpsim(["train", *TINY_TRAIN, "eval.plots=false"], tmp_path)
+    assert res.code == 0, res.err[-2000:]
+    assert not orphan.exists() and all(p.exists() for p in kept)
+    assert (ckpts / "pendulum2.ckpt").is_file()

@@ -14,7 +14,6 @@ import json
 import logging
 import os
 import re
-import shutil
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -74,20 +73,6 @@ def _as_user_error(err: BaseException) -> MpsimError | None:
     return None
 
 
-def _clean_run_dir(run_dir: Path | None) -> None:
-    """Remove a run directory that holds nothing but Hydra's record of the command and its log."""
-    if run_dir is None or not run_dir.is_dir():
-        return
-    files = [p for p in run_dir.rglob("*") if p.is_file()]
-    if all(p.parent.name == ".hydra" or p.suffix == ".log" for p in files):
-        shutil.rmtree(run_dir, ignore_errors=True)
-        for parent in list(run_dir.parents)[:2]:  # <command>/<date>/ made for this run alone
-            try:
-                parent.rmdir()
-            except OSError:
-                break
-
-
 def _divergence_message(command: str, result: dict[str, Any]) -> str:
     best = result.get("best_epoch") or 0
     if best >= 1:
@@ -102,39 +87,57 @@ def _divergence_message(command: str, result: dict[str, Any]) -> str:
     )
 
 
-def _interrupt_hint(command: str) -> str:
-    """What a Ctrl-C leaves: `train` resumes from last.ckpt; the other commands start over (resume is train's)."""
-    from mpsim.commands.runtime import hydra_overrides
+def _interrupt_hint(command: str, run_dir: Path | None = None) -> str:
+    """What a Ctrl-C leaves: `train` resumes from last.ckpt; the other commands start over (resume is train's).
+    A run in a folder of its own choosing (`hydra.run.dir=`), or a sweep job, is named by its folder: `resume=true`
+    finds only runs in the default folders."""
+    from hydra.core.hydra_config import HydraConfig
 
-    if command == "train":
-        args = " ".join(a for a in hydra_overrides() if not a.startswith("resume="))
-        return f"Completed epochs are saved in last.ckpt; continue with:\n  mpsim train {args} resume=true"
-    return (
-        "Every file it wrote is complete (files are written atomically, none half-written); "
-        "run the same command again to redo it (resume= is for mpsim train)."
+    from mpsim.commands.runtime import hydra_overrides, is_multirun
+    from mpsim.runfolder import shown_path
+
+    if command != "train":
+        return (
+            "Every file it wrote is complete (files are written atomically, none half-written); "
+            "run the same command again to redo it (resume= is for mpsim train)."
+        )
+    given = HydraConfig.initialized() and any(
+        _key(str(o)) == "hydra.run.dir" for o in HydraConfig.get().overrides.hydra
     )
+    if run_dir is not None and (given or is_multirun()):
+        return f"Completed epochs are saved in last.ckpt; continue with:\n  mpsim train resume={shown_path(run_dir)}"
+    args = " ".join(a for a in hydra_overrides() if not a.startswith("resume="))
+    return f"Completed epochs are saved in last.ckpt; continue with:\n  mpsim train {args} resume=true"
 
 
 def _guard(command: str, func: Callable[[Any], dict], cfg: Any) -> dict | float | None:
-    """Run a command; turn user errors into one message and an exit code."""
+    """Run a command; turn user errors into one message and an exit code. A fresh single run that fails (or is
+    interrupted) before writing anything of its own leaves its folder as it was (`mpsim.runfolder`)."""
     from hydra.core.hydra_config import HydraConfig
 
+    from mpsim import runfolder
     from mpsim.commands.runtime import is_multirun
 
     multirun = is_multirun()
     run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else None
-    fresh = not cfg.get("resume")
+    folder = runfolder.take(run_dir) if run_dir is not None else None
+    if multirun or cfg.get("resume"):
+        folder = None  # a sweep job's folder is the sweep's; a resumed run's folder is the run's own
     try:
         result = func(cfg)
     except KeyboardInterrupt:
-        print(f"\nmpsim {command}: interrupted. {_interrupt_hint(command)}", file=sys.stderr)
+        if folder is not None and folder.undo():
+            hint = "Nothing was saved yet, and nothing of the run is left; run the same command again."
+        else:
+            hint = _interrupt_hint(command, run_dir)
+        print(f"\nmpsim {command}: interrupted. {hint}", file=sys.stderr)
         sys.exit(130)
     except Exception as err:  # noqa: BLE001 - user errors become one message; bugs are re-raised
         user = _as_user_error(err)
         if user is None:
             raise
-        if fresh and not multirun:
-            _clean_run_dir(run_dir)
+        if folder is not None:
+            folder.undo()
         _fail(command, user)
     if isinstance(result, dict) and result.get("status") == "diverged" and not multirun:
         print(_divergence_message(command, result), file=sys.stderr)
@@ -179,8 +182,10 @@ def _key(arg: str) -> str:
 
 
 def _own(args: list[str]) -> list[str]:
-    """The overrides that define a run (not `resume`, not Hydra's own settings)."""
-    return [a for a in args if not _key(a).startswith(("resume", "hydra")) and a not in ("-m", "--multirun")]
+    """The overrides that define a run (not `resume` or `overwrite`, not Hydra's own settings)."""
+    return [
+        a for a in args if not _key(a).startswith(("resume", "hydra", "overwrite")) and a not in ("-m", "--multirun")
+    ]
 
 
 def find_resumable(args: list[str], command: str = "train") -> Path | None:
@@ -330,7 +335,8 @@ def _split(arg: str) -> tuple[str, str]:
 
 
 def _check_writable(cfg: Any, command: str) -> None:
-    """Refuse at start (before any work) output locations that cannot be written."""
+    """Refuse at start (before any work) output locations that cannot be written. The run (or sweep) folder itself
+    is made, and so tested, just before Hydra writes there (`mpsim.runfolder`)."""
     paths = cfg.get("paths")
     if paths is None:
         return
@@ -346,11 +352,23 @@ def _check_writable(cfg: Any, command: str) -> None:
             probe = probe.parent
         if not probe.is_dir():
             raise OutputError(f"{key}={value}: {probe} is a file, not a directory. Choose a directory: {key}=<dir>.")
-        if not os.access(probe, os.W_OK | os.X_OK):
+        if not os.access(probe, os.W_OK | os.X_OK) or not _can_make_folder(probe):
             raise OutputError(
-                f"{key}={value}: {probe} is not writable (permissions or a read-only file system). "
+                f"{key}={value}: {probe} is not writable (permissions, or a read-only or virtual file system). "
                 f"Choose a writable directory: {key}=<dir>."
             )
+
+
+def _can_make_folder(parent: Path) -> bool:
+    """Whether a folder can be made in `parent` (tried, then removed): `os.access` says yes for root on read-only
+    and virtual file systems such as /proc."""
+    import tempfile
+
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".mpsim-probe-", dir=parent))
+    except OSError:
+        return False
+    return True
 
 
 def main(argv: list[str] | None = None) -> None:

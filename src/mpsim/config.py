@@ -37,9 +37,9 @@ from mpsim.process import DEVICE
 
 
 def output_only(key: str) -> bool:
-    """An override that says where a run writes (`paths.*`) or how it shows progress, not what it computes: it
-    may change when a run resumes, and runs that differ only in it are the same experiment in a report."""
-    return key == "paths" or key.startswith("paths.") or key in {"trainer.progress", "trainer.log_every_s"}
+    """An override that says where or how a run writes (`paths.*`, `overwrite`) or how it shows progress, not what it
+    computes: it may change when a run resumes, and runs that differ only in it are the same experiment in a report."""
+    return key == "paths" or key.startswith("paths.") or key in {"trainer.progress", "trainer.log_every_s", "overwrite"}
 
 
 def host_only(key: str) -> bool:
@@ -134,6 +134,7 @@ class CommonConf:
     dtype: str = "float32"  # model precision: float32 | float64
     threads: int | None = 1  # torch CPU threads (null: torch's default, or cores / jobs under joblib)
     memory_check: bool = True  # refuse a simulation/dataset/training step whose memory estimate does not fit
+    overwrite: bool = False  # a run folder that holds a run: move its files to <folder>/backup-<time>/, then write
 
 
 @dataclass
@@ -168,6 +169,7 @@ class ReportConf:
     target: Any = None  # test error for `epochs_to_target`: a number, or max_min (the level every run reached)
     columns: list[str] = field(default_factory=list)  # metrics to show (default: all)
     layout: str | None = None  # table2 | table1 | curves | message_size: a built-in MP-NODE paper layout
+    overwrite: bool = False  # a run folder that holds a run: move its files to <folder>/backup-<time>/, then write
 
 
 @dataclass
@@ -184,6 +186,7 @@ class BenchConf:
     paths: PathsConf = field(default_factory=PathsConf)
     threads: int | None = 1
     device: str = "cpu"  # cpu | cuda | auto: passed to suites that take a device
+    overwrite: bool = False  # a run folder that holds a run: move its files to <folder>/backup-<time>/, then write
 
 
 def read_overrides_file(run: str | Path) -> list[str] | None:

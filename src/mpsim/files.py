@@ -4,6 +4,12 @@ Files are created with the permissions the user's umask gives a plain `open()` (
 `tempfile.mkstemp` alone would make them 0600), and a file that is replaced keeps its mode. A write that fails
 (permissions, read-only file system, full disk) leaves the previous file untouched, no temporary file behind,
 and raises `OutputError` naming the file.
+
+A process killed outright (kill -9, a lost node) cannot remove its temporary file. Each temporary file's name says
+which process wrote it (`.<name>.mpsim-<pid>-<host>.<random>.tmp`, host: a hash of the host name), so the next write
+into that folder removes it once it is clearly orphaned: written on this host, by a process that no longer exists,
+and untouched for `STALE_TMP_AGE_S` seconds. A live writer's file (a parallel sweep job's) is never touched, nor a
+file from another host.
 """
 
 from __future__ import annotations
@@ -11,11 +17,13 @@ from __future__ import annotations
 import errno
 import hashlib
 import json
+import logging
 import math
 import os
 import re
 import shutil
 import signal
+import socket
 import tempfile
 import threading
 import time
@@ -29,7 +37,13 @@ import torch
 
 from mpsim.errors import OutputError
 
+log = logging.getLogger("mpsim")
+
 _UNSAFE = re.compile(r"[^A-Za-z0-9_.-]")
+_HOST = hashlib.sha256(socket.gethostname().encode()).hexdigest()[:8]
+_TMP_NAME = re.compile(r"^\..+\.mpsim-(\d+)-([0-9a-f]{8})\.[A-Za-z0-9_]+\.tmp$")
+STALE_TMP_AGE_S = 600  # a temporary file untouched this long, whose process is gone, is an orphan
+_swept: set[str] = set()  # folders already cleared of orphaned temporary files by this process
 
 
 def current_umask() -> int:
@@ -74,7 +88,8 @@ def atomic_write(path: str | Path, write: Any, mode: str = "wb") -> Path:
     tmp = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        remove_orphaned_temps(path.parent)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.mpsim-{os.getpid()}-{_HOST}.", suffix=".tmp", dir=path.parent)
         try:
             file_mode = path.stat().st_mode & 0o7777 if path.exists() else 0o666 & ~current_umask()
             os.fchmod(fd, file_mode)
@@ -95,6 +110,45 @@ def atomic_write(path: str | Path, write: Any, mode: str = "wb") -> Path:
             raise OutputError(f"cannot write {path}: {str(err).splitlines()[0]} (full disk?).") from None
         raise
     return path
+
+
+def remove_orphaned_temps(folder: Path, max_age_s: float = STALE_TMP_AGE_S) -> list[Path]:
+    """Remove the temporary files that an mpsim process killed mid-write left in `folder`: named by
+    `atomic_write` on this host, by a process that no longer runs, and older than `max_age_s`. Looks once per
+    folder and process. Returns the files removed."""
+    key = str(folder.absolute())
+    if key in _swept:
+        return []
+    _swept.add(key)
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return []
+    for entry in entries:
+        match = _TMP_NAME.match(entry.name)
+        if match is None or match.group(2) != _HOST or _process_exists(int(match.group(1))):
+            continue
+        try:
+            if entry.is_file(follow_symlinks=False) and time.time() - entry.stat().st_mtime > max_age_s:
+                os.unlink(entry.path)
+                removed.append(Path(entry.path))
+        except OSError:
+            continue  # gone already (another process cleared it), or not ours to remove
+    if removed:
+        log.info(f"removed {len(removed)} temporary file(s) left in {folder} by an mpsim process that was killed")
+    return removed
+
+
+def _process_exists(pid: int) -> bool:
+    """Whether a process with this id runs on this host (one we may not signal counts as running)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (OSError, OverflowError, ValueError):
+        return True  # another user's process, or an id this system cannot check: keep its file
+    return True
 
 
 @contextmanager
