@@ -49,7 +49,18 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 ROOT = "mpsim"
 
 LAYERS: list[tuple[str, list[str]]] = [
-    ("base", ["mpsim.errors", "mpsim.files", "mpsim.memory", "mpsim.conf", "mpsim.version", "mpsim.process"]),
+    (
+        "base",
+        [
+            "mpsim.errors",
+            "mpsim.files",
+            "mpsim.memory",
+            "mpsim.conf",
+            "mpsim.version",
+            "mpsim.process",
+            "mpsim.safeload",
+        ],
+    ),
     (
         "numerics",
         [

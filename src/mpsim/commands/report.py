@@ -39,6 +39,7 @@ from mpsim.config import output_only
 from mpsim.errors import ConfigError, DataError
 from mpsim.files import atomic_write
 from mpsim.metrics import first_epoch_below
+from mpsim.safeload import RECORD_BYTES, SUMMARY_BYTES, load_json, load_yaml
 
 log = logging.getLogger(__name__)
 
@@ -129,10 +130,11 @@ def _progress(path: Path) -> dict[str, Any]:
 
 
 def _max_epochs(run: Path) -> int | None:
+    path = run / ".hydra" / "config.yaml"
     try:
-        config = yaml.safe_load((run / ".hydra" / "config.yaml").read_text())
+        config = load_yaml(path, RECORD_BYTES, str(path), "Restore it")
         value = config["trainer"]["max_epochs"]
-    except (OSError, yaml.YAMLError, KeyError, TypeError):
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, DataError, KeyError, TypeError):
         return None
     return value if isinstance(value, int) and not isinstance(value, bool) else None
 
@@ -181,9 +183,11 @@ def unfinished_note(runs: list[dict[str, Any]], start_dir: Path | None = None) -
 
 
 def read_summary(path: Path) -> dict[str, Any]:
-    """A run's summary.json, or a `DataError` naming the file when it is not a JSON object."""
+    """A run's summary.json, or a `DataError` naming the file when it is not a JSON object or is larger or more
+    deeply nested than mpsim reads (`mpsim.safeload.SUMMARY_BYTES`, `MAX_DEPTH`)."""
+    fix = "Rerun that run, or move its directory out of the report's runs"
     try:
-        summary = json.loads(path.read_text())
+        summary = load_json(path, SUMMARY_BYTES, str(path), fix)
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise DataError(
             f"{path} is not valid JSON ({err}). The run did not finish writing it or it was edited: "

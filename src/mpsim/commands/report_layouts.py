@@ -44,6 +44,7 @@ import yaml
 from mpsim.config import host_only, output_only, read_overrides_file
 from mpsim.errors import DataError
 from mpsim.plotting import at_least_a_factor, save_figure, subplots
+from mpsim.safeload import RECORD_BYTES, load_yaml
 
 #: the paper's Table 2 (epochs to the minimum test error × that error; N/A where the paper has none)
 PAPER_TABLE2: dict[str, dict[str, float]] = {
@@ -194,8 +195,9 @@ def run_settings(run: Path, summary: dict[str, Any]) -> dict[str, str]:
     config_path = run / ".hydra" / "config.yaml"
     if config_path.is_file():
         try:
-            tree = yaml.safe_load(config_path.read_text())  # data only: a python tag is an error, never run
-        except yaml.YAMLError as err:
+            fix = "Restore it or move the run out of the report's runs"  # data only: a python tag is an error
+            tree = load_yaml(config_path, RECORD_BYTES, str(config_path), fix)
+        except (yaml.YAMLError, UnicodeDecodeError) as err:
             raise DataError(
                 f"{config_path} is not valid YAML ({str(err).splitlines()[0]}). Restore it (the run's resolved "
                 "config, as Hydra wrote it) or move the run out of the report's runs."
