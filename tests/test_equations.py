@@ -181,7 +181,7 @@ def test_spec_file_reading(tmp_path):
     (tmp_path / "folder.yaml").mkdir()
     for name, message in [
         ("missing.yaml", "does not exist"),
-        ("folder.yaml", "folder.yaml is a folder; give a path to a YAML file"),
+        ("folder.yaml", "folder.yaml is a folder, not a file; give a path to a YAML file"),
         ("list.yaml", "not a mapping"),
         ("bad.yaml", "cannot read spec file"),
         ("obj.yaml", "cannot read spec file"),

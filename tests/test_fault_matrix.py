@@ -15,6 +15,7 @@ import json
 import os
 import shlex
 import shutil
+import signal
 import socket
 import stat
 import subprocess
@@ -108,6 +109,39 @@ def _spec(d: Path, text: str, *extra: str) -> list[str]:
     """A spec file in `d` and the train command that reads it."""
     (d / "spec.yaml").write_text(text)
     return ["train", "model=equations", f"model.spec={d / 'spec.yaml'}", *extra, *TINY_TRAIN[:2]]
+
+
+# ---- bounded reading (issue 58): alias bombs, deep nesting, oversized files, named pipes ---------------------
+DEEP_JSON = "[" * 100_000 + "]" * 100_000  # used to end in a RecursionError traceback wherever JSON was read
+DEEP_YAML = "a: " + "[" * 100_000 + "]" * 100_000 + "\n"
+
+
+def billion_laughs(levels: int = 9) -> str:
+    """A 1.3 KB YAML whose nine levels of anchors and aliases would expand to 9**10 values: as a spec, mpsim ran for
+    over 5 minutes at 1.6 GB."""
+    lines = [
+        "states: [x]",
+        'equations: {x: "-k*x"}',
+        "params: {k: 1.0}",
+        "a0: &a0 [lol, lol, lol, lol, lol, lol, lol, lol, lol]",
+    ]
+    lines += [f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 9)}]" for i in range(1, levels + 1)]
+    return "\n".join(lines) + "\n"
+
+
+def fifo(d: Path, name: str) -> Path:
+    """A named pipe at `d/name`: opening it for reading would block until a writer came."""
+    os.mkfifo(d / name)
+    return d / name
+
+
+def _report_run(d: Path, record: str, text: str, *extra: str) -> list[str]:
+    """A finished run folder whose `record` (summary.json or a .hydra file) holds `text`, and the report of it."""
+    run = d / "runs" / "r"
+    (run / ".hydra").mkdir(parents=True)
+    (run / "summary.json").write_text('{"task": "train", "mode": "scratch"}')
+    (run / record).write_text(text)
+    return ["report", *extra, f"runs=[{d / 'runs'}]"]
 
 
 # ---- the cases ------------------------------------------------------------------------------------------------
@@ -591,6 +625,78 @@ CASES: dict[str, Case] = {
         4,
         "hydra.sweep.dir=/proc/s: cannot create /proc/s",
     ),
+    # -- bounded reading (issue 58): every YAML and JSON file within size, depth and alias limits; named pipes and
+    # values beyond the model's precision named for what they are. The billion-laughs spec: its own test below.
+    "spec_deep_nesting": Case(lambda w, d: _spec(d, SPEC.format(eq="-k*x") + DEEP_YAML), 2, "nest more than 64 levels"),
+    "spec_too_large": Case(
+        lambda w, d: _spec(d, SPEC.format(eq="-k*x") + ("# padding\n" * 120_000)),
+        2,
+        "spec.yaml is 1.14 MB, over mpsim's limit of 1 MB",
+    ),
+    "spec_fifo": Case(
+        lambda w, d: ["train", "model=equations", f"model.spec={fifo(d, 'spec.yaml')}"], 2, "is a named pipe (FIFO)"
+    ),
+    "npz_meta_deep": Case(
+        lambda w, d: data_args(write_npz(d, meta=np.array(DEEP_JSON))),
+        2,
+        "array 'meta' nests lists or objects 100,000 levels deep, over mpsim's limit of 64",
+    ),
+    "csv_sidecar_deep": Case(
+        lambda w, d: data_args(write_csv(d, sidecar='{"a": ' * 100_000 + "1" + "}" * 100_000)),
+        2,
+        "m.json: the metadata file beside the CSV nests lists or objects 100,000 levels deep",
+    ),
+    "csv_sidecar_too_large": Case(
+        lambda w, d: data_args(write_csv(d, sidecar='{"pad": "' + "x" * (9 << 20) + '"}')),
+        2,
+        "m.json: the metadata file beside the CSV is 9 MB, over mpsim's limit of 8 MB",
+    ),
+    "csv_sidecar_fifo": Case(
+        lambda w, d: (write_csv(d), fifo(d, "m.json"), data_args(d / "m.csv"))[2],
+        2,
+        "m.json: the metadata file beside the CSV is a named pipe (FIFO)",
+    ),
+    "report_summary_deep": Case(
+        lambda w, d: _report_run(d, "summary.json", DEEP_JSON), 2, "summary.json nests lists or objects 100,000 levels"
+    ),
+    "report_overrides_alias_bomb": Case(
+        lambda w, d: _report_run(d, ".hydra/overrides.yaml", billion_laughs()),
+        2,
+        "overrides.yaml: its anchors and aliases (&name, *name) repeat more than 10,000 values",
+    ),
+    "report_layout_config_deep": Case(
+        lambda w, d: _report_run(d, ".hydra/config.yaml", DEEP_YAML, "layout=table2"),
+        2,
+        "config.yaml: lists or mappings nest more than 64 levels deep",
+    ),
+    "npz_huge_times": Case(  # was "trajectories: `t` contains NaN or inf", naming no file
+        lambda w, d: data_args(write_npz(d, t=np.linspace(0.0, 5e300, 6))),
+        2,
+        "d.npz: `t` runs from 0.0 to 5e+300: values this large overflow float32",
+        ("NaN",),
+    ),
+    "npz_times_tied_in_float32": Case(
+        lambda w, d: data_args(write_npz(d, t=1e10 + 0.01 * np.arange(6))),
+        2,
+        "t[0] = 10000000000.0 and t[1] = 10000000000.01 are the same number in float32",
+    ),
+    "csv_inf_value": Case(  # was "holds np.float64(inf)"
+        lambda w, d: data_args(
+            write_csv(d, [[*r[:3], float("inf") if i == 2 else r[3], r[4]] for i, r in enumerate(grid_rows())])
+        ),
+        2,
+        "row 4, column 'theta' holds inf (not a finite number",
+        ("np.float64",),
+    ),
+    "init_fifo": Case(  # was "no such checkpoint"
+        lambda w, d: ["eval", f"init={fifo(d, 'm.ckpt')}", "system=lorenz3", *EVAL],
+        2,
+        "m.ckpt is a named pipe (FIFO), not a regular file; point init= at a checkpoint file",
+    ),
+    "data_fifo": Case(lambda w, d: data_args(fifo(d, "d.npz")), 2, "d.npz is a named pipe (FIFO), not a regular file"),
+    "data_edges_fifo": Case(
+        lambda w, d: [*data_args(write_npz(d)), f"data.edges={fifo(d, 'e.csv')}"], 2, "e.csv is a named pipe (FIFO)"
+    ),
 }
 
 
@@ -730,6 +836,32 @@ def test_help_and_config_errors_do_not_import_torch(tmp_path):
     assert not list(tmp_path.iterdir())  # no run directory for a config error
 
 
+def test_a_billion_laughs_spec_is_refused_at_once(ws, tmp_path):
+    """Issue 58: a 1.3 KB spec of nine levels of YAML aliases ran for minutes at 1.6 GB and left a run folder; it
+    is refused while it is read, with one message, in far less than the (generous) 10 s allowed here."""
+    args = _spec(tmp_path, billion_laughs())
+    assert (tmp_path / "spec.yaml").stat().st_size < 1400
+
+    def too_slow(signum, frame):
+        raise RuntimeError("the alias bomb was still being read after 60 s")
+
+    previous = signal.signal(signal.SIGALRM, too_slow)
+    signal.alarm(60)  # the old code never returned: fail instead of hanging the suite
+    start = time.perf_counter()
+    try:
+        res = run_mpsim(args, tmp_path)
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+    elapsed = time.perf_counter() - start
+    assert res.code == 2, res.err[-2000:]
+    (line,) = res.error_lines()
+    assert "spec.yaml: its anchors and aliases (&name, *name) repeat more than 10,000 values" in line
+    assert "Traceback" not in res.err
+    assert elapsed < 10, elapsed
+    assert [p.name for p in tmp_path.rglob("*") if p.is_file()] == ["spec.yaml"]  # no run folder left
+
+
 def test_the_matrix_is_large_enough():
     assert len(CASES) >= 45
 
@@ -804,7 +936,8 @@ def test_a_run_on_a_data_file_resumes_with_the_file_moved_along_only_if_it_holds
     refused = run_mpsim([*resume, f"data.path={tmp_path / 'other' / 'trajectories.npz'}"], tmp_path)
     assert refused.code == 2
     assert "only if it holds the same bytes" in refused.err
-    for bad in ("{not json", '{"sha256": "../../etc/passwd", "path": "/etc/passwd"}', "[1, 2]", ""):
+    deep = "[" * 100_000 + "]" * 100_000  # used to end in a RecursionError traceback
+    for bad in ("{not json", '{"sha256": "../../etc/passwd", "path": "/etc/passwd"}', "[1, 2]", "", deep):
         (moved / "run" / "data.json").write_text(bad)  # a damaged or forged record vouches for nothing
         unchecked = run_mpsim([*resume, f"data.path={moved / 'data.npz'}"], tmp_path)
         assert unchecked.code == 2, bad

@@ -55,7 +55,18 @@ RESULTS = Path(__file__).resolve().parents[1] / "results"
 ROOT = "mpsim"
 
 LAYERS: list[tuple[str, list[str]]] = [
-    ("base", ["mpsim.errors", "mpsim.files", "mpsim.memory", "mpsim.conf", "mpsim.version", "mpsim.process"]),
+    (
+        "base",
+        [
+            "mpsim.errors",
+            "mpsim.files",
+            "mpsim.memory",
+            "mpsim.conf",
+            "mpsim.version",
+            "mpsim.process",
+            "mpsim.safeload",
+        ],
+    ),
     (
         "numerics",
         [

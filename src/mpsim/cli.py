@@ -10,7 +10,6 @@ kind (`mpsim.errors`); anything else is a bug and keeps its traceback.
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import re
@@ -300,8 +299,10 @@ def _with_resume(args: list[str]) -> list[str]:
 
 def _recorded_data_digest(run: Path) -> str | None:
     """The SHA-256 of its data file that a run recorded in `<run>/data.json` (None if absent or malformed)."""
-    try:
-        record = json.loads((run / "data.json").read_text())
+    from mpsim.safeload import RECORD_BYTES, load_json
+
+    try:  # a damaged, oversized or deeply nested record vouches for nothing
+        record = load_json(run / "data.json", RECORD_BYTES, str(run / "data.json"), "Restore it")
     except (OSError, ValueError):
         return None
     digest = record.get("sha256") if isinstance(record, dict) else None

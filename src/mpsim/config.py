@@ -34,6 +34,7 @@ from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.errors import ConfigError, DataError
 from mpsim.process import DEVICE
+from mpsim.safeload import RECORD_BYTES, load_yaml
 
 
 def output_only(key: str) -> bool:
@@ -194,11 +195,13 @@ def read_overrides_file(run: str | Path) -> list[str] | None:
     None where the run kept none. A file that is not a YAML list of overrides is a DataError that names it: the
     record is read as data only, and a damaged one is never taken as "no overrides"."""
     path = Path(run) / ".hydra" / "overrides.yaml"
-    if not path.is_file():
+    if not path.exists():
         return None
     fix = "Restore it (a YAML list of key=value overrides, as Hydra wrote it) or move the run away"
-    try:
-        saved = yaml.safe_load(path.read_bytes())  # data only: a python tag is an error, never run
+    try:  # data only (a python tag is an error, never run), bounded in size, nesting and aliases
+        saved = load_yaml(path, RECORD_BYTES, str(path), fix)
+    except UnicodeDecodeError as err:
+        raise DataError(f"{path} is not valid YAML (not UTF-8 text: {err.reason}). {fix}.") from None
     except OSError as err:
         raise DataError(f"{path} could not be read ({err.strerror or err}). {fix}.") from None
     except yaml.YAMLError as err:

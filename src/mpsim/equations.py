@@ -39,6 +39,7 @@ import yaml
 
 from mpsim.errors import ConfigError, did_you_mean
 from mpsim.graphs.batch import BatchedGraph, segment_sum
+from mpsim.safeload import SPEC_BYTES, BoundedLoader, load_yaml, not_a_regular_file
 
 SUM_NBR = sympy.Function("sum_nbr")
 MEAN_NBR = sympy.Function("mean_nbr")
@@ -74,9 +75,10 @@ MODEL_KEYS = ("states", "equations", "params", "learnable", "kinematic", "nodes"
 SYSTEM_KEYS = ("name", "graph", "graph_params", "edges", "directed", "init", "dt", "horizon", "integrator", "substep")
 
 
-class _SpecLoader(yaml.SafeLoader):
-    """`yaml.SafeLoader` that also reads `1e-3` and `2E5` as numbers (YAML 1.2 and OmegaConf do; PyYAML's YAML 1.1
-    reads them as text without a dot), so a spec file means what the same keys inline in a config mean."""
+class _SpecLoader(BoundedLoader):
+    """`yaml.SafeLoader` (bounded: `mpsim.safeload`) that also reads `1e-3` and `2E5` as numbers (YAML 1.2 and
+    OmegaConf do; PyYAML's YAML 1.1 reads them as text without a dot), so a spec file means what the same keys
+    inline in a config mean."""
 
 
 _SpecLoader.add_implicit_resolver(
@@ -87,19 +89,23 @@ _SpecLoader.add_implicit_resolver(
 
 
 def load_spec_file(path: str | Path) -> dict[str, Any]:
-    """Read a spec from a YAML file (safe loading: plain data only, no tags that build objects).
+    """Read a spec from a YAML file (safe loading: plain data only, no tags that build objects), at most
+    `SPEC_BYTES` and nested and aliased within the bounds of `mpsim.safeload`.
 
     Raises:
-        ConfigError: the file is missing, unreadable or not a YAML mapping.
+        ConfigError: the file is missing, not a regular file, unreadable or not a YAML mapping.
+        InputLimitError: it is larger, deeper or expands more aliases than mpsim reads.
     """
     path = Path(path)
-    if not path.is_file():
+    why = not_a_regular_file(path)
+    if why is not None:
         raise ConfigError(
-            f"spec file {path} {'is a folder' if path.is_dir() else 'does not exist'}; give a path to a YAML file (absolute, or relative to "
-            "the directory you started mpsim from)."
+            f"spec file {path} {why}; give a path to a YAML file (absolute, or relative to the directory you "
+            "started mpsim from)."
         )
+    fix = "Give a spec of plain states, equations and params (limits: docs/equations.md)"
     try:
-        data = yaml.load(path.read_text(), Loader=_SpecLoader)  # noqa: S506 (a SafeLoader)
+        data = load_yaml(path, SPEC_BYTES, f"spec file {path}", fix, loader=_SpecLoader)
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise ConfigError(f"cannot read spec file {path}: {first}. Fix the YAML (states, equations, params).") from None

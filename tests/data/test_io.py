@@ -205,6 +205,68 @@ def test_values_beyond_the_model_precision_are_reported_as_overflow(tmp_path):
     check_representable(load_trajectories(_npz(tmp_path, x=np.full((2, 3, 2, 1), 1e30))), "float32", "a.npz")
 
 
+def test_times_beyond_the_model_precision_are_named_with_their_range(tmp_path):
+    from mpsim.data.io import check_representable
+
+    huge = load_trajectories(_npz(tmp_path, t=np.array([0.0, 2.5e300, 5e300])))  # finite: not "NaN or inf"
+    with pytest.raises(DataError, match=r"a.npz: `t` runs from 0.0 to 5e\+300: values this large overflow float32"):
+        check_representable(huge, "float32", "a.npz")
+    check_representable(huge, "float64", "a.npz")
+    close = load_trajectories(_npz(tmp_path, t=1e10 + np.array([0.0, 0.01, 0.02])))
+    with pytest.raises(DataError, match=r"t\[0\] = 10000000000.0 and t\[1\] = 10000000000.01 are the same number"):
+        check_representable(close, "float32", "a.npz")
+    check_representable(close, "float64", "a.npz")
+    spread = load_trajectories(_npz(tmp_path, t=np.array([-1e308, 1e308, 1.5e308])))
+    with pytest.raises(DataError, match="the steps between time points overflow float64"):
+        check_representable(spread, "float64", "a.npz")
+
+
+def test_a_nan_time_is_named_with_its_index(tmp_path):
+    with pytest.raises(DataError, match=r"a.npz: `t` holds nan at index 1"):
+        load_trajectories(_npz(tmp_path, t=np.array([0.0, np.nan, 2.0])))
+
+
+def test_messages_show_plain_numbers_not_numpy_reprs(tmp_path):
+    rows = _grid()
+    rows[2][3] = float("inf")
+    with pytest.raises(DataError, match=r"row 4, column 'theta' holds inf \(not a finite number") as err:
+        load_trajectories(_write(tmp_path, rows))
+    assert "np." not in str(err.value)
+    path = _write(tmp_path, _grid())
+    pd.DataFrame([[7, 0, 1]], columns=["traj", "src", "dst"]).to_csv(tmp_path / "m_edges.csv", index=False)
+    with pytest.raises(DataError, match=r"names trajectories \[7\] that are not in the data"):
+        load_trajectories(path)
+
+
+def test_deep_or_oversized_metadata_is_refused_before_it_is_parsed(tmp_path, monkeypatch):
+    from mpsim.data import io
+
+    with pytest.raises(DataError, match="array 'meta' nests lists or objects 100,000 levels deep"):
+        load_trajectories(_npz(tmp_path, meta=np.array("[" * 100_000 + "]" * 100_000)))
+    path = _write(tmp_path, _grid())
+    (tmp_path / "m.json").write_text('{"a": ' * 1000 + "1" + "}" * 1000)
+    with pytest.raises(DataError, match="m.json: the metadata file beside the CSV nests lists or objects 1,000 levels"):
+        load_trajectories(path)
+    (tmp_path / "m.json").write_text('{"system": "' + "s" * 2000 + '"}')
+    monkeypatch.setattr(io, "META_BYTES", 1000)
+    with pytest.raises(
+        DataError, match="m.json: the metadata file beside the CSV is 1.97 kB, over mpsim's limit of 0.977 kB"
+    ):
+        load_trajectories(path)
+
+
+def test_a_named_pipe_is_refused_without_blocking(tmp_path):
+    import os
+
+    os.mkfifo(tmp_path / "p.npz")
+    with pytest.raises(DataError, match="p.npz is a named pipe \\(FIFO\\), not a regular file"):
+        load_trajectories(tmp_path / "p.npz")
+    path = _write(tmp_path, _grid())
+    os.mkfifo(tmp_path / "m.json")
+    with pytest.raises(DataError, match="m.json: the metadata file beside the CSV is a named pipe"):
+        load_trajectories(path)
+
+
 def test_one_node_csv_needs_no_edge_list(tmp_path):
     rows = [
         {"traj": r, "t": 0.1 * k, "node": 0, "theta": 0.1 * k + r, "omega": 1.0} for r in range(2) for k in range(5)

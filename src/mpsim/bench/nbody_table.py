@@ -25,7 +25,8 @@ import torch
 
 from mpsim.bench.common import Suite, peak_memory_mb, timeit
 from mpsim.bench.nbody import uniform_state
-from mpsim.errors import ConfigError
+from mpsim.errors import ConfigError, DataError
+from mpsim.safeload import SUMMARY_BYTES, load_json
 
 if TYPE_CHECKING:
     from mpsim.models.nbody_base import ParticleModel
@@ -166,7 +167,12 @@ class NBodyTable(Suite):
         return row
 
     def _row(self, run: Path) -> dict[str, Any] | None:
-        s = json.loads((run / "summary.json").read_text())
+        path = run / "summary.json"
+        fix = "Rerun that run, or leave it out of bench.runs"
+        try:
+            s = load_json(path, SUMMARY_BYTES, str(path), fix)
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+            raise DataError(f"{path} is not valid JSON ({err}). {fix}.") from None
         model = s.get("model", {})
         report = model.get("nbody")
         if report is None:  # not an N-body model run

@@ -17,6 +17,7 @@ from mpsim.commands.runtime import Runtime, resolve_path
 from mpsim.errors import CheckpointError, IncompatibleError
 from mpsim.memory import fmt_bytes
 from mpsim.models.base import Model
+from mpsim.safeload import not_a_regular_file
 from mpsim.training.checkpoint import config_targets, load_checkpoint
 
 log = logging.getLogger(__name__)
@@ -37,6 +38,9 @@ def resolve_init(init: str, rt: Runtime, ckpt_dir: str) -> Path:
     for candidate in candidates:
         if candidate.is_file():
             return candidate
+        why = not_a_regular_file(candidate)
+        if why is not None and why != "does not exist" and not candidate.is_dir():  # a pipe: never opened
+            raise CheckpointError(f"init={init}: {candidate} {why}; point init= at a checkpoint file (.ckpt).")
     folder = next((c for c in candidates if c.is_dir()), None)
     if folder is not None:  # a run directory given for its model
         inside = [folder / "checkpoints" / name for name in ("best.ckpt", "last.ckpt")]

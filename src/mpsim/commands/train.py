@@ -26,6 +26,7 @@ from mpsim.config import check_target_node, plain_dict, read_overrides_file
 from mpsim.errors import CheckpointError, ConfigError, DataError, OutputError
 from mpsim.files import atomic_write, child_path, file_sha256, keep_previous, safe_name, write_json
 from mpsim.metrics import epochs_x_min_error
+from mpsim.safeload import RECORD_BYTES, load_yaml
 from mpsim.training import distributed
 from mpsim.training.checkpoint import load_checkpoint
 from mpsim.training.distributed import DistContext
@@ -290,9 +291,9 @@ def _record_stopping(cfg: DictConfig, run_dir: Path) -> None:
     rest of the record stays as the run wrote it."""
     record = run_dir / ".hydra"
     try:
-        config = yaml.safe_load((record / "config.yaml").read_text())
+        config = load_yaml(record / "config.yaml", RECORD_BYTES, str(record / "config.yaml"), "Restore it")
         overrides = read_overrides_file(run_dir)
-    except (OSError, yaml.YAMLError, DataError):
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, DataError):
         return  # no record to keep up to date (the CLI refused a damaged one and warned of a missing one)
     if not isinstance(config, dict) or not isinstance(config.get("trainer"), dict) or overrides is None:
         return

@@ -23,6 +23,7 @@ import torch
 from mpsim.data.trajectories import Trajectories, grid_step
 from mpsim.errors import DataError
 from mpsim.files import atomic_write, json_default
+from mpsim.safeload import META_BYTES, load_json, not_a_regular_file, parse_json
 
 INDEX_COLUMNS = ("traj", "t", "node")
 
@@ -59,8 +60,9 @@ def load_npz(path: str | Path, edge_index: torch.Tensor | None = None) -> Trajec
         )
     meta: dict[str, Any] = {}
     if "meta" in arrays:
+        fix = "Keep only metadata there (names, dt, params; docs/data_formats.md)"
         try:
-            meta = json.loads(str(arrays["meta"]))
+            meta = parse_json(str(arrays["meta"]), f"{path}: array 'meta'", fix, META_BYTES)
         except json.JSONDecodeError as err:
             raise DataError(f"{path}: array 'meta' is not valid JSON ({err}).") from None
         meta = check_meta(meta, f"{path}: array 'meta'")
@@ -244,8 +246,8 @@ def load_csv(
 
 
 def _not_a_file(path: Path) -> str:
-    """Why `path` cannot be read as a file: it is a folder, or nothing is there."""
-    return "is a folder, not a file" if path.is_dir() else "does not exist"
+    """Why `path` cannot be read as a file: nothing is there, or a folder, a named pipe, ... (never opened)."""
+    return not_a_regular_file(path) or "is not a regular file"
 
 
 def load_edges(path: str | Path, n_nodes: int, traj_labels: Any = None) -> torch.Tensor:
@@ -275,7 +277,8 @@ def load_edges(path: str | Path, n_nodes: int, traj_labels: Any = None) -> torch
     lookup = {lab: i for i, lab in enumerate(labels)}
     unknown = [v for v in frame["traj"].unique() if v not in lookup]
     if unknown:
-        raise DataError(f"{path}: column 'traj' names trajectories {unknown[:4]} that are not in the data.")
+        shown = ", ".join(_label(v) for v in unknown[:4])
+        raise DataError(f"{path}: column 'traj' names trajectories [{shown}] that are not in the data.")
     codes = np.array([lookup[v] for v in frame["traj"]])
     counts = np.bincount(codes, minlength=len(labels))
     e_max = int(counts.max()) if len(counts) else 0
@@ -366,15 +369,13 @@ def check_meta(meta: Any, where: str) -> dict[str, Any]:
 
 def _read_sidecar(sidecar: Path) -> dict[str, Any]:
     """`<stem>.json` beside a CSV (its metadata), or {} without one."""
-    if not sidecar.is_file():
+    if not sidecar.exists() or sidecar.is_dir():
         return {}
+    fix = "Fix it, or delete it to load the CSV without metadata"
     try:
-        meta = json.loads(sidecar.read_text())
+        meta = load_json(sidecar, META_BYTES, f"{sidecar}: the metadata file beside the CSV", fix)
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise DataError(
-            f"{sidecar}: the metadata file beside the CSV is not valid JSON ({err}). Fix it, or delete "
-            "it to load the CSV without metadata."
-        ) from None
+        raise DataError(f"{sidecar}: the metadata file beside the CSV is not valid JSON ({err}). {fix}.") from None
     return check_meta(meta, str(sidecar))
 
 
@@ -408,7 +409,9 @@ def check_representable(data: Trajectories, dtype_name: str, source: str) -> Non
     """Refuse values that overflow the model's precision (reported as overflow, not as NaN/inf later).
 
     float32 holds magnitudes up to 3.4e38; normalisation squares values, so float64 data must stay below 1e150.
+    Time points are checked too (`_check_times`).
     """
+    _check_times(data.t, dtype_name, source)
     limit, why = (
         (float(np.finfo(np.float32).max), "overflow float32 (largest 3.4e38)")
         if dtype_name == "float32"
@@ -426,8 +429,34 @@ def check_representable(data: Trajectories, dtype_name: str, source: str) -> Non
             raise DataError(f"{source}: {name}{list(index)} = {peak:.3g}: values this large {why}. Fix: {fix}.")
 
 
+def _check_times(t: torch.Tensor, dtype_name: str, source: str) -> None:  # t: [T] time points, float64
+    """Time points the model's precision holds: within float32's range and still strictly increasing once rounded
+    to float32 (dtype=float32), with steps that do not overflow float64. Each refusal names the range of `t`."""
+    low, high = float(t.min()), float(t.max())
+    shown = f"`t` runs from {low} to {high}"  # every digit: neighbours that float32 merges differ late
+    fix = "subtract the start time or measure time in a larger unit"
+    if dtype_name == "float32" and max(abs(low), abs(high)) > float(np.finfo(np.float32).max):
+        raise DataError(
+            f"{source}: {shown}: values this large overflow float32 (largest 3.4e38), the precision of "
+            f"dtype=float32. Fix: {fix}, or use dtype=float64."
+        )
+    if not torch.isfinite(t[1:] - t[:-1]).all():
+        raise DataError(f"{source}: {shown}: the steps between time points overflow float64. Fix: {fix}.")
+    if dtype_name == "float32":
+        rounded = t.float()
+        tied = torch.nonzero(rounded[1:] <= rounded[:-1])
+        if len(tied):
+            k = int(tied[0])
+            raise DataError(
+                f"{source}: {shown}: t[{k}] = {float(t[k])} and t[{k + 1}] = {float(t[k + 1])} are the "
+                f"same number in float32 (about 7 significant digits, dtype=float32). Fix: {fix}, or use "
+                "dtype=float64."
+            )
+
+
 def _label(value: Any) -> str:
-    """A trajectory label as the user wrote it (numpy scalars unwrapped)."""
+    """A value from a file (a trajectory label, a cell) as the user wrote it: numpy scalars unwrapped, so a
+    message shows `inf` or `'abc'`, not `np.float64(inf)`."""
     return repr(value.item() if hasattr(value, "item") else value)
 
 
@@ -437,7 +466,7 @@ def _numeric_column(frame: pd.DataFrame, col: str, path: Path) -> np.ndarray:
     if bad.any():
         row = int(np.nonzero(bad)[0][0])
         raw = frame[col].iloc[row]
-        what = "is empty" if pd.isna(raw) else f"holds {raw!r}"
+        what = "is empty" if pd.isna(raw) else f"holds {_label(raw)}"  # inf, not np.float64(inf)
         raise DataError(
             f"{path}: row {row + 2}, column '{col}' {what} (not a finite number; {int(bad.sum())} such values in "
             "that column). Remove or interpolate those rows."

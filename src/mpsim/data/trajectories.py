@@ -124,7 +124,11 @@ class Trajectories:
         if t.shape[0] < 2:
             raise DataError(f"{source}: need at least 2 time points; got {t.shape[0]}.")
         if not torch.isfinite(t).all():
-            raise DataError(f"{source}: `t` contains NaN or inf.")
+            k = int(torch.nonzero(~torch.isfinite(t))[0])
+            raise DataError(
+                f"{source}: `t` holds {float(t[k])} at index {k} (time points must be finite numbers). Remove or "
+                "interpolate that sample."
+            )
         steps = t[1:] - t[:-1]
         if (steps <= 0).any():
             k = int(torch.nonzero(steps <= 0)[0])

@@ -13,6 +13,7 @@ import yaml
 
 from mpsim.config import host_only, output_only, read_overrides_file
 from mpsim.errors import DataError
+from mpsim.safeload import RECORD_BYTES, SUMMARY_BYTES, load_json, load_yaml
 
 METRICS = (
     "mode",
@@ -91,10 +92,11 @@ def _progress(path: Path) -> dict[str, Any]:
 
 
 def _max_epochs(run: Path) -> int | None:
+    path = run / ".hydra" / "config.yaml"
     try:
-        config = yaml.safe_load((run / ".hydra" / "config.yaml").read_text())
+        config = load_yaml(path, RECORD_BYTES, str(path), "Restore it")
         value = config["trainer"]["max_epochs"]
-    except (OSError, yaml.YAMLError, KeyError, TypeError):
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, DataError, KeyError, TypeError):
         return None
     return value if isinstance(value, int) and not isinstance(value, bool) else None
 
@@ -143,9 +145,11 @@ def unfinished_note(runs: list[dict[str, Any]], start_dir: Path | None = None) -
 
 
 def read_summary(path: Path) -> dict[str, Any]:
-    """A run's summary.json, or a `DataError` naming the file when it is not a JSON object."""
+    """A run's summary.json, or a `DataError` naming the file when it is not a JSON object or is larger or more
+    deeply nested than mpsim reads (`mpsim.safeload.SUMMARY_BYTES`, `MAX_DEPTH`)."""
+    fix = "Rerun that run, or move its directory out of the report's runs"
     try:
-        summary = json.loads(path.read_text())
+        summary = load_json(path, SUMMARY_BYTES, str(path), fix)
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise DataError(
             f"{path} is not valid JSON ({err}). The run did not finish writing it or it was edited: "
@@ -279,8 +283,9 @@ def run_settings(run: Path, summary: dict[str, Any]) -> dict[str, str]:
     config_path = run / ".hydra" / "config.yaml"
     if config_path.is_file():
         try:
-            tree = yaml.safe_load(config_path.read_text())  # data only: a python tag is an error, never run
-        except yaml.YAMLError as err:
+            fix = "Restore it or move the run out of the report's runs"  # data only: a python tag is an error
+            tree = load_yaml(config_path, RECORD_BYTES, str(config_path), fix)
+        except (yaml.YAMLError, UnicodeDecodeError) as err:
             raise DataError(
                 f"{config_path} is not valid YAML ({str(err).splitlines()[0]}). Restore it (the run's resolved "
                 "config, as Hydra wrote it) or move the run out of the report's runs."

@@ -23,6 +23,7 @@ import inspect
 import json
 import logging
 import re
+import sys
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
@@ -31,6 +32,7 @@ import torch
 
 from mpsim.errors import CheckpointError
 from mpsim.files import atomic_write
+from mpsim.safeload import not_a_regular_file, parse_json
 
 log = logging.getLogger(__name__)
 
@@ -85,8 +87,9 @@ def load_checkpoint(path: str | Path, allowed_targets: Iterable[str] = (), need_
             weights, or a `_target_` outside the allowlist.
     """
     path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"checkpoint {path} does not exist.")
+    why = not_a_regular_file(path)  # a named pipe is refused, never opened (reading it would block)
+    if why is not None:
+        raise CheckpointError(f"checkpoint {path} {why}.")
     if path.stat().st_size == 0:
         raise CheckpointError(
             f"checkpoint {path} is empty (0 bytes), e.g. an interrupted copy. Use another copy, the run's "
@@ -146,7 +149,8 @@ def _read_history(payload: dict[str, Any], path: str | Path) -> None:
     text = trainer.pop("history_json")
     rows = None
     try:
-        parsed = json.loads(text) if isinstance(text, str) else None
+        # already in memory (no size limit), but a deeply nested text would make json recurse: depth checked first
+        parsed = parse_json(text, "history", "", sys.maxsize) if isinstance(text, str) else None
         if (
             isinstance(parsed, dict)
             and isinstance(parsed.get("columns"), list)
