@@ -240,10 +240,23 @@ def add_epochs_to_target(frame: pd.DataFrame, target: str | float) -> float:
     return value
 
 
+def _sort_key(value: Any) -> tuple[int, float, str]:
+    """Numbers first, as numbers (8 before 16: an override's value is text, "8" and "16"), then text, then no value."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return (2, 0.0, "")
+    try:
+        number = float(value) if not isinstance(value, bool) else math.nan
+    except (TypeError, ValueError):
+        number = math.nan
+    return (0, number, "") if not math.isnan(number) else (1, 0.0, str(value))
+
+
 def aggregate(frame: pd.DataFrame, group_by: list[str]) -> pd.DataFrame:
-    """Mean ± std of the numeric metrics over rows that share `group_by`."""
+    """Mean ± std of the numeric metrics over rows that share `group_by`, groups in the order of their values
+    (numbers as numbers)."""
     numeric = [c for c in NUMERIC if c in frame.columns]
-    grouped = frame.groupby(group_by, dropna=False)[numeric]
+    rows = sorted(range(len(frame)), key=lambda i: [_sort_key(frame[c].iloc[i]) for c in group_by])
+    grouped = frame.iloc[rows].groupby(group_by, dropna=False, sort=False)[numeric]
     mean, std = grouped.mean(), grouped.std()
     out = pd.DataFrame(
         {c: [_pm(m, s) for m, s in zip(mean[c], std[c], strict=True)] for c in numeric}, index=mean.index
@@ -311,27 +324,57 @@ def run_report(cfg: DictConfig, output_dir: str | Path | None = None, overrides:
         return _run_layout(cfg, layout, frame, roots, start_dir, out_dir, pending)
     if cfg.target is not None:
         add_epochs_to_target(frame, cfg.target)
+    table = plain_table(frame, list(cfg.group_by), list(cfg.columns))
+    atomic_write(out_dir / "report.csv", lambda f: frame.to_csv(f, index=False), mode="w")
+    note = f" Target test error {frame['target_error'].iloc[0]:.4g} ({cfg.target})." if cfg.target is not None else ""
+    text = _plain_text(cfg.title, frame, table, roots, start_dir, pending, note)
+    atomic_write(out_dir / "report.md", lambda f: f.write(text), mode="w")
+    print(text)
+    return {"n_runs": len(frame), "report": str(out_dir / "report.md"), "table": table, "unfinished": pending}
+
+
+def plain_table(frame: pd.DataFrame, group_by: list[str], columns: list[str]) -> pd.DataFrame:
+    """The plain report's table of `frame` (one row per run): rows grouped by `group_by` (default: every
+    override that varies), metrics as mean ± std, only `columns` of them if given."""
     fixed = {"run", "seed", "target_error", "status", *NUMERIC}
     varying = [c for c in frame.columns if c not in fixed and not output_only(c) and frame[c].astype(str).nunique() > 1]
-    group_by = list(cfg.group_by) or varying
+    group_by = group_by or varying
     if group_by:
         table = aggregate(frame, group_by)
     elif len(frame) > 1:  # the runs differ only by seed (or where they wrote): one row, mean ± std
         table = aggregate(frame.assign(all_runs=""), ["all_runs"]).drop(columns=["all_runs"])
     else:
         table = frame.drop(columns=["run"])
-    if cfg.columns:
-        order = [*group_by, *cfg.columns, "runs"]
+    if columns:
+        order = [*group_by, *columns, "runs"]
         table = table[[c for c in order if c in table.columns]]
-    atomic_write(out_dir / "report.csv", lambda f: frame.to_csv(f, index=False), mode="w")
-    note = f" Target test error {frame['target_error'].iloc[0]:.4g} ({cfg.target})." if cfg.target is not None else ""
-    text = (
-        f"# {cfg.title}\n\n{len(frame)} runs under {', '.join(shown(r, start_dir) for r in roots)}.{note}\n\n"
+    return table
+
+
+def _plain_text(
+    title: str,
+    frame: pd.DataFrame,
+    table: pd.DataFrame,
+    roots: list[Path],
+    start_dir: Path | None,
+    pending: list[dict[str, Any]],
+    note: str = "",
+) -> str:
+    """The plain report as Markdown: title, what it covers, the runs it leaves out, the table."""
+    return (
+        f"# {title}\n\n{len(frame)} runs under {', '.join(shown(r, start_dir) for r in roots)}.{note}\n\n"
         f"{unfinished_note(pending, start_dir)}{markdown(table)}\n"
     )
-    atomic_write(out_dir / "report.md", lambda f: f.write(text), mode="w")
-    print(text)
-    return {"n_runs": len(frame), "report": str(out_dir / "report.md"), "table": table, "unfinished": pending}
+
+
+def jobs_table(sweep_dir: Path, start_dir: Path | None = None) -> str:
+    """The report `mpsim report runs='[<sweep_dir>]'` prints, for the end of a multirun (nothing is written);
+    "" when no job wrote a summary."""
+    frame = collect([sweep_dir])
+    if frame.empty:
+        return ""
+    table = plain_table(frame, [], [])
+    return _plain_text("mpsim report", frame, table, [sweep_dir], start_dir, unfinished([sweep_dir]))
 
 
 def _split_note(split: list[str]) -> str:
