@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -149,6 +150,12 @@ def test_sweep_gives_every_job_its_own_directory(lorenz_ws):
     assert n_train == [4, 4, 6, 6]
     report = run_mpsim_ok(["report", "runs=[outputs/multirun]"], ws)
     assert "data.n_train" in report.stdout and "init" in report.stdout
+    # the sweep ends with that table of its jobs (printed, not written: the sweep folder holds only its jobs)
+    (sweep,) = {j.parent for j in jobs}
+    table = proc.stdout[proc.stdout.index("# mpsim report") :]
+    assert f"4 runs under {sweep.relative_to(ws)}." in table and "| data.n_train | init |" in table
+    assert f"mpsim report runs='[{sweep.relative_to(ws)}]'" in table
+    assert sorted(p.name for p in sweep.iterdir()) == ["0", "1", "2", "3", "multirun.yaml"]
 
 
 def test_joblib_launcher_runs_jobs_in_parallel_processes(tmp_path):
@@ -387,3 +394,70 @@ def test_resume_true_passes_over_a_run_whose_record_is_damaged(tmp_path):
     assert find_resumable([*args, "resume=true", "trainer.max_epochs=9"]) == intact
     assert find_resumable(["system=lorenz3", "seed=3", f"paths.output_root={tmp_path / 'outputs'}"]) is None
     assert not (tmp_path / "pwned.txt").exists()
+
+
+# ---- mpsim <command> --help ----------------------------------------------------------------------------------
+@pytest.mark.parametrize("command", ["train", "eval", "simulate", "diagnose", "report", "bench"])
+def test_command_help_is_mpsims_own(command, tmp_path):
+    for flag in ("--help", "-h"):
+        res = run_mpsim([command, "system=lorenz3", flag] if command == "train" else [command, flag], tmp_path)
+        assert res.code == 0 and res.err == "", res.err
+        text = res.out
+        assert text.startswith(f"usage: mpsim {command} ") and "_target_" not in text  # not Hydra's config dump
+        assert f"mpsim {command} --cfg job" in text and f"mpsim {command} --hydra-help" in text
+        assert text.count(f"\n  mpsim {command} ") == 3  # three examples
+        assert max(len(line) for line in text.splitlines()) <= 100
+    assert not list(tmp_path.iterdir())  # no run directory
+
+
+def test_train_help_names_the_keys_a_newcomer_needs_and_every_group_option(tmp_path):
+    from mpsim.cli import CONF_DIR
+
+    text = run_mpsim(["train", "--help"], tmp_path).out
+    keys = ["system=", "model=", "init=", "mode=", "resume=", "data.path=", "trainer.max_epochs=", "trainer.lr="]
+    assert all(f"\n  {k}" in text for k in keys), text
+    listed = " ".join(text.split("config groups")[1].split("examples:")[0].split())
+    words = set(re.findall(r"[\w.]+", listed))
+    assert {p.stem for p in (Path(CONF_DIR) / "system").glob("*.yaml")} <= words  # read from conf/
+    assert "pendulum2 (default)" in listed and "hparams_search mpnode_lorenz10; none by default" in listed
+
+
+def test_help_of_a_group_option_added_to_conf_is_listed(tmp_path, monkeypatch):
+    import mpsim.cli as cli
+
+    conf = tmp_path / "conf"
+    shutil.copytree(cli.CONF_DIR, conf)
+    (conf / "system" / "my_system.yaml").write_text("_target_: my_pkg.MySystem\n")
+    monkeypatch.setattr(cli, "CONF_DIR", str(conf))
+    assert "my_system" in run_mpsim(["train", "--help"], tmp_path).out
+
+
+def test_hydra_help_and_cfg_job_still_reach_hydra(tmp_path):
+    assert "== Flags ==\n--help,-h : Application's help" in run_mpsim(["train", "--hydra-help"], tmp_path).out
+    assert "_target_: mpsim.training.trainer.Trainer" in run_mpsim(["train", "--cfg", "job"], tmp_path).out
+
+
+def test_command_help_is_quick_and_imports_neither_torch_nor_hydra(tmp_path):
+    code = (
+        "import sys, time; t0 = time.perf_counter(); from mpsim.cli import main\n"
+        "for c in ['train', 'eval', 'simulate', 'diagnose', 'report', 'bench']:\n"
+        "    main([c, '--help'])\n"
+        "took = time.perf_counter() - t0\n"
+        "assert 'torch' not in sys.modules and 'hydra' not in sys.modules, 'help imported torch or hydra'\n"
+        "print(f'took {took:.3f} s')\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    took = float(proc.stdout.split("took ")[-1].split()[0])
+    assert took < 1.0, took  # all six, with mpsim's import (about 0.2 s on an idle core)
+
+
+# ---- progress without a terminal -------------------------------------------------------------------------------
+def test_output_redirected_to_a_file_gets_log_lines_not_a_progress_bar(tmp_path):
+    # in this process stdout and stderr are not terminals, as with `mpsim train > log.txt 2>&1`: the bar used to
+    # write one long line of carriage returns there
+    args = [a for a in TINY_TRAIN if not a.startswith("trainer.progress")]
+    res = run_mpsim_ok(["train", *args, "eval.plots=false", "trainer.progress=true", "trainer.log_every=2"], tmp_path)
+    assert "\r" not in res.err + res.out and "epoch/s" not in res.err
+    lines = [ln for ln in res.err.splitlines() if ln.startswith("epoch ")]
+    assert [ln.split(":")[0] for ln in lines] == ["epoch 2/3"], res.err

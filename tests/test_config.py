@@ -151,6 +151,34 @@ def test_an_optuna_search_is_checked_before_the_study_starts(args, match):
     assert compose_command("train", good, str(CONF)) is not None
 
 
+@pytest.mark.parametrize(
+    "direction",
+    [
+        [],  # the sweeper's own default, the enum Direction.minimize (hydra/sweeper=optuna, as Hydra documents it)
+        ["hydra.sweeper.direction=maximize"],
+        ["hydra.sweeper.direction=[minimize]"],  # a list: one direction per objective
+    ],
+)
+def test_hydra_sweeper_optuna_takes_the_enum_or_a_string_direction(direction):
+    pytest.importorskip("hydra_plugins.hydra_optuna_sweeper")
+    from mpsim.config import compose_command, register_schemas
+
+    register_schemas()
+    args = ["-m", "hydra/sweeper=optuna", "trainer.lr=interval(1e-3,1e-2)", *direction]
+    assert compose_command("train", args, str(CONF)) is not None
+
+
+def test_an_optuna_search_gets_one_direction_per_objective():
+    # the sweeper takes a list of directions for several objectives; mpsim train returns one
+    pytest.importorskip("hydra_plugins.hydra_optuna_sweeper")
+    from mpsim.config import compose_command, register_schemas
+
+    register_schemas()
+    args = ["-m", "hydra/sweeper=optuna", "hydra.sweeper.direction=[minimize,maximize]"]
+    with pytest.raises(ConfigError, match=r"one direction per objective.*hydra.sweeper.direction=minimize"):
+        compose_command("train", args, str(CONF))
+
+
 def test_an_interval_without_an_optuna_search_says_what_a_sweep_takes():
     from mpsim.config import compose_command, register_schemas
 
@@ -210,6 +238,7 @@ def test_a_key_with_no_close_match_lists_each_key_once():
         (["data.noise_std=-1"], "data.noise_std=-1.0"),
         (["trainer.early_stop_patience=-1"], "trainer.early_stop_patience=-1: must be >= 0"),
         (["trainer.log_every_s=-5"], "trainer.log_every_s=-5.0: must be >= 0 seconds"),
+        (["trainer.log_every=-1"], "trainer.log_every=-1: must be >= 0 epochs"),
         (["eval.horizons=[0]"], "horizons are numbers of steps >= 1"),
         (["-m", "data.n_train=4,0"], "data.n_train=0"),  # every sweep value is checked, not only the first
     ],

@@ -697,6 +697,28 @@ CASES: dict[str, Case] = {
     "data_edges_fifo": Case(
         lambda w, d: [*data_args(write_npz(d)), f"data.edges={fifo(d, 'e.csv')}"], 2, "e.csv is a named pipe (FIFO)"
     ),
+    # -- issue 58, Hydra's own ways in: -m hydra/sweeper=optuna as Hydra documents it, trainer.log_every
+    "optuna_sweeper_bad_interval": Case(  # was "direction=Direction.minimize: must be minimize or maximize"
+        lambda w, d: ["train", "-m", "hydra/sweeper=optuna", "trainer.lr=interval(1e-2,1e-3)"],
+        2,
+        "the low end must not exceed the high end",
+        ("Direction.minimize",),
+    ),
+    "optuna_sweeper_two_directions": Case(  # was a traceback from the sweeper after the first trial had run
+        lambda w, d: [
+            "train",
+            "-m",
+            "hydra/sweeper=optuna",
+            "hydra.sweeper.n_trials=1",
+            "hydra.sweeper.direction=[minimize,maximize]",
+            "trainer.lr=interval(1e-3,1e-2)",
+            *TINY_TRAIN,
+            "eval.plots=false",
+        ],
+        2,
+        "one direction per objective",
+    ),
+    "log_every_negative": Case(lambda w, d: ["train", "trainer.log_every=-1"], 2, "trainer.log_every=-1: must be >= 0"),
 }
 
 
@@ -874,7 +896,7 @@ def test_a_moved_run_resumes_where_it_is_now_and_writes_where_it_is_told(ws, tmp
     shutil.copytree(lorenz_run(ws), run_dir)
     ckpts = moved / "ckpts"
     # how it shows progress is not what it computes either: a run started with a bar resumes in the background
-    shown = ["trainer.progress=false", "trainer.log_every_s=60"]
+    shown = ["trainer.progress=false", "trainer.log_every_s=60", "trainer.log_every=5"]
     res = run_mpsim(
         ["train", f"resume={run_dir}", f"paths.ckpt_dir={ckpts}", f"paths.output_root={moved}", *shown], tmp_path
     )
@@ -885,9 +907,7 @@ def test_a_moved_run_resumes_where_it_is_now_and_writes_where_it_is_told(ws, tmp
     assert refused.code == 2, refused.err
     (line,) = refused.error_lines()
     assert "trainer.lr=0.5 (not set in the run)" in line
-    assert not any(
-        key in line.split(". A resumed")[0] for key in ("paths.ckpt_dir=", "trainer.progress", "log_every_s")
-    )
+    assert not any(key in line.split(". A resumed")[0] for key in ("paths.ckpt_dir=", "trainer.progress", "log_every"))
 
 
 def test_a_run_moved_from_a_gpu_machine_resumes_on_the_cpu_when_told_to(ws, tmp_path):

@@ -59,3 +59,19 @@ def test_optuna_search_minimises_the_objective(tmp_path):
     assert result["best_params"]["trainer.lr"] == pytest.approx(
         yaml.safe_load((jobs[values.index(min(values))] / ".hydra" / "config.yaml").read_text())["trainer"]["lr"]
     )
+
+
+@pytest.mark.slow  # 8-25 s on 2 busy cores; the fast checks of the same path: tests/test_config.py (direction)
+def test_hydra_sweeper_optuna_runs_a_search_as_hydra_documents_it(tmp_path):
+    # Hydra's way: -m hydra/sweeper=optuna and a search space on the key (no hparams_search= file); the sweeper's
+    # own default direction is an enum, Direction.minimize, which mpsim's check refused
+    pytest.importorskip("hydra_plugins.hydra_optuna_sweeper")
+    args = ["train", "-m", "hydra/sweeper=optuna", "hydra.sweeper.n_trials=2", "trainer.lr=interval(1e-3,1e-2)"]
+    proc = run_mpsim_ok([*args, "system=lorenz3", "eval.plots=false", *TINY_TRAIN], tmp_path)
+    jobs = _jobs(tmp_path / "outputs" / "multirun")
+    assert len(jobs) == 2, proc.stderr
+    values = [json.loads((j / "summary.json").read_text())["objective"]["value"] for j in jobs]
+    result = yaml.safe_load((jobs[0].parent / "optimization_results.yaml").read_text())
+    assert result["best_value"] == pytest.approx(min(values))
+    assert 1e-3 <= result["best_params"]["trainer.lr"] <= 1e-2
+    assert "2 runs under" in proc.stdout and "| trainer.lr |" in proc.stdout  # the search ends with its table

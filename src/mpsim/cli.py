@@ -216,7 +216,7 @@ def _with_resume(args: list[str]) -> list[str]:
 
     The resumed run keeps its `.hydra/` record (nothing is rewritten there). Overrides that differ from the
     run's own (other data, another learning rate, ...) are refused: they would silently change the run. Where it
-    writes (`paths.*`) and how it shows its progress (`trainer.progress`, `trainer.log_every_s`) are not what it
+    writes (`paths.*`) and how it shows its progress (`trainer.progress`, `trainer.log_every[_s]`) are not what it
     computes: those given now replace the run's own, so a run directory moved to another disk or machine resumes
     there, and a run started with a bar can be resumed in the background without one. Nor is the hardware it
     computes on (`device`, `threads`): a run started on a GPU resumes on a CPU with device=cpu. Nor is when it
@@ -394,6 +394,11 @@ def main(argv: list[str] | None = None) -> None:
             f"mpsim: unknown command {command!r}; choose one of {', '.join(COMMANDS)} (mpsim --help).", file=sys.stderr
         )
         sys.exit(2)
+    if "--help" in rest or "-h" in rest:  # mpsim's own help for the command (Hydra's: --hydra-help)
+        from mpsim.help import command_help
+
+        print(command_help(command, CONF_DIR))
+        return
     from mpsim.config import compose_command, register_schemas
 
     try:

@@ -40,7 +40,11 @@ from mpsim.safeload import RECORD_BYTES, load_yaml
 def output_only(key: str) -> bool:
     """An override that says where or how a run writes (`paths.*`, `overwrite`) or how it shows progress, not what it
     computes: it may change when a run resumes, and runs that differ only in it are the same experiment in a report."""
-    return key == "paths" or key.startswith("paths.") or key in {"trainer.progress", "trainer.log_every_s", "overwrite"}
+    return (
+        key == "paths"
+        or key.startswith("paths.")
+        or key in {"trainer.progress", "trainer.log_every", "trainer.log_every_s", "overwrite"}
+    )
 
 
 def host_only(key: str) -> bool:
@@ -97,6 +101,7 @@ class TrainerConf:
     window: int | None = None
     eval_window: int | None = None
     optimizer: str = "adam"  # adam | lbfgs (white-box models: lr 1, full batches; see trainer=whitebox)
+    log_every: int = 10  # without a bar (progress=false, or no terminal): one log line every this many epochs
 
 
 @dataclass
@@ -414,6 +419,7 @@ def _validate_trainer(t: DictConfig) -> None:
         ("min_lr", lambda v: v >= 0, ">= 0"),
         ("early_stop_patience", lambda v: v >= 0, ">= 0 (0: never stop early)"),
         ("log_every_s", lambda v: v >= 0, ">= 0 seconds (0: never)"),
+        ("log_every", lambda v: v >= 0, ">= 0 epochs (0: never)"),
         ("window", lambda v: v is None or v >= 1, ">= 1 step, or null"),
         ("eval_window", lambda v: v is None or v >= 1, ">= 1 step, or null"),
     ]
@@ -522,9 +528,9 @@ def compose_command(command: str, args: list[str], config_dir: str) -> DictConfi
 
 
 def validate_search(sweeper: DictConfig, overrides: list[str], cfg: DictConfig) -> None:
-    """Check an Optuna search (hparams_search=...) before its first trial: the trial count, the direction, and
-    every search space (`hydra.sweeper.params` and `key=interval(...)` / `choice(...)` on the command line)
-    as Optuna will read it, so a typo is one message instead of a traceback after the study was created. `cfg`
+    """Check an Optuna search (hparams_search=... or hydra/sweeper=optuna) before its first trial: the trial
+    count, the direction, and every search space (`hydra.sweeper.params` and `key=interval(...)` /
+    `choice(...)` on the command line) as Optuna will read it, so a typo is one message instead of a traceback after the study was created. `cfg`
     (the composed run config) tells which keys hold whole numbers: their intervals need the `int` tag."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.core.override_parser.types import IntervalSweep
@@ -534,21 +540,15 @@ def validate_search(sweeper: DictConfig, overrides: list[str], cfg: DictConfig) 
         if intervals:
             key = intervals[0].split("=", 1)[0]
             raise ConfigError(
-                f"{intervals[0]}: an interval is a search space, for an Optuna search (hparams_search=<file>); a "
-                f"-m sweep takes a list of values, e.g. {key}=1e-3,3e-3,1e-2."
+                f"{intervals[0]}: an interval is a search space, for an Optuna search (hparams_search=<file> or -m "
+                f"hydra/sweeper=optuna); a -m sweep takes a list of values, e.g. {key}=1e-3,3e-3,1e-2."
             )
         return
     for key in ("n_trials", "n_jobs"):
         value = sweeper.get(key)
         if not isinstance(value, int) or isinstance(value, bool) or value < 1:
             raise ConfigError(f"hydra.sweeper.{key}={value}: must be a whole number >= 1.")
-    direction = sweeper.get("direction")
-    directions = list(direction) if isinstance(direction, ListConfig) else [direction]
-    if not directions or any(d not in ("minimize", "maximize") for d in directions):
-        raise ConfigError(
-            f"hydra.sweeper.direction={direction}: must be minimize or maximize (mpsim's objective "
-            "is an error: minimize)."
-        )
+    _check_direction(sweeper.get("direction"))
     parser = OverridesParser.create()
     spaces = [(f"hydra.sweeper.params.{k}", f"{k}={v}") for k, v in (sweeper.get("params") or {}).items()]
     spaces += [(a.split("=", 1)[0], a) for a in intervals]
@@ -575,6 +575,24 @@ def validate_search(sweeper: DictConfig, overrides: list[str], cfg: DictConfig) 
                     f"{where}=tag(log, interval({low}, {high})): a log-scale interval needs a low end > 0, "
                     f"e.g. interval({high / 100:g}, {high:g})."
                 )
+
+
+def _check_direction(direction: Any) -> None:
+    """`hydra.sweeper.direction` as the Optuna sweeper reads it: its own default, the enum `Direction.minimize`
+    (`hydra/sweeper=optuna`), the string `minimize` or `maximize` (a yaml file or an override), or a list of them,
+    one per objective. mpsim returns one objective (`objective=`), so a list holds one direction."""
+    items = list(direction) if isinstance(direction, ListConfig | list | tuple) else [direction]
+    names = [getattr(d, "name", d) for d in items]  # an Enum member -> its name
+    if not names or any(n not in ("minimize", "maximize") for n in names):
+        raise ConfigError(
+            f"hydra.sweeper.direction={direction}: must be minimize or maximize (mpsim's objective "
+            "is an error: minimize)."
+        )
+    if len(names) > 1:
+        raise ConfigError(
+            f"hydra.sweeper.direction={direction}: one direction per objective, and mpsim train returns one "
+            "objective (objective=<summary entry>); give one: hydra.sweeper.direction=minimize."
+        )
 
 
 def _compose_one(firsts: list[str], _compose: Any, config_dir: str) -> DictConfig:

@@ -199,3 +199,28 @@ def test_a_layout_report_has_its_own_title_unless_one_is_given(cfg_factory, tmp_
     result = run_report(cfg, output_dir=tmp_path / "given")
     assert (tmp_path / "given" / "report.md").read_text().startswith("# Table 2 (paper-sized)\n\n15 runs under ")
     assert result["n_runs"] == 15 and result["figures"] == [str(tmp_path / "given" / "table2.png")]
+
+
+def test_numeric_override_columns_sort_as_numbers(cfg_factory, tmp_path):
+    # overrides are text ("8", "16"): sorted as text, 16 came before 8 and 100 before 16
+    root = tmp_path / "runs"
+    for seed, n_train in enumerate(["16", "100", "8", "8", "null"]):
+        _finished(root / f"s{seed}", seed)
+        saved = root / f"s{seed}" / ".hydra" / "overrides.yaml"
+        saved.write_text(yaml.safe_dump([f"seed={seed}", f"data.n_train={n_train}"]))
+    table = run_report(cfg_factory("report", f"runs=[{root}]"), output_dir=tmp_path / "out")["table"]
+    assert table["data.n_train"].tolist() == ["8", "16", "100", "null"]  # numbers as numbers, then text
+    assert table["runs"].tolist() == [2, 1, 1, 1]
+    text = (tmp_path / "out" / "report.md").read_text()
+    assert text.index("| 8 |") < text.index("| 16 |") < text.index("| 100 |")
+
+
+def test_the_jobs_table_is_the_report_of_the_sweep_and_writes_nothing(cfg_factory, tmp_path, runs):
+    from mpsim.commands.report import jobs_table
+
+    before = sorted(p for p in runs.rglob("*"))
+    text = jobs_table(runs, tmp_path)
+    run_report(cfg_factory("report", f"runs=[{runs}]"), output_dir=tmp_path / "out")
+    assert text == (tmp_path / "out" / "report.md").read_text().replace(str(runs), "runs")
+    assert sorted(p for p in runs.rglob("*")) == before
+    assert jobs_table(tmp_path / "out", tmp_path) == ""  # no job wrote a summary

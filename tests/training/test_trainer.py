@@ -1,3 +1,4 @@
+import contextlib
 import math
 
 import pytest
@@ -139,7 +140,9 @@ def test_window_training_sees_only_short_windows(tmp_path):
     assert tiles >= 2 and len(seen) >= 3 * n_batches * tiles
 
 
-def test_without_a_progress_bar_a_heartbeat_line_says_where_the_run_stands(tmp_path, caplog):
+def test_without_a_progress_bar_a_heartbeat_line_says_where_the_run_stands(tmp_path, caplog, monkeypatch):
+    import mpsim.training.trainer as trainer_module
+
     train, val, test = _data()
     with caplog.at_level("INFO", logger="mpsim.training.trainer"):
         _trainer(3, log_every_s=1e-9).fit(_model(train), train, val, test, run_dir=tmp_path / "quiet")
@@ -147,10 +150,31 @@ def test_without_a_progress_bar_a_heartbeat_line_says_where_the_run_stands(tmp_p
     assert [b.split(":")[0] for b in beats] == ["epoch 1/3", "epoch 2/3", "epoch 3/3"]
     assert "(best val " in beats[0] and beats[-1].endswith("about 0 min left")
 
-    caplog.clear()
+    caplog.clear()  # every trainer.log_every epochs, whatever the time
     with caplog.at_level("INFO", logger="mpsim.training.trainer"):
-        _trainer(2, log_every_s=0).fit(_model(train), train, val, test, run_dir=tmp_path / "never")
-        Trainer(max_epochs=2, batch_size=5, progress=True, log_every_s=1e-9).fit(
+        _trainer(5, log_every=2, log_every_s=0).fit(_model(train), train, val, test, run_dir=tmp_path / "epochs")
+    beats = [r.getMessage() for r in caplog.records if " s/epoch, about " in r.getMessage()]
+    assert [b.split(":")[0] for b in beats] == ["epoch 2/5", "epoch 4/5"]
+
+    caplog.clear()
+    monkeypatch.setattr(trainer_module, "_on_terminal", lambda stream: True)  # a bar needs a terminal
+    with caplog.at_level("INFO", logger="mpsim.training.trainer"):
+        _trainer(2, log_every=0, log_every_s=0).fit(_model(train), train, val, test, run_dir=tmp_path / "never")
+        Trainer(max_epochs=2, batch_size=5, progress=True, log_every=1, log_every_s=1e-9).fit(
             _model(train), train, val, test, run_dir=tmp_path / "bar"
         )  # the bar already says it
     assert not [r for r in caplog.records if " s/epoch, about " in r.getMessage()]
+
+
+def test_without_a_terminal_there_is_no_bar_but_a_line_every_log_every_epochs(tmp_path, caplog):
+    # output redirected to a file: a bar would write one long line of carriage returns there
+    import io
+
+    train, val, test = _data()
+    stderr = io.StringIO()  # not a terminal
+    trainer = Trainer(max_epochs=4, batch_size=5, progress=True, log_every=2, log_every_s=0)
+    with caplog.at_level("INFO", logger="mpsim.training.trainer"), contextlib.redirect_stderr(stderr):
+        trainer.fit(_model(train), train, val, test, run_dir=tmp_path)
+    assert "\r" not in stderr.getvalue() and "epoch/s" not in stderr.getvalue()
+    beats = [r.getMessage() for r in caplog.records if " s/epoch, about " in r.getMessage()]
+    assert [b.split(":")[0] for b in beats] == ["epoch 2/4", "epoch 4/4"]

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import pandas as pd
 
@@ -46,10 +47,23 @@ def add_epochs_to_target(frame: pd.DataFrame, target: str | float) -> float:
     return value
 
 
+def _sort_key(value: Any) -> tuple[int, float, str]:
+    """Numbers first, as numbers (8 before 16: an override's value is text, "8" and "16"), then text, then no value."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return (2, 0.0, "")
+    try:
+        number = float(value) if not isinstance(value, bool) else math.nan
+    except (TypeError, ValueError):
+        number = math.nan
+    return (0, number, "") if not math.isnan(number) else (1, 0.0, str(value))
+
+
 def aggregate(frame: pd.DataFrame, group_by: list[str]) -> pd.DataFrame:
-    """Mean ± std of the numeric metrics over rows that share `group_by`."""
+    """Mean ± std of the numeric metrics over rows that share `group_by`, groups in the order of their values
+    (numbers as numbers)."""
     numeric = [c for c in NUMERIC if c in frame.columns]
-    grouped = frame.groupby(group_by, dropna=False)[numeric]
+    rows = sorted(range(len(frame)), key=lambda i: [_sort_key(frame[c].iloc[i]) for c in group_by])
+    grouped = frame.iloc[rows].groupby(group_by, dropna=False, sort=False)[numeric]
     mean, std = grouped.mean(), grouped.std()
     out = pd.DataFrame(
         {c: [_pm(m, s) for m, s in zip(mean[c], std[c], strict=True)] for c in numeric}, index=mean.index

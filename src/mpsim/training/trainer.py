@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 import logging
 import math
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -111,12 +112,15 @@ class Trainer:
         eval_window: measure the per-epoch validation/test errors over the first this-many steps only
             (null: whole trajectories) — for chaotic systems, whose long rollouts decorrelate from any model.
         eval_batch_size: trajectories per batch when evaluating.
-        progress: show a progress bar.
-        log_every_s: without the bar (`progress=false`, as the recipes run), log one line this often (seconds;
-            0: never) — epoch, losses, best validation so far, seconds per epoch and the time left — so a run of
-            hours shows it is alive, in its train.log as on the terminal.
+        progress: show a progress bar when it writes to a terminal; where stderr is not one (output redirected
+            to a file, a batch job) the bar is left out, as with `progress=false`, and the log lines below say
+            where the run stands instead.
+        log_every_s: without the bar (`progress=false`, as the recipes run, or no terminal), log one line at
+            least this often (seconds; 0: never) — epoch, losses, best validation so far, seconds per epoch and
+            the time left — so a run of hours shows it is alive, in its train.log as on the terminal.
         optimizer: ``adam`` (neural models) or ``lbfgs`` (quasi-Newton with a strong-Wolfe line search, for the
             few smooth parameters of white-box models such as `model=equations`; use lr 1 and full batches).
+        log_every: without the bar, also log that line after every epoch that is a multiple of this (0: never).
     """
 
     def __init__(
@@ -138,6 +142,7 @@ class Trainer:
         window: int | None = None,
         eval_window: int | None = None,
         optimizer: str = "adam",
+        log_every: int = 10,
     ) -> None:
         if optimizer not in OPTIMIZERS:
             raise ConfigError(f"trainer.optimizer={optimizer!r} is unknown; choose one of {', '.join(OPTIMIZERS)}.")
@@ -155,7 +160,9 @@ class Trainer:
         self.early_stop_patience, self.eval_batch_size, self.progress = early_stop_patience, eval_batch_size, progress
         if not log_every_s >= 0:
             raise ConfigError(f"trainer.log_every_s must be >= 0 seconds (0: never); got {log_every_s}.")
-        self.log_every_s = log_every_s
+        if not log_every >= 0:
+            raise ConfigError(f"trainer.log_every must be >= 0 epochs (0: never); got {log_every}.")
+        self.log_every_s, self.log_every = log_every_s, log_every
         if window is not None and window < 1:
             raise ConfigError(f"trainer.window must be >= 1 step or null; got {window}.")
         self.window, self.eval_window = window, eval_window
@@ -255,13 +262,16 @@ class Trainer:
             range(start_epoch, self.max_epochs + 1),
             initial=start_epoch - 1,
             total=self.max_epochs,
-            disable=not self.progress or not dist.is_main,
+            disable=not self.progress or not dist.is_main or not _on_terminal(sys.stderr),  # where tqdm writes
             desc="train",
             unit="epoch",
             dynamic_ncols=True,
             leave=True,
         )
-        beat = _Heartbeat(self.log_every_s if bar.disable and dist.is_main else 0.0, start_epoch, self.max_epochs)
+        quiet = bar.disable and dist.is_main  # no bar: log lines say where the run stands
+        beat = _Heartbeat(
+            self.log_every if quiet else 0, self.log_every_s if quiet else 0.0, start_epoch, self.max_epochs
+        )
         for epoch in bar:
             t0 = time.perf_counter()
             try:
@@ -478,16 +488,30 @@ def _divergence_message(pred: torch.Tensor, t: torch.Tensor, epoch: int, batch: 
     )
 
 
-class _Heartbeat:
-    """One log line every `every` seconds of training (0: never): where a run without a progress bar stands."""
+def _on_terminal(stream: Any) -> bool:
+    """Whether a progress bar on `stream` redraws in place: a terminal, or a notebook (where `tqdm.auto` draws a
+    widget); a file, a pipe or a closed stream is not (there each redraw would append a line)."""
+    notebook = sys.modules.get("tqdm.notebook")
+    if notebook is not None and issubclass(tqdm, notebook.tqdm_notebook):
+        return True
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError, OSError):
+        return False
 
-    def __init__(self, every: float, start_epoch: int, max_epochs: int) -> None:
-        self.every, self.first, self.max_epochs = every, start_epoch, max_epochs
+
+class _Heartbeat:
+    """Where a run without a progress bar stands: one log line after every epoch that is a multiple of
+    `every_epochs`, and one whenever `every_s` seconds of training have passed since the last (0: never, each)."""
+
+    def __init__(self, every_epochs: int, every_s: float, start_epoch: int, max_epochs: int) -> None:
+        self.every_epochs, self.every_s, self.first, self.max_epochs = every_epochs, every_s, start_epoch, max_epochs
         self.t_start = self.t_last = time.perf_counter()
 
     def __call__(self, epoch: int, row: dict, best_val: float, best_epoch: int) -> None:
         now = time.perf_counter()
-        if not self.every or now - self.t_last < self.every:
+        on_epoch = bool(self.every_epochs) and epoch % self.every_epochs == 0
+        if not on_epoch and not (self.every_s and now - self.t_last >= self.every_s):
             return
         self.t_last = now
         per_epoch = (now - self.t_start) / (epoch - self.first + 1)  # this session's epochs (a resumed run: since then)
