@@ -65,6 +65,8 @@ LAYERS: list[tuple[str, list[str]]] = [
             "mpsim.version",
             "mpsim.process",
             "mpsim.safeload",
+            "mpsim.runfolder",
+            "mpsim.console",
         ],
     ),
     (
@@ -74,7 +76,7 @@ LAYERS: list[tuple[str, list[str]]] = [
             "mpsim.polynomials",
             "mpsim.metrics",
             "mpsim.effects",
-            "mpsim.equations",
+            "mpsim.spec",
             "mpsim.graphs",
             "mpsim.solvers",
         ],
@@ -87,7 +89,7 @@ LAYERS: list[tuple[str, list[str]]] = [
     ("config", ["mpsim.config"]),
     ("report", ["mpsim.report"]),
     ("commands", ["mpsim.commands"]),
-    ("entry", ["mpsim.cli", "mpsim.__main__", "mpsim"]),
+    ("entry", ["mpsim.cli", "mpsim.help", "mpsim.__main__", "mpsim"]),
 ]
 # The command modules (`mpsim <command>`); every other module of `mpsim.commands` is a helper.
 COMMANDS = {f"mpsim.commands.{c}" for c in ("train", "eval", "simulate", "diagnose", "report", "bench")}

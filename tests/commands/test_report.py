@@ -216,7 +216,7 @@ def test_numeric_override_columns_sort_as_numbers(cfg_factory, tmp_path):
 
 
 def test_the_jobs_table_is_the_report_of_the_sweep_and_writes_nothing(cfg_factory, tmp_path, runs):
-    from mpsim.commands.report import jobs_table
+    from mpsim.report import jobs_table
 
     before = sorted(p for p in runs.rglob("*"))
     text = jobs_table(runs, tmp_path)

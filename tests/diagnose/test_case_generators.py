@@ -17,7 +17,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from mpsim.data.trajectories import Trajectories
-from mpsim.equations import SYSTEM_KEYS, load_spec_file, parse_spec
+from mpsim.spec import SYSTEM_KEYS, load_spec_file, parse_spec
 from mpsim.systems.equations import EquationsSystem
 
 ROOT = Path(__file__).resolve().parents[2]

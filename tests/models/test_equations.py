@@ -13,10 +13,10 @@ from mpsim.commands.train import run_train
 from mpsim.data.dataset import fit_normalisation
 from mpsim.data.trajectories import Inputs
 from mpsim.effects import LinearDamping
-from mpsim.equations import load_spec_file
 from mpsim.errors import ConfigError, IncompatibleError
 from mpsim.models.equations import EquationsModel
 from mpsim.solvers.odeint import ODESolver
+from mpsim.spec import load_spec_file
 from mpsim.systems.equations import EquationsSystem
 from mpsim.training.checkpoint import load_checkpoint
 from mpsim.training.trainer import Trainer

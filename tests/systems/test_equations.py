@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from mpsim.effects import LinearDamping
-from mpsim.equations import load_spec_file
 from mpsim.errors import ConfigError
+from mpsim.spec import load_spec_file
 from mpsim.systems.equations import EquationsSystem
 from mpsim.systems.kuramoto import Kuramoto
 from mpsim.systems.lorenz import CoupledLorenz

@@ -14,9 +14,9 @@ from omegaconf import DictConfig
 
 from mpsim.bench.common import Suite
 from mpsim.commands.building import build
-from mpsim.commands.console import markdown
 from mpsim.commands.runtime import locate
 from mpsim.config import check_targets
+from mpsim.console import markdown
 from mpsim.errors import ConfigError
 from mpsim.files import atomic_write, write_json
 

@@ -22,8 +22,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from mpsim.commands.building import Shape, build, build_model_for, build_system, model_and_data
 from mpsim.commands.checkpoints import checkpoint_base, load_init
-from mpsim.commands.console import print_summary
 from mpsim.commands.runtime import Runtime, setup_runtime
+from mpsim.console import print_summary
 from mpsim.data.dataset import Splits
 from mpsim.diagnose import report
 from mpsim.diagnose.finetuned import serial

@@ -14,8 +14,8 @@ from omegaconf import DictConfig
 from mpsim import plotting
 from mpsim.commands.building import build_system, model_and_data
 from mpsim.commands.checkpoints import load_init
-from mpsim.commands.console import fmt, print_summary
 from mpsim.commands.runtime import Runtime
+from mpsim.console import fmt, print_summary
 from mpsim.data.io import save_npz
 from mpsim.data.trajectories import Trajectories
 from mpsim.files import write_json

@@ -20,10 +20,8 @@ import math
 from pathlib import Path
 from typing import Any
 
-import pandas as pd
 from omegaconf import DictConfig
 
-from mpsim.commands.console import markdown
 from mpsim.commands.runtime import locate, resolve_path
 from mpsim.errors import ConfigError
 from mpsim.files import atomic_write
@@ -33,9 +31,8 @@ from mpsim.report import (
     collect,
     layout_report,
     plain_table,
-    shown,
+    plain_text,
     unfinished,
-    unfinished_note,
 )
 
 log = logging.getLogger(__name__)
@@ -103,33 +100,7 @@ def run_report(cfg: DictConfig, output_dir: str | Path | None = None, overrides:
     table = plain_table(frame, list(cfg.group_by), list(cfg.columns))
     atomic_write(out_dir / "report.csv", lambda f: frame.to_csv(f, index=False), mode="w")
     note = f" Target test error {frame['target_error'].iloc[0]:.4g} ({cfg.target})." if cfg.target is not None else ""
-    text = _plain_text(cfg.title, frame, table, roots, start_dir, pending, note)
+    text = plain_text(cfg.title, frame, table, roots, start_dir, pending, note)
     atomic_write(out_dir / "report.md", lambda f: f.write(text), mode="w")
     print(text)
     return {"n_runs": len(frame), "report": str(out_dir / "report.md"), "table": table, "unfinished": pending}
-
-
-def _plain_text(
-    title: str,
-    frame: pd.DataFrame,
-    table: pd.DataFrame,
-    roots: list[Path],
-    start_dir: Path | None,
-    pending: list[dict[str, Any]],
-    note: str = "",
-) -> str:
-    """The plain report as Markdown: title, what it covers, the runs it leaves out, the table."""
-    return (
-        f"# {title}\n\n{len(frame)} runs under {', '.join(shown(r, start_dir) for r in roots)}.{note}\n\n"
-        f"{unfinished_note(pending, start_dir)}{markdown(table)}\n"
-    )
-
-
-def jobs_table(sweep_dir: Path, start_dir: Path | None = None) -> str:
-    """The report `mpsim report runs='[<sweep_dir>]'` prints, for the end of a multirun (nothing is written);
-    "" when no job wrote a summary."""
-    frame = collect([sweep_dir])
-    if frame.empty:
-        return ""
-    table = plain_table(frame, [], [])
-    return _plain_text("mpsim report", frame, table, [sweep_dir], start_dir, unfinished([sweep_dir]))

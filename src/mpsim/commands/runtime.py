@@ -93,7 +93,7 @@ def describe_device(device: torch.device) -> str:
 def inline_specs(cfg: DictConfig) -> None:
     """`system.spec=<file>` / `model.spec=<file>` (model=equations, system=equations): replace the file name by
     the file's content, so that checkpoints, dataset cache keys and summaries carry the equations themselves."""
-    from mpsim.equations import load_spec_file
+    from mpsim.spec import load_spec_file
 
     start_dir = Path(HydraConfig.get().runtime.cwd) if HydraConfig.initialized() else Path.cwd()
     for key in ("system", "model"):

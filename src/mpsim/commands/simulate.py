@@ -11,9 +11,9 @@ from omegaconf import DictConfig
 from mpsim import plotting
 from mpsim.commands.building import Shape, build_model_for, build_system
 from mpsim.commands.checkpoints import load_init
-from mpsim.commands.console import fmt, print_summary
 from mpsim.commands.runtime import setup_runtime
 from mpsim.commands.splits import check_simulation_memory
+from mpsim.console import fmt, print_summary
 from mpsim.data.dataset import generate
 from mpsim.data.io import save_csv, save_npz
 from mpsim.data.trajectories import Trajectories

@@ -22,7 +22,7 @@ class JobsTable(Callback):
     """Print the report table of a multirun's jobs when the multirun ends."""
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        from mpsim.commands.report import jobs_table  # pandas: only when a multirun ends
+        from mpsim.report import jobs_table  # pandas: only when a multirun ends
 
         task = config.get("task", "train")
         sweep = Path(str(config.hydra.sweep.dir))

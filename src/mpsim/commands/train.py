@@ -18,11 +18,11 @@ from omegaconf import DictConfig, OmegaConf
 from mpsim import plotting
 from mpsim.commands.building import build, build_system, model_and_data
 from mpsim.commands.checkpoints import capped_meta, checkpoint_base, load_init
-from mpsim.commands.console import duration, fmt, print_summary
 from mpsim.commands.evaluation import evaluate_checkpoint, evaluate_model, horizon_rows
 from mpsim.commands.runtime import Runtime, describe_device, is_multirun, resolve_path, setup_runtime
 from mpsim.commands.splits import check_training_memory, noisy_train
 from mpsim.config import check_target_node, plain_dict, read_overrides_file
+from mpsim.console import duration, fmt, print_summary
 from mpsim.errors import CheckpointError, ConfigError, DataError, OutputError
 from mpsim.files import atomic_write, child_path, file_sha256, keep_previous, safe_name, write_json
 from mpsim.metrics import epochs_x_min_error

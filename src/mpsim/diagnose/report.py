@@ -13,6 +13,7 @@ from typing import Any
 import torch
 
 from mpsim import plotting
+from mpsim.console import fmt
 from mpsim.diagnose.heldout import EFFECTS_NAMED, NOTHING_MISSING
 from mpsim.diagnose.loop import LoopResult
 
@@ -31,18 +32,6 @@ def plots(result: LoopResult, t: torch.Tensor, out: Path) -> None:  # t: [T] hel
     if result.after:
         curves["after"] = result.after["per_step_rmse"]
     plotting.error_curves(t, curves, out / "plots" / "before_after.png")
-
-
-def _fmt(v: Any, digits: int = 4) -> str:
-    """A number as the command summaries print it (as `mpsim.commands.console.fmt`, which this floor cannot
-    import): `digits` significant digits, "nan" for a non-finite float, "-" for None."""
-    if v is None:
-        return "-"
-    if isinstance(v, float):
-        if not math.isfinite(v):
-            return "nan"
-        return f"{v:.{digits}g}"
-    return str(v)
 
 
 def values_text(values: dict[str, float], interval: dict[str, Any]) -> str:
@@ -205,10 +194,10 @@ def _error_table(before: dict[str, Any], after: dict[str, Any]) -> list[str]:
         ("rollout RMSE (full horizon)", "rollout_rmse"),
         ("valid prediction time", "valid_prediction_time"),
     ):
-        lines.append(f"| {label} | {_fmt(before[key])} | {_fmt(after.get(key))} |")
+        lines.append(f"| {label} | {fmt(before[key])} | {fmt(after.get(key))} |")
     for h, v in before["horizons"].items():
         a = (after.get("horizons") or {}).get(h, {}).get("rmse")
-        lines.append(f"| rollout RMSE at {h} steps (t={v['t']:.3g}) | {_fmt(v['rmse'])} | {_fmt(a)} |")
+        lines.append(f"| rollout RMSE at {h} steps (t={v['t']:.3g}) | {fmt(v['rmse'])} | {fmt(a)} |")
     return lines
 
 
@@ -239,8 +228,8 @@ def summary_rows(s: dict[str, Any], out: Path) -> list[tuple[str, str]]:
         rows.append(
             (
                 label,
-                f"{_fmt(value)}"
-                + (f" → {_fmt(after[key])}" if after else "")
+                f"{fmt(value)}"
+                + (f" → {fmt(after[key])}" if after else "")
                 + ("" if math.isfinite(value) else " (diverged)"),
             )
         )

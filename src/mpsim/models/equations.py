@@ -19,12 +19,12 @@ from torch import nn
 
 from mpsim.data.trajectories import Inputs
 from mpsim.effects import Effect, EffectContext, min_delay, total
-from mpsim.equations import SYSTEM_KEYS, EquationField, Spec, check_nodes, check_states, merge_spec, parse_spec
 from mpsim.errors import ConfigError, IncompatibleError
 from mpsim.graphs.batch import BatchedGraph, batch_graph
 from mpsim.models.base import Model
 from mpsim.models.capabilities import one_step_by_rollouts
 from mpsim.solvers.odeint import ODESolver
+from mpsim.spec import SYSTEM_KEYS, EquationField, Spec, check_nodes, check_states, merge_spec, parse_spec
 
 ENTRY = re.compile(r"^(?P<name>\w+)\[(?P<i>\d+)\]$")
 

@@ -9,7 +9,7 @@ discovered equation, and `PolynomialField` is dx/dt = φ(x) ξ (+ effects) for t
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import torch
 from torch import nn
@@ -17,9 +17,6 @@ from torch import nn
 from mpsim.effects import EffectContext, total
 from mpsim.errors import ConfigError
 from mpsim.polynomials import monomials
-
-if TYPE_CHECKING:
-    from mpsim.models.smnn_discovery import SMNNDiscovery
 
 
 def monomial_name(term: tuple[int, ...], names: Sequence[str]) -> str:
@@ -92,6 +89,14 @@ def equation_text(parts: Sequence[tuple[float, str]], digits: int) -> str:
     return text or "0"
 
 
+class _LibraryModel(Protocol):
+    """What the field reads of its model (`SMNNDiscovery`): the term library and the effects."""
+
+    effects: Any
+
+    def library(self, x: torch.Tensor) -> torch.Tensor: ...  # x: [B, N, D] -> [B, N, n_terms]
+
+
 class PolynomialField(nn.Module):
     """dx/dt = φ(x) ξ + Σ effects (ξ fixed during one solve), optionally in a rescaled time.
 
@@ -101,7 +106,7 @@ class PolynomialField(nn.Module):
 
     def __init__(
         self,
-        model: SMNNDiscovery,
+        model: _LibraryModel,
         xi: torch.Tensor,  # [n_terms, D] coefficients
         graph: Any = None,  # BatchedGraph of the batch (effects that read neighbours), or None
         scale: torch.Tensor | None = None,  # [B, 1, 1] step length per trajectory (None: plain time)

@@ -25,7 +25,7 @@ Nothing here reads a config object or imports `mpsim.commands`: functions take p
 
 from mpsim.report.common import LayoutResult, md_table, min_so_far, pm, read_metrics
 from mpsim.report.layouts import DEFAULT_TITLES, LAYOUT_FUNCS, layout_report
-from mpsim.report.plain import add_epochs_to_target, aggregate, plain_table
+from mpsim.report.plain import add_epochs_to_target, aggregate, jobs_table, plain_table, plain_text
 from mpsim.report.runs import (
     collect,
     read_overrides,
@@ -50,6 +50,8 @@ __all__ = [
     "md_table",
     "min_so_far",
     "plain_table",
+    "plain_text",
+    "jobs_table",
     "pm",
     "read_metrics",
     "read_overrides",

@@ -4,13 +4,16 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any
 
 import pandas as pd
 
 from mpsim.config import output_only
+from mpsim.console import markdown
 from mpsim.metrics import first_epoch_below
 from mpsim.report.common import read_metrics
+from mpsim.report.runs import collect, shown, unfinished, unfinished_note
 
 NUMERIC = (
     "epochs_to_target",
@@ -94,3 +97,29 @@ def plain_table(frame: pd.DataFrame, group_by: list[str], columns: list[str]) ->
         order = [*group_by, *columns, "runs"]
         table = table[[c for c in order if c in table.columns]]
     return table
+
+
+def plain_text(
+    title: str,
+    frame: pd.DataFrame,
+    table: pd.DataFrame,
+    roots: list[Path],
+    start_dir: Path | None,
+    pending: list[dict[str, Any]],
+    note: str = "",
+) -> str:
+    """The plain report as Markdown: title, what it covers, the runs it leaves out, the table."""
+    return (
+        f"# {title}\n\n{len(frame)} runs under {', '.join(shown(r, start_dir) for r in roots)}.{note}\n\n"
+        f"{unfinished_note(pending, start_dir)}{markdown(table)}\n"
+    )
+
+
+def jobs_table(sweep_dir: Path, start_dir: Path | None = None) -> str:
+    """The report `mpsim report runs='[<sweep_dir>]'` prints, for the end of a multirun (nothing is written);
+    "" when no job wrote a summary."""
+    frame = collect([sweep_dir])
+    if frame.empty:
+        return ""
+    table = plain_table(frame, [], [])
+    return plain_text("mpsim report", frame, table, [sweep_dir], start_dir, unfinished([sweep_dir]))

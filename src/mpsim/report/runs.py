@@ -36,9 +36,16 @@ def collect(roots: list[Path], facts: bool = False) -> pd.DataFrame:
             p.parent
             for root in roots
             for p in ([root / "summary.json"] if (root / "summary.json").is_file() else root.rglob("summary.json"))
+            if not in_backup(p, root)
         }
     )
     return pd.DataFrame([_row(run, facts) for run in runs])
+
+
+def in_backup(path: Path, root: Path) -> bool:
+    """Whether `path` lies in a `backup-<time>/` folder below `root`: the earlier run that `overwrite=true` moved
+    aside inside its folder (`mpsim.runfolder`), not a run of its own (name that folder in runs= to report it)."""
+    return any(part.startswith("backup-") for part in path.relative_to(root).parts[:-1])
 
 
 def unfinished(roots: list[Path]) -> list[dict[str, Any]]:
@@ -53,6 +60,7 @@ def unfinished(roots: list[Path]) -> list[dict[str, Any]]:
             if root.is_dir()
             for pattern in ("metrics.csv", "checkpoints/last.ckpt")
             for p in root.rglob(pattern)
+            if not in_backup(p, root)
         }
     )
     return [

@@ -39,10 +39,10 @@ import torch
 
 from mpsim.data.trajectories import Trajectories, grid_step
 from mpsim.effects import min_delay
-from mpsim.equations import SYSTEM_KEYS, EquationField, check_nodes, merge_spec, parse_spec
 from mpsim.errors import ConfigError, did_you_mean
 from mpsim.graphs.batch import BatchedGraph, batch_graph
 from mpsim.graphs.topology import make_topology
+from mpsim.spec import SYSTEM_KEYS, EquationField, check_nodes, merge_spec, parse_spec
 from mpsim.systems.base import System
 
 SAFE_NAME = re.compile(r"^[A-Za-z0-9_.-]+$")

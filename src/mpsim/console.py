@@ -1,4 +1,5 @@
-"""The one-screen summary a command prints when it ends, and the Markdown tables that `report` and `bench` write."""
+"""Text for people: numbers and durations as the commands print them, the one-screen summary a command prints when
+it ends, and the Markdown tables that `report`, `bench` and `diagnose` write."""
 
 from __future__ import annotations
 

@@ -9,10 +9,10 @@ import pytest
 import sympy
 import torch
 
-from mpsim.equations import EquationField, load_spec_file, parse_spec
 from mpsim.errors import ConfigError
 from mpsim.graphs.batch import batch_graph
 from mpsim.graphs.topology import make_topology
+from mpsim.spec import EquationField, load_spec_file, parse_spec
 
 PENDULUM = {
     "states": ["theta", "omega"],

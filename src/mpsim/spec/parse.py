@@ -1,0 +1,243 @@
+"""A spec as plain data → a checked `Spec` (states, parsed right-hand sides, parameter values, what is learnable)."""
+
+from __future__ import annotations
+
+import keyword
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import sympy
+import torch
+
+from mpsim.errors import ConfigError, did_you_mean
+from mpsim.spec.grammar import NEIGHBOUR_SUFFIX, RESERVED, Parser
+
+#: spec keys every spec may have; systems add their own (initial ranges, graph, ...)
+MODEL_KEYS = ("states", "equations", "params", "learnable", "kinematic", "nodes", "description")
+#: what a simulation also needs (`system=equations`); a model reads the same file and ignores them
+SYSTEM_KEYS = ("name", "graph", "graph_params", "edges", "directed", "init", "dt", "horizon", "integrator", "substep")
+
+
+@dataclass(frozen=True)
+class Spec:
+    """A parsed, checked spec.
+
+    Attributes:
+        states: D state names per node, in the data's column order.
+        rhs: one sympy expression per state (d state / dt).
+        params: name -> float64 value: [] scalar, [N] per node, or [N·D, N·D] matrix (used through `lin`).
+        learnable: parameter names that training fits.
+        kinematic: states whose equation is another state (θ̇ = ω) or that the spec declares so.
+        n_nodes: N when the spec fixes it (a per-node or matrix parameter, or `nodes:`), else None.
+        raw: the spec as plain data (what checkpoints store).
+        where: the config key it was given as (messages name it).
+    """
+
+    states: tuple[str, ...]
+    rhs: tuple[sympy.Expr, ...]
+    params: dict[str, torch.Tensor]
+    learnable: tuple[str, ...]
+    kinematic: tuple[str, ...]
+    n_nodes: int | None
+    raw: dict[str, Any] = field(repr=False)
+    where: str = "model.spec"
+
+    @property
+    def state_dim(self) -> int:
+        return len(self.states)
+
+    def equation_text(self) -> dict[str, str]:
+        return {s: str(e) for s, e in zip(self.states, self.rhs, strict=True)}
+
+
+def _names(value: Any, key: str, where: str) -> list[str]:
+    if value is None:
+        return []
+    if isinstance(value, str) or not isinstance(value, Sequence) or not all(isinstance(v, str) for v in value):
+        raise ConfigError(f"{where}.{key} must be a list of names, e.g. [theta, omega]; got {value!r}.")
+    return list(value)
+
+
+def _check_name(name: str, where: str, what: str) -> None:
+    if not name.isidentifier() or keyword.iskeyword(name):
+        raise ConfigError(
+            f"{where}: {what} name {name!r} is not a valid identifier (letters, digits, _; not a "
+            "Python keyword such as lambda). Rename it."
+        )
+    if name in RESERVED:
+        raise ConfigError(f"{where}: {what} name {name!r} is reserved (t, deg, pi and the function names). Rename it.")
+    if name.endswith(NEIGHBOUR_SUFFIX):
+        raise ConfigError(f"{where}: {what} name {name!r} ends in '_j', which denotes a neighbour's value. Rename it.")
+
+
+def _param_value(name: str, value: Any, where: str) -> torch.Tensor:
+    def bad() -> ConfigError:
+        return ConfigError(
+            f"{where}.params.{name}: expected a number, a list of numbers (one per node) or a "
+            f"square matrix (list of rows); got {str(value)[:80]!r}."
+        )
+
+    def number(v: Any) -> bool:
+        return isinstance(v, int | float) and not isinstance(v, bool)
+
+    if number(value):
+        out = torch.tensor(float(value), dtype=torch.float64)
+    elif isinstance(value, Sequence) and not isinstance(value, str) and len(value) > 0:
+        if all(number(v) for v in value):
+            out = torch.tensor([float(v) for v in value], dtype=torch.float64)
+        elif all(isinstance(r, Sequence) and not isinstance(r, str) and all(number(v) for v in r) for r in value):
+            if len({len(r) for r in value}) != 1 or len(value[0]) != len(value):
+                raise ConfigError(
+                    f"{where}.params.{name}: a matrix parameter must be square; got "
+                    f"{len(value)} rows of lengths {sorted({len(r) for r in value})}."
+                )
+            out = torch.tensor([[float(v) for v in r] for r in value], dtype=torch.float64)
+        else:
+            raise bad()
+    else:
+        raise bad()
+    if not torch.isfinite(out).all():
+        raise ConfigError(f"{where}.params.{name} has a NaN or infinite value; give finite numbers.")
+    return out
+
+
+def merge_spec(spec: Mapping[str, Any] | None, inline: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """The spec from `spec` with the keys given inline on top (inline keys win)."""
+    if isinstance(spec, str):
+        raise ConfigError(
+            f"{where}.spec={spec!r} is a file name, but specs are read by the command layer "
+            "(`mpsim ... model.spec=<file>`); in Python pass the loaded mapping "
+            "(mpsim.spec.load_spec_file)."
+        )
+    if spec is not None and not isinstance(spec, Mapping):
+        raise ConfigError(f"{where}.spec must be a mapping or a YAML file name; got {type(spec).__name__}.")
+    merged = dict(spec or {})
+    merged.update({k: v for k, v in inline.items() if v is not None})
+    if not merged:
+        raise ConfigError(
+            f"{where}: no equations. Pass {where}.spec=<file.yaml> or {where}.states / "
+            f"{where}.equations / {where}.params inline (see docs/equations.md)."
+        )
+    return merged
+
+
+def parse_spec(spec: Mapping[str, Any], where: str = "model.spec", extra_keys: Sequence[str] = ()) -> Spec:
+    """Check a spec and parse its equations.
+
+    Args:
+        spec: the plain spec (see the module docstring).
+        where: the config path named in error messages.
+        extra_keys: further top-level keys the caller understands (e.g. a system's initial ranges).
+
+    Raises:
+        ConfigError: one message naming what is wrong and where.
+    """
+    if not isinstance(spec, Mapping):
+        raise ConfigError(f"{where} must be a mapping with states, equations and params; got {type(spec).__name__}.")
+    allowed = (*MODEL_KEYS, *extra_keys)
+    for key in spec:
+        if key not in allowed:
+            raise ConfigError(
+                f"{where}.{key} is not a spec key.{did_you_mean(str(key), allowed)} Valid keys: {', '.join(allowed)}."
+            )
+    states = _names(spec.get("states"), "states", where)
+    if not states:
+        raise ConfigError(f"{where}.states is missing: list the per-node state names in the data's column order.")
+    if len(set(states)) != len(states):
+        raise ConfigError(f"{where}.states lists a name twice: {states}.")
+    for s in states:
+        _check_name(s, where, "state")
+    raw_params = spec.get("params") or {}
+    if not isinstance(raw_params, Mapping):
+        raise ConfigError(f"{where}.params must be a mapping name: value; got {type(raw_params).__name__}.")
+    params: dict[str, torch.Tensor] = {}
+    for name, value in raw_params.items():
+        _check_name(str(name), where, "parameter")
+        if name in states:
+            raise ConfigError(f"{where}.params.{name} has the name of a state; rename the parameter.")
+        params[str(name)] = _param_value(str(name), value, where)
+    n_nodes = _node_count(spec.get("nodes"), params, len(states), where)
+
+    equations = spec.get("equations")
+    if not isinstance(equations, Mapping):
+        raise ConfigError(f"{where}.equations is missing: give one expression per state, e.g. {{{states[0]}: ...}}.")
+    for key in equations:
+        if key not in states:
+            raise ConfigError(
+                f"{where}.equations.{key}: {key!r} is not a state.{did_you_mean(str(key), states)} States: {states}."
+            )
+    missing = [s for s in states if s not in equations]
+    if missing:
+        raise ConfigError(f"{where}.equations has no equation for {missing}; give d/dt of every state.")
+    parser = Parser(states, params, where)
+    rhs = tuple(parser.parse(s, equations[s]) for s in states)
+
+    learnable = list(params) if spec.get("learnable") is None else _names(spec.get("learnable"), "learnable", where)
+    for name in learnable:
+        if name not in params:
+            raise ConfigError(
+                f"{where}.learnable names {name!r}, which is not a parameter."
+                f"{did_you_mean(name, list(params))} Parameters: {sorted(params)}."
+            )
+    auto = [s for s, e in zip(states, rhs, strict=True) if isinstance(e, sympy.Symbol) and e.name in states]
+    kinematic = auto if spec.get("kinematic") is None else _names(spec.get("kinematic"), "kinematic", where)
+    for name in kinematic:
+        if name not in states:
+            raise ConfigError(f"{where}.kinematic names {name!r}, which is not a state.{did_you_mean(name, states)}")
+    plain = {k: _plain(v) for k, v in spec.items()}
+    return Spec(tuple(states), rhs, params, tuple(learnable), tuple(kinematic), n_nodes, plain, where)
+
+
+def _plain(value: Any) -> Any:
+    """A spec value as JSON-able containers (OmegaConf containers and tuples become dicts and lists)."""
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, Sequence) and not isinstance(value, str):
+        return [_plain(v) for v in value]
+    return value
+
+
+def _node_count(nodes: Any, params: dict[str, torch.Tensor], d: int, where: str) -> int | None:
+    sizes: dict[str, int] = {}
+    if nodes is not None:
+        if not isinstance(nodes, int) or isinstance(nodes, bool) or nodes < 1:
+            raise ConfigError(f"{where}.nodes must be a positive integer; got {nodes!r}.")
+        sizes["nodes"] = nodes
+    for name, value in params.items():
+        if value.dim() == 1:
+            sizes[f"params.{name} (per node)"] = value.numel()
+        elif value.dim() == 2:
+            if value.shape[0] % d:
+                raise ConfigError(
+                    f"{where}.params.{name} is {value.shape[0]}×{value.shape[0]}, not a multiple of the "
+                    f"{d} states per node: a matrix parameter must be [N·D, N·D]."
+                )
+            sizes[f"params.{name} (matrix/{d})"] = value.shape[0] // d
+    if len(set(sizes.values())) > 1:
+        listing = ", ".join(f"{k}: {v}" for k, v in sizes.items())
+        raise ConfigError(
+            f"{where}: the node counts disagree ({listing}); make every per-node list length N and "
+            "every matrix N·D square."
+        )
+    return next(iter(sizes.values()), None)
+
+
+def check_nodes(spec: Spec, n_nodes: int, where: str) -> None:
+    """Refuse data with another node count than a spec's per-node or matrix parameters fix."""
+    if spec.n_nodes is not None and spec.n_nodes != n_nodes:
+        raise ConfigError(
+            f"{where} is written for {spec.n_nodes} nodes (its per-node/matrix parameters or `nodes:`) "
+            f"but the data has {n_nodes}; give parameters for {n_nodes} nodes."
+        )
+
+
+def check_states(spec: Spec, state_names: Sequence[str], where: str) -> None:
+    """Refuse data whose per-node state names differ from the spec's (same names, same order)."""
+    names = list(state_names)
+    if names != list(spec.states):
+        if sorted(names) == sorted(spec.states):
+            why = "the same names in another order; list states in the data's column order"
+        else:
+            why = f"missing {[s for s in spec.states if s not in names]}, extra {[s for s in names if s not in spec.states]}"
+        raise ConfigError(f"{where}.states {list(spec.states)} do not match the data's states {names} ({why}).")
