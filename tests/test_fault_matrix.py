@@ -851,11 +851,16 @@ def test_help_and_config_errors_do_not_import_torch(tmp_path):
         "assert 'torch' not in sys.modules, 'a config error imported torch'\n"
         "main(['train', '--cfg', 'job'])\n"
         "assert 'torch' not in sys.modules, '--cfg job imported torch'\n"
+        "try:\n    main(['train', 'model=equations', 'model.spec=bomb.yaml'])\nexcept SystemExit as e:\n"
+        "    assert e.code == 2\n"
+        "assert 'torch' not in sys.modules, 'an alias-bomb spec imported torch before it was refused'\n"
     )
+    (tmp_path / "bomb.yaml").write_text(billion_laughs())
     proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert "Did you mean trainer.lr?" in proc.stderr and "usage: mpsim" in proc.stdout and "_target_" in proc.stdout
-    assert not list(tmp_path.iterdir())  # no run directory for a config error
+    assert "bomb.yaml: its anchors and aliases" in proc.stderr
+    assert [p.name for p in tmp_path.iterdir()] == ["bomb.yaml"]  # no run directory for a config error
 
 
 def test_a_billion_laughs_spec_is_refused_at_once(ws, tmp_path):

@@ -372,6 +372,29 @@ def _can_make_folder(parent: Path) -> bool:
     return True
 
 
+def _check_spec_files(cfg: Any) -> None:
+    """Refuse at once, before Hydra starts a run (and before torch is imported), a `system.spec=` / `model.spec=`
+    file beyond the bounds mpsim reads (size, nesting, aliases: `mpsim.safeload`). Everything else about the spec
+    is checked where it is used."""
+    from mpsim.safeload import SPEC_BYTES, load_yaml, not_a_regular_file
+
+    for key in ("system", "model"):
+        node = cfg.get(key)
+        spec = node.get("spec") if hasattr(node, "get") else None
+        if not isinstance(spec, str):
+            continue
+        path = Path(os.path.expanduser(spec))
+        if not_a_regular_file(path) is not None:
+            continue  # missing, a folder, a pipe: named where the spec is read
+        fix = "Give a spec of plain states, equations and params (limits: docs/equations.md)"
+        try:
+            load_yaml(path, SPEC_BYTES, f"spec file {path}", fix)
+        except MpsimError:
+            raise
+        except Exception:  # noqa: BLE001 - unreadable or not YAML: the spec's reader names it with its own fix
+            continue
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console entry point (`mpsim`, `python -m mpsim`, `torchrun -m mpsim`).
 
@@ -408,6 +431,7 @@ def main(argv: list[str] | None = None) -> None:
         cfg = compose_command(command, rest, CONF_DIR)
         if cfg is not None:
             _check_writable(cfg, command)
+            _check_spec_files(cfg)
     except MpsimError as err:
         _fail(command, err)
     sys.argv = [f"mpsim {command}", *rest]
