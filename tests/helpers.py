@@ -202,3 +202,17 @@ def run_recipe(recipe: str, tmp: Path, **env: str) -> tuple[subprocess.Completed
     script = Path(__file__).resolve().parents[1] / "cli" / recipe
     proc = subprocess.run(["bash", str(script)], env={**environ, **env}, capture_output=True, text=True, timeout=120)
     return proc, [line.split() for line in log.read_text().splitlines()] if log.exists() else []
+
+
+def inline_specs(cfg) -> None:
+    """`system.spec=<file>` / `model.spec=<file>` replaced by the file's content, as `mpsim.commands.prepare` does
+    (relative paths from the current directory)."""
+    from omegaconf import DictConfig, open_dict
+
+    from mpsim.spec import load_spec_file
+
+    for key in ("system", "model"):
+        node = cfg.get(key)
+        if isinstance(node, DictConfig) and isinstance(node.get("spec"), str):
+            with open_dict(cfg):
+                node.spec = load_spec_file(Path(node.spec).expanduser())

@@ -253,10 +253,10 @@ def _fails(args, cwd, match, code=2):
 def test_an_interrupted_command_other_than_train_is_told_to_run_again_not_to_resume(tmp_path, monkeypatch):
     import mpsim.commands.simulate as simulate
 
-    def ctrl_c(cfg):  # what Ctrl-C raises inside the command
+    def ctrl_c(*args, **kwargs):  # what Ctrl-C raises inside the command
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(simulate, "build_system", ctrl_c)
+    monkeypatch.setattr(simulate, "simulate_truth", ctrl_c)
     cut = run_mpsim(["simulate", "n=2"], tmp_path)
     assert cut.code == 130 and "interrupted" in cut.err, (cut.code, cut.err[-2000:])
     assert "resume=true" not in cut.err and "run the same command again" in cut.err  # resume= is train's alone

@@ -10,11 +10,11 @@ from omegaconf import OmegaConf
 
 import mpsim
 from mpsim.cli import COMMANDS
-from mpsim.commands.runtime import inline_specs
 from mpsim.config import check_targets
 from mpsim.errors import ConfigError
 from mpsim.models.base import Model
 from mpsim.systems.base import System
+from tests.helpers import inline_specs
 
 CONF = Path(mpsim.__file__).parent / "conf"
 EXAMPLE_SPEC = Path(__file__).resolve().parents[1] / "examples" / "equations" / "pendulums_linear_spring.yaml"

@@ -1091,7 +1091,7 @@ def test_ctrl_c_before_anything_is_saved_leaves_the_folder_as_it_was(tmp_path, m
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "notes.txt").write_text("mine\n")
     before = snapshot(tmp_path)
-    monkeypatch.setattr(train_cmd, "setup_runtime", ctrl_c)
+    monkeypatch.setattr(train_cmd, "prepare", ctrl_c)
     res = run_mpsim(["train", *TINY_TRAIN, "hydra.run.dir=mine/new/run"], tmp_path)
     assert res.code == 130 and "Nothing was saved yet" in res.err and "resume=" not in res.err, res.err
     assert snapshot(tmp_path) == before and not (tmp_path / "mine" / "new").exists()

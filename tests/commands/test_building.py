@@ -8,10 +8,11 @@ import torch
 from omegaconf import OmegaConf
 
 from mpsim import memory
-from mpsim.commands.building import Shape, build, build_model_for, build_solver, build_system, planned_model
-from mpsim.commands.runtime import Runtime, inline_specs
+from mpsim.commands.building import Shape, build, build_model_for, model_config, planned_model
+from mpsim.commands.runtime import Runtime
 from mpsim.config import plain_dict
 from mpsim.errors import CheckpointError, ConfigError, ResourceError
+from tests.helpers import inline_specs
 
 
 def test_running_out_of_memory_while_building_is_a_resource_error_not_a_traceback():
@@ -46,10 +47,20 @@ def _runtime(tmp_path: Path, device: str = "cpu") -> Runtime:
     return Runtime(torch.device(device), torch.float32, tmp_path, tmp_path / "out", [])
 
 
+def _system(cfg):
+    return build(plain_dict(cfg.system), "system")
+
+
+def _build(cfg, rt: Runtime, shape: Shape, ckpt, training: bool = False):
+    """The model `prepare` builds for `cfg`: the checkpoint's config with the command line's on top."""
+    model_cfg = model_config(plain_dict(cfg.model), ckpt, rt.overrides)
+    return build_model_for(model_cfg, build(plain_dict(cfg.solver), "solver"), rt, shape, ckpt, training)
+
+
 def _pieces(cfg_factory, model: str, system: str, extra: list[str]):
     cfg = cfg_factory("train", f"model={model}", f"system={system}", *extra)
     inline_specs(cfg)  # model.spec=<file>: its content, as the command layer passes it
-    return cfg, plain_dict(cfg.model), Shape.of(build_system(cfg)), build_solver(cfg)
+    return cfg, plain_dict(cfg.model), Shape.of(_system(cfg)), build(plain_dict(cfg.solver), "solver")
 
 
 @pytest.mark.parametrize(("model", "system", "extra"), MODELS, ids=[m[0] for m in MODELS])
@@ -61,7 +72,7 @@ def test_every_model_is_planned_on_the_meta_device_with_the_shapes_it_is_built_w
     assert plan is not None
     planned = plan.state_dict()
     assert planned and all(t.device.type == "meta" for t in planned.values())
-    built, _ = build_model_for(cfg, _runtime(tmp_path), shape, None)
+    built = _build(cfg, _runtime(tmp_path), shape, None)
     assert {k: (t.shape, t.dtype) for k, t in planned.items()} == {
         k: (t.shape, t.dtype) for k, t in built.state_dict().items()
     }
@@ -75,14 +86,15 @@ def test_white_box_models_are_not_planned_and_are_checked_once_built(model, extr
     constructed: not plannable on the meta device. Their weights are values written in their config."""
     cfg, model_cfg, shape, solver = _pieces(cfg_factory, model, "lorenz3", extra)
     assert planned_model(model_cfg, shape, solver, _runtime(tmp_path), None) is None
-    built, _ = build_model_for(cfg, _runtime(tmp_path), shape, None)
+    built = _build(cfg, _runtime(tmp_path), shape, None)
     assert sum(p.numel() for p in built.parameters()) > 0
 
 
 def _checkpoint(cfg, tmp_path, **config_changes):
     """A checkpoint of `cfg`'s model (as `load_checkpoint` returns it), its config changed by `config_changes`."""
-    shape = Shape.of(build_system(cfg))
-    model, model_cfg = build_model_for(cfg, _runtime(tmp_path), shape, None)
+    shape = Shape.of(_system(cfg))
+    model_cfg = plain_dict(cfg.model)
+    model = _build(cfg, _runtime(tmp_path), shape, None)
     return shape, {
         "path": str(tmp_path / "m.ckpt"),
         "model": {
@@ -117,7 +129,7 @@ def test_a_checkpoint_whose_config_declares_other_sizes_than_its_weights_is_refu
     shape, ckpt = _checkpoint(cfg, tmp_path, hidden=3000)
     allocations.clear()
     with pytest.raises(CheckpointError, match=r"m.ckpt: its model.config does not describe its weights: .*\[3000, "):
-        build_model_for(cfg, _runtime(tmp_path), shape, ckpt)
+        _build(cfg, _runtime(tmp_path), shape, ckpt)
     assert max(allocations, default=0) < 3000  # nothing of the declared size was allocated
 
 
@@ -131,10 +143,10 @@ def test_a_checkpoint_too_large_for_memory_is_refused_before_allocation(
     monkeypatch.setattr(memory, "available_bytes", lambda device="cpu": 2 * weights)
     allocations.clear()
     with pytest.raises(ResourceError, match=r"m.ckpt\): 1,478 weights with their gradients and optimiser state"):
-        build_model_for(cfg, _runtime(tmp_path), shape, ckpt, training=True)
+        _build(cfg, _runtime(tmp_path), shape, ckpt, training=True)
     assert not allocations
-    model, _ = build_model_for(cfg, _runtime(tmp_path), shape, ckpt)  # evaluation: the weights alone fit
+    model = _build(cfg, _runtime(tmp_path), shape, ckpt)  # evaluation: the weights alone fit
     assert torch.equal(model.state_dict()["state_std"], ckpt["model"]["state_dict"]["state_std"])
     with pytest.raises(ResourceError, match=r"smaller model.\* sizes, e.g. model.hidden"):
-        build_model_for(cfg_factory("train", "system=lorenz3", "model.hidden=4000"), _runtime(tmp_path), shape, None)
+        _build(cfg_factory("train", "system=lorenz3", "model.hidden=4000"), _runtime(tmp_path), shape, None)
     assert max(allocations) < 4000

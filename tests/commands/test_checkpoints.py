@@ -4,9 +4,10 @@ import re
 import pytest
 import torch
 
-from mpsim.commands.checkpoints import capped_meta, check_checkpoint_system, check_weights_fit, resolve_init
+from mpsim.commands.init_ckpt import check_checkpoint_system, check_weights_fit, resolve_init
 from mpsim.commands.runtime import Runtime
 from mpsim.errors import CheckpointError, IncompatibleError
+from mpsim.training.checkpoint import capped_meta
 
 QUAD = ["px", "py", "pz", "qw", "qx", "qy", "qz", "vx", "vy", "vz", "wx", "wy", "wz"]
 

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -91,9 +92,15 @@ def test_ranks_leave_together_after_a_success_and_at_once_after_an_error(cfg_fac
     left: list[bool] = []
     monkeypatch.setattr(distributed, "setup", lambda device: two)
     monkeypatch.setattr(distributed, "teardown", lambda ctx, together=True: left.append(together))
-    monkeypatch.setattr(train_command, "_run", lambda cfg, rt, ctx: {"task": "train", "rank": ctx.rank})
+    real_prepare = train_command.prepare  # the data and model as one process prepares them, in the fake group
+
+    def prepare(*args, **kwargs):
+        return dataclasses.replace(real_prepare(*args, **{**kwargs, "distributed_run": False}), dist=two)
+
+    monkeypatch.setattr(train_command, "prepare", prepare)
+    monkeypatch.setattr(train_command, "train", lambda job, *args: {"task": "train", "rank": job.dist.rank})
     run_train(cfg_factory("train", *TINY_DDP))
-    monkeypatch.setattr(train_command, "_run", lambda cfg, rt, ctx: 1 / 0)
+    monkeypatch.setattr(train_command, "train", lambda job, *args: 1 / 0)
     with pytest.raises(ZeroDivisionError):
         run_train(cfg_factory("train", *TINY_DDP))
     assert left == [True, False]

@@ -15,7 +15,7 @@ from omegaconf import DictConfig
 from mpsim.bench.common import Suite
 from mpsim.commands.building import build
 from mpsim.commands.runtime import locate
-from mpsim.config import check_targets
+from mpsim.config import check_targets, plain_dict
 from mpsim.console import markdown
 from mpsim.errors import ConfigError
 from mpsim.files import atomic_write, write_json
@@ -28,7 +28,8 @@ def run_bench(cfg: DictConfig, output_dir: str | Path | None = None, overrides: 
     _, out_dir = locate(output_dir)
     if cfg.threads:
         torch.set_num_threads(int(cfg.threads))
-    suite = build(cfg.bench, "bench", **_device_arg(cfg))
+    node = plain_dict(cfg.bench)
+    suite = build(node, "bench", **device_arg(str(cfg.get("device") or "cpu"), node.get("_target_")))
     if not isinstance(suite, Suite):
         raise ConfigError(f"bench._target_={cfg.bench.get('_target_')} is not an mpsim.bench Suite.")
     machine = f"{platform.machine()}, {torch.get_num_threads()} torch thread(s), torch {torch.__version__}"
@@ -48,12 +49,10 @@ def run_bench(cfg: DictConfig, output_dir: str | Path | None = None, overrides: 
     return {"n_rows": len(rows), "bench": str(out_dir / "bench.md")}
 
 
-def _device_arg(cfg: DictConfig) -> dict[str, str]:
-    """`device=` for a suite that takes one; a CPU-only suite refuses any other device."""
-    device = str(cfg.get("device") or "cpu")
-    target = cfg.bench.get("_target_")
+def device_arg(device: str, target: str | None) -> dict[str, str]:
+    """`device=` for a suite (`target`) that takes one; a CPU-only suite refuses any other device."""
     try:
-        params = inspect.signature(get_class(target)).parameters
+        params = inspect.signature(get_class(str(target))).parameters
     except Exception:  # noqa: BLE001 - an unimportable target is reported by `build`
         return {}
     if "device" in params:

@@ -6,19 +6,17 @@ sizes planned on the meta device and checked (weights vs config, memory) before 
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
 
-from mpsim.commands.checkpoints import check_checkpoint_system, check_weights_fit, load_weights
+from mpsim.commands.guards import check_model_memory
+from mpsim.commands.init_ckpt import check_checkpoint_system, check_weights_fit, load_weights
 from mpsim.commands.runtime import Runtime
-from mpsim.commands.splits import check_model_memory, load_splits
-from mpsim.config import plain_dict
-from mpsim.data.dataset import SPLITS, Splits, fit_normalisation
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError, IncompatibleError, MpsimError, ResourceError
 from mpsim.models.base import Model
@@ -28,8 +26,9 @@ from mpsim.systems.base import System
 log = logging.getLogger(__name__)
 
 
-def build(node: DictConfig, where: str, **kwargs: Any) -> Any:
-    """`hydra.utils.instantiate` with errors turned into one clear message naming the config key."""
+def build(node: Mapping[str, Any], where: str, **kwargs: Any) -> Any:
+    """`hydra.utils.instantiate` of a `_target_` node (plain data) with errors turned into one clear message
+    naming the config key `where`."""
     try:
         return instantiate(node, **kwargs)
     except InstantiationException as err:
@@ -46,14 +45,6 @@ def build(node: DictConfig, where: str, **kwargs: Any) -> Any:
         raise ConfigError(f"cannot build {where} ({node.get('_target_')}): {text}") from None
 
 
-def build_system(cfg: DictConfig) -> System:
-    return build(cfg.system, "system")
-
-
-def build_solver(cfg: DictConfig) -> ODESolver:
-    return build(cfg.solver, "solver")
-
-
 def explicit_model_keys(overrides: list[str]) -> tuple[set[str], bool]:
     """(model.* keys given on the command line, whether the model group itself was chosen)."""
     keys, group = set(), False
@@ -66,12 +57,10 @@ def explicit_model_keys(overrides: list[str]) -> tuple[set[str], bool]:
     return keys, group
 
 
-def model_config(cfg: DictConfig, ckpt: dict[str, Any] | None, overrides: list[str]) -> dict[str, Any]:
-    """The model config to build: the checkpoint's, with the command line's `model.*` overrides on top.
-
-    Without a checkpoint it is simply `cfg.model`.
+def model_config(current: dict[str, Any], ckpt: dict[str, Any] | None, overrides: list[str]) -> dict[str, Any]:
+    """The model config to build: the checkpoint's, with the command line's `model.*` overrides (`current`: the
+    command's model config) on top. Without a checkpoint it is simply `current`.
     """
-    current = plain_dict(cfg.model)
     if ckpt is None:
         return current
     saved = dict(ckpt["model"]["config"])
@@ -94,8 +83,7 @@ def build_model(
     solver: ODESolver,
     rt: Runtime,
 ) -> Model:
-    node = OmegaConf.create(model_cfg)
-    model = build(node, "model", state_dim=state_dim, control_dim=control_dim, solver=solver)
+    model = build(model_cfg, "model", state_dim=state_dim, control_dim=control_dim, solver=solver)
     if not isinstance(model, Model):
         raise ConfigError(f"model._target_={model_cfg.get('_target_')} does not build an mpsim Model.")
     return model.to(device=rt.device, dtype=rt.dtype)
@@ -116,8 +104,13 @@ class Shape:
 
 
 def build_model_for(
-    cfg: DictConfig, rt: Runtime, shape: Shape, ckpt: dict[str, Any] | None, training: bool = False
-) -> tuple[Model, dict[str, Any]]:
+    model_cfg: dict[str, Any],
+    solver: ODESolver,
+    rt: Runtime,
+    shape: Shape,
+    ckpt: dict[str, Any] | None,
+    training: bool = False,
+) -> Model:
     """Build the model for data of `shape`, from scratch or with `ckpt`'s weights, checking that they fit.
 
     Its sizes are checked before anything is allocated (`planned_model`): a checkpoint's weights must have the
@@ -125,18 +118,16 @@ def build_model_for(
     fit in memory."""
     if ckpt is not None:
         check_checkpoint_system(ckpt, shape.state_dim, shape.control_dim, shape.state_names)
-    model_cfg = model_config(cfg, ckpt, rt.overrides)
-    solver = build_solver(cfg)
     trained_nodes = None if ckpt is None else ckpt["system"].get("n_nodes")
     plan = planned_model(model_cfg, shape, solver, rt, trained_nodes)
     if plan is not None:
         if ckpt is not None:
             check_weights_fit(plan.state_dict(), ckpt, model_cfg)
-        check_model_memory(cfg, rt, plan, model_cfg, training, None if ckpt is None else ckpt["path"])
+        check_model_memory(rt, plan, model_cfg, training, None if ckpt is None else ckpt["path"])
     model = _assemble(model_cfg, shape, solver, rt, trained_nodes)
     if ckpt is not None:
         load_weights(model, ckpt, model_cfg)
-    return model, model_cfg
+    return model
 
 
 def _assemble(
@@ -166,28 +157,3 @@ def planned_model(
     except Exception as err:  # noqa: BLE001 - the real build reports a genuine error the same way
         log.debug(f"model sizes not planned on the meta device ({type(err).__name__}: {err}); checked once built")
         return None
-
-
-def model_and_data(
-    cfg: DictConfig,
-    rt: Runtime,
-    system: System | None,
-    ckpt: dict[str, Any] | None,
-    refit: bool,
-    need: tuple[str, ...] = SPLITS,
-    training: bool = False,
-) -> tuple[Model, dict[str, Any], Splits]:
-    """Model and splits, checked in the order that writes nothing before a bad input is found: the model
-    (and checkpoint) is checked against the system before any data is simulated into the cache. `need`: the
-    splits the command uses (a file's other splits may be given no share); `training`: the model will be
-    trained (its memory check counts gradients and optimiser state)."""
-    splits = load_splits(cfg, rt, system, need) if cfg.data.path else None
-    source = (splits.train if len(splits.train) else splits.test) if splits else system
-    if source is None:
-        raise ConfigError("no data: pass system=<name> or data.path=<file>.")
-    model, model_cfg = build_model_for(cfg, rt, Shape.of(source), ckpt, training)
-    if splits is None:
-        splits = load_splits(cfg, rt, system)
-    if ckpt is None or refit:
-        model.set_normalisation(*fit_normalisation(splits.train))
-    return model, model_cfg, splits

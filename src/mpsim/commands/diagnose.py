@@ -18,11 +18,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from mpsim.commands.building import Shape, build, build_model_for, build_system, model_and_data
-from mpsim.commands.checkpoints import checkpoint_base, load_init
-from mpsim.commands.runtime import Runtime, setup_runtime
+from mpsim.commands.building import Shape, build, build_model_for
+from mpsim.commands.prepare import Job, prepare
+from mpsim.commands.runtime import Runtime
+from mpsim.config import plain_dict
 from mpsim.console import print_summary
 from mpsim.data.dataset import Splits
 from mpsim.diagnose import report
@@ -34,18 +35,19 @@ from mpsim.errors import ConfigError, DataError, DivergenceError
 from mpsim.files import atomic_write, write_json
 from mpsim.models.base import Model
 from mpsim.models.capabilities import LatentState
-from mpsim.training.checkpoint import save_checkpoint
+from mpsim.solvers.odeint import ODESolver
+from mpsim.training.checkpoint import checkpoint_base, save_checkpoint
 
 log = logging.getLogger(__name__)
 
 __all__ = ["holdout_metrics", "run_diagnose"]
 
 
-def _true_effects(cfg: DictConfig) -> list[dict[str, Any]]:
+def true_effects(job: Job) -> list[dict[str, Any]]:
     """The effects the simulated data were made with (used only to score the result, never to find it)."""
-    if cfg.data.path or "effects" not in cfg.system:
+    if job.data.from_file:
         return []
-    return list(OmegaConf.to_container(cfg.system.effects, resolve=True) or [])
+    return list(job.system_config.get("effects") or [])
 
 
 def _compare(found: dict[str, Any], truths: list[dict[str, Any]]) -> dict[str, Any] | None:
@@ -66,90 +68,53 @@ def _compare(found: dict[str, Any], truths: list[dict[str, Any]]) -> dict[str, A
     return None
 
 
-def _params(cfg: DictConfig) -> DiagnoseParams:
-    values = OmegaConf.to_container(cfg.diagnose, resolve=True)
-    return DiagnoseParams(**values)  # type: ignore[arg-type]
-
-
 def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, overrides: list[str] | None = None) -> dict:
     """Diagnose `init=` on held-in data, judge on held-out data; with `fix=true` also add, finetune, compare."""
-    params = _params(cfg)  # settings are checked before anything is read or built
-    rt = setup_runtime(cfg, output_dir, overrides)
+    params = DiagnoseParams(**plain_dict(cfg.diagnose))  # settings are checked before anything is read or built
     if not cfg.init:
         raise ConfigError("mpsim diagnose needs init=<checkpoint> (the trained model to diagnose).")
-    ckpt = load_init(cfg, rt)
-    assert ckpt is not None  # cfg.init is set
     if not cfg.data.path:  # simulated: its held-out count is known before anything is simulated
-        _check_heldout(cfg, int(cfg.data.n_test))
-    system = None if cfg.data.path and cfg.data.graph != "system" else build_system(cfg)
-    model, model_cfg, splits = model_and_data(cfg, rt, system, ckpt, refit=False, training=bool(cfg.fix))
-    _check_heldout(cfg, len(splits.test), len(splits.train) + len(splits.val) + len(splits.test))
+        check_heldout(int(cfg.data.n_test))
+    job = prepare(cfg, "diagnose", output_dir, overrides, training=bool(cfg.fix))
+    model, splits, ckpt = job.model, job.splits, job.checkpoint
+    assert model is not None and splits is not None and ckpt is not None  # prepared with init= and data
+    check_heldout(len(splits.test), sum(splits.sizes().values()), list(cfg.data.split) if cfg.data.path else None)
     if isinstance(model, LatentState):
         model.latent_reset = cfg.trainer.window  # latent states (messages) were trained over windows this long
-    horizons = list(cfg.eval.horizons)
     log.info(
         f"diagnosing {Path(ckpt['path']).name} on {len(splits.train)} held-in trajectories "
         f"({len(splits.test)} held out)"
     )
-
-    def fixed_config(fixed: Model) -> dict[str, Any]:
-        """The model config with the effects the loop added (fitted values) after the configured ones."""
-        configured = list(model_cfg.get("effects") or [])
-        return {**model_cfg, "effects": configured + [e.config() for e in fixed.effects[len(configured) :]]}
-
-    def job(fixed: Model, tag: str, progress: bool = True) -> _FinetuneJob:
-        latent = fixed.latent_reset if isinstance(fixed, LatentState) else None
-        return _FinetuneJob(
-            cfg, rt, splits, ckpt, fixed_config(fixed), fixed.state_dict(), latent, params.fix_lr_factor, tag, progress
-        )
-
-    def finetune(fixed: Model, tag: str) -> tuple[Model, str]:
-        return _collect(job(fixed, tag), _run_finetune(job(fixed, tag)))
-
-    def finetune_all(runs: list[tuple[Model, str]]) -> list[tuple[Model, str] | DivergenceError]:
-        """The control's and the candidates' finetunes, in up to `diagnose.jobs` processes at once."""
-        jobs = [job(m, tag, progress=i == 0) for i, (m, tag) in enumerate(runs)]
-        n = min(len(jobs), _workers(params.jobs, rt))
-        if n <= 1:
-            return serial(finetune)(runs)
-        log.info(f"{len(jobs)} finetunes in {n} processes (diagnose.jobs); the bar shows the control's")
-        ctx = multiprocessing.get_context("spawn")  # fork would copy torch's thread pools mid-use
-        with ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=_worker_init) as pool:
-            futures = [pool.submit(_run_finetune, j) for j in jobs]
-            outcomes = [f.result() for f in futures]  # an error other than divergence is raised here
-        return [o if isinstance(o, DivergenceError) else _collect(j, o) for j, o in zip(jobs, outcomes, strict=True)]
-
-    def save(fixed: Model, k: int) -> str:
-        fixed_cfg = fixed_config(fixed)
-        path = rt.output_dir / "fix" / f"round{k}" / "fixed.ckpt"
-        base = checkpoint_base(fixed_cfg, fixed, splits.train.meta, {"mode": "diagnose-fix", "init": ckpt["path"]})
-        save_checkpoint(path, {**base, "model": {**base["model"], "state_dict": fixed.state_dict()}})
-        return str(path)
-
-    truths = _true_effects(cfg)
-    error: DivergenceError | None = None
+    fixer = Fixer(job, plain_dict(cfg.trainer), params.fix_lr_factor, params.jobs) if cfg.fix else None
     try:
         result = run_loop(
             model,
             splits,
             params,
-            horizons,
-            cfg.seed,
-            finetune if cfg.fix else None,
-            save if cfg.fix else None,
+            job.horizons,
+            job.seed,
+            None if fixer is None else fixer.finetune,
+            None if fixer is None else fixer.save,
             log.info,
-            finetune_all if cfg.fix else None,
+            None if fixer is None else fixer.finetune_all,
         )
     except DivergenceError as err:  # the report of what was found is still written, then the error is raised
-        error, result = err, None
-    if result is None:
-        write_json(rt.output_dir / "diagnosis.json", {"task": "diagnose", "init": ckpt["path"], "error": str(error)})
-        raise error  # type: ignore[misc]
-    out = _summary(cfg, ckpt, splits, result, truths)
-    report.plots(result, splits.test.t, rt.output_dir)
-    write_json(rt.output_dir / "diagnosis.json", out)
-    atomic_write(rt.output_dir / "diagnosis.md", lambda f: f.write(report.markdown(out)), mode="w")
-    print_summary(f"mpsim diagnose: {out['data']['name']}", report.summary_rows(out, rt.output_dir))
+        write_json(
+            job.runtime.output_dir / "diagnosis.json", {"task": "diagnose", "init": ckpt["path"], "error": str(err)}
+        )
+        raise
+    return write_diagnosis(job, result, bool(cfg.fix))
+
+
+def write_diagnosis(job: Job, result: LoopResult, fix: bool) -> dict[str, Any]:
+    """diagnosis.json, diagnosis.md and plots/ of a finished loop, and the summary box."""
+    splits, out_dir = job.splits, job.runtime.output_dir
+    assert splits is not None
+    out = summarise(job, result, true_effects(job), fix)
+    report.plots(result, splits.test.t, out_dir)
+    write_json(out_dir / "diagnosis.json", out)
+    atomic_write(out_dir / "diagnosis.md", lambda f: f.write(report.markdown(out)), mode="w")
+    print_summary(f"mpsim diagnose: {out['data']['name']}", report.summary_rows(out, out_dir))
     return out
 
 
@@ -157,22 +122,81 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
 class _FinetuneJob:
     """One finetune of `mpsim diagnose fix=true`, self-contained so that it can run in another process."""
 
-    cfg: DictConfig
     rt: Runtime
     splits: Splits
     ckpt: dict[str, Any]
     model_config: dict[str, Any]  # the model's config with the effects the loop added
+    solver: ODESolver
     state_dict: dict[str, torch.Tensor]
     latent_reset: int | None
-    lr_factor: float
+    trainer: dict[str, Any]  # the trainer's config (plain data), its learning rate already scaled
+    seed: int
     tag: str  # the run's directory under fix/
-    progress: bool
+
+
+class Fixer:
+    """What `fix=true` hands the loop: finetunes of the model with the effects it added (one at a time, or the
+    control's and the candidates' at once in spawned processes) and the fixed model's checkpoint."""
+
+    def __init__(self, job: Job, trainer: dict[str, Any], lr_factor: float, jobs: int | None) -> None:
+        self.job, self.trainer, self.jobs = job, {**trainer, "lr": trainer["lr"] * lr_factor}, jobs
+        self.configured = list(job.model_config.get("effects") or [])
+
+    def fixed_config(self, fixed: Model) -> dict[str, Any]:
+        """The model config with the effects the loop added (fitted values) after the configured ones."""
+        added = [e.config() for e in fixed.effects[len(self.configured) :]]
+        return {**self.job.model_config, "effects": self.configured + added}
+
+    def finetune_job(self, fixed: Model, tag: str, progress: bool = True) -> _FinetuneJob:
+        job = self.job
+        assert job.splits is not None and job.checkpoint is not None
+        latent = fixed.latent_reset if isinstance(fixed, LatentState) else None
+        trainer = {**self.trainer, "progress": bool(self.trainer.get("progress", True)) and progress}
+        return _FinetuneJob(
+            job.runtime,
+            job.splits,
+            job.checkpoint,
+            self.fixed_config(fixed),
+            job.solver,
+            fixed.state_dict(),
+            latent,
+            trainer,
+            job.seed,
+            tag,
+        )
+
+    def finetune(self, fixed: Model, tag: str) -> tuple[Model, str]:
+        run = self.finetune_job(fixed, tag)
+        return _collect(run, _run_finetune(run))
+
+    def finetune_all(self, runs: list[tuple[Model, str]]) -> list[tuple[Model, str] | DivergenceError]:
+        """The control's and the candidates' finetunes, in up to `diagnose.jobs` processes at once."""
+        jobs = [self.finetune_job(m, tag, progress=i == 0) for i, (m, tag) in enumerate(runs)]
+        n = min(len(jobs), _workers(self.jobs, self.job.runtime))
+        if n <= 1:
+            return serial(self.finetune)(runs)
+        log.info(f"{len(jobs)} finetunes in {n} processes (diagnose.jobs); the bar shows the control's")
+        ctx = multiprocessing.get_context("spawn")  # fork would copy torch's thread pools mid-use
+        with ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=_worker_init) as pool:
+            futures = [pool.submit(_run_finetune, j) for j in jobs]
+            outcomes = [f.result() for f in futures]  # an error other than divergence is raised here
+        return [o if isinstance(o, DivergenceError) else _collect(j, o) for j, o in zip(jobs, outcomes, strict=True)]
+
+    def save(self, fixed: Model, k: int) -> str:
+        job = self.job
+        assert job.splits is not None and job.checkpoint is not None
+        fixed_cfg = self.fixed_config(fixed)
+        path = job.runtime.output_dir / "fix" / f"round{k}" / "fixed.ckpt"
+        extra = {"mode": "diagnose-fix", "init": job.checkpoint["path"]}
+        base = checkpoint_base(fixed_cfg, fixed, job.splits.train.meta, extra)
+        save_checkpoint(path, {**base, "model": {**base["model"], "state_dict": fixed.state_dict()}})
+        return str(path)
 
 
 def _build_fixed(job: _FinetuneJob) -> Model:
     """The model `job` finetunes: the checkpoint's model config with the added effects, its current weights."""
     ckpt = {**job.ckpt, "model": {**job.ckpt["model"], "config": job.model_config}}
-    built, _ = build_model_for(job.cfg, job.rt, Shape.of(job.splits.train), ckpt)
+    built = build_model_for(job.model_config, job.solver, job.rt, Shape.of(job.splits.train), ckpt)
     built.load_state_dict(job.state_dict)  # fitted coefficients and refit own parameters
     if isinstance(built, LatentState) and job.latent_reset is not None:
         built.latent_reset = job.latent_reset
@@ -181,14 +205,12 @@ def _build_fixed(job: _FinetuneJob) -> Model:
 
 def _run_finetune(job: _FinetuneJob) -> tuple[dict[str, torch.Tensor], str] | DivergenceError:
     """Finetune `job`'s model under fix/<tag>/: (its finetuned weights, best checkpoint), or the divergence."""
-    cfg, splits = job.cfg, job.splits
+    splits = job.splits
     built = _build_fixed(job)
-    trainer = build(
-        cfg.trainer, "trainer", lr=cfg.trainer.lr * job.lr_factor, progress=cfg.trainer.progress and job.progress
-    )
+    trainer = build(job.trainer, "trainer")
     run_dir = job.rt.output_dir / "fix" / job.tag
     base = checkpoint_base(job.model_config, built, splits.train.meta, {"mode": "finetune", "init": job.ckpt["path"]})
-    trainer.fit(built, splits.train, splits.val, splits.test, run_dir=run_dir, seed=cfg.seed, checkpoint_base=base)
+    trainer.fit(built, splits.train, splits.val, splits.test, run_dir=run_dir, seed=job.seed, checkpoint_base=base)
     if trainer.status_ == "diverged":
         return DivergenceError(trainer.divergence_ or "NaN/inf")
     return built.state_dict(), str(run_dir / "checkpoints" / "best.ckpt")
@@ -225,19 +247,20 @@ def _workers(jobs: int | None, rt: Runtime) -> int:
 MIN_HELDOUT = 3
 
 
-def _check_heldout(cfg: DictConfig, n: int, total: int = 0) -> None:
-    """Refuse `n` held-out trajectories (of `total` in a file) when too few to judge a candidate on, before any
-    work (the loop would report "unexplained" for an effect it could not test)."""
+def check_heldout(n: int, total: int = 0, split: list[float] | None = None) -> None:
+    """Refuse `n` held-out trajectories (of `total` in a file split by `split`; None: simulated, `data.n_test`)
+    when too few to judge a candidate on, before any work (the loop would report "unexplained" for an effect it
+    could not test)."""
     if n >= MIN_HELDOUT:
         return
-    if cfg.data.path:
+    if split is not None:
         share = math.ceil(10 * MIN_HELDOUT / total) / 10 if total else 1.0
         fix = (
             f"hold out more, e.g. data.split=[{1 - share - 0.1:.1f},0.1,{share:.1f}]"
             if total >= 2 * MIN_HELDOUT and share <= 0.5
             else f"record more trajectories (at least {2 * MIN_HELDOUT})"
         )
-        where = f"data.split={list(cfg.data.split)} of the file's {total} trajectories holds out {n}"
+        where = f"data.split={split} of the file's {total} trajectories holds out {n}"
     else:
         fix, where = f"give data.n_test={MIN_HELDOUT} or more", f"data.n_test={n}"
     raise DataError(
@@ -246,7 +269,10 @@ def _check_heldout(cfg: DictConfig, n: int, total: int = 0) -> None:
     )
 
 
-def _summary(cfg, ckpt, splits, result: LoopResult, truths) -> dict[str, Any]:
+def summarise(job: Job, result: LoopResult, truths: list[dict[str, Any]], fix: bool) -> dict[str, Any]:
+    """diagnosis.json: the verdict with its numbers, what was named and fixed, against the truth where known."""
+    splits, ckpt = job.splits, job.checkpoint
+    assert splits is not None and ckpt is not None
     j, diag = result.judgement, result.diagnosis
     named = [{**t.as_dict(), "vs_truth": _compare(t.effect, truths)} for t in result.named]
     fixed = []
@@ -257,7 +283,7 @@ def _summary(cfg, ckpt, splits, result: LoopResult, truths) -> dict[str, Any]:
         ]
     verdict = result.verdict
     verdict_note = ""
-    if cfg.fix and verdict == EFFECTS_NAMED and result.after is None:
+    if fix and verdict == EFFECTS_NAMED and result.after is None:
         verdict_note = (
             result.rejected[0]["why"] if result.rejected else "no fix was kept"
         ) + "; the model is returned unchanged"
@@ -266,7 +292,7 @@ def _summary(cfg, ckpt, splits, result: LoopResult, truths) -> dict[str, Any]:
         "init": ckpt["path"],
         "data": {
             "name": splits.train.system_name,
-            "source": cfg.data.path or "simulated",
+            "source": job.data.path or "simulated",
             "n_heldin": len(splits.train),
             "n_heldout": len(splits.test),
         },

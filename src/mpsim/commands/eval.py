@@ -2,18 +2,24 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 from omegaconf import DictConfig
 
-from mpsim.commands.evaluation import evaluate_checkpoint
-from mpsim.commands.runtime import setup_runtime
+from mpsim.commands.prepare import prepare
+from mpsim.commands.scoring import EvalOptions, evaluate_checkpoint
 from mpsim.errors import ConfigError
 
 
 def run_eval(cfg: DictConfig, output_dir: str | Path | None = None, overrides: list[str] | None = None) -> dict:
-    """Evaluate `init=` on the test split of `system=` (or of `data.path=`); write summary.json and plots."""
-    rt = setup_runtime(cfg, output_dir, overrides)
+    """Evaluate `init=` on the test split of `system=` (or of `data.path=`); write summary.json and plots.
+
+    Nothing trains: a file's train and val shares may be zero (`data.split=[0,0,1]` evaluates every trajectory).
+    """
+    started = time.perf_counter()
     if not cfg.init:
         raise ConfigError("mpsim eval needs init=<checkpoint> (a path, or a name in paths.ckpt_dir).")
-    return evaluate_checkpoint(cfg, rt, task="eval")
+    job = prepare(cfg, "eval", output_dir, overrides)
+    options = EvalOptions(cfg.eval.n_plot, cfg.eval.plots, cfg.eval.save_predictions)
+    return evaluate_checkpoint(job, options, task="eval", started=started)

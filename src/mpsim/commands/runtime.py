@@ -1,7 +1,6 @@
-"""Where and how a command runs: checks the composed config, seeds, sets threads, picks device and dtype, and
-resolves paths against the directory the command was started from (`Runtime`).
-
-This is the command layer: the only code that reads config objects. Everything below it takes plain arguments.
+"""Where and how a command runs (`Runtime`): device and dtype, the directory it was started from and its run
+directory, the overrides it was given, whether sizes are checked against memory; seeding and threads; paths
+resolved against the start directory. Plain values in: `mpsim.commands.prepare` reads them from the config.
 """
 
 from __future__ import annotations
@@ -13,22 +12,31 @@ from pathlib import Path
 import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
-from omegaconf import DictConfig, open_dict
 
-from mpsim.config import check_targets, file_stem, validate_values
 from mpsim.errors import ConfigError
 from mpsim.process import resolve_device
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
-@dataclass
+@dataclass(frozen=True)
 class Runtime:
+    """Where and how a command computes and writes.
+
+    Attributes:
+        device, dtype: what models compute on and in.
+        start_dir: the directory the command was started from (relative paths are read from it).
+        output_dir: this run's directory.
+        overrides: the command line's overrides (which `model.*` keys were given explicitly, ...).
+        memory_check: refuse sizes whose memory estimate does not fit (`memory_check=false` skips).
+    """
+
     device: torch.device
     dtype: torch.dtype
     start_dir: Path
     output_dir: Path
     overrides: list[str]
+    memory_check: bool = True
 
 
 def hydra_overrides() -> list[str]:
@@ -43,6 +51,11 @@ def is_multirun() -> bool:
     return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
 
 
+def start_directory() -> Path:
+    """The directory the command was started from (Hydra's record of it, or the current directory)."""
+    return Path(HydraConfig.get().runtime.cwd) if HydraConfig.initialized() else Path.cwd()
+
+
 def locate(output_dir: str | Path | None = None) -> tuple[Path, Path]:
     """(directory the command was started from, this run's output directory), created if needed."""
     if HydraConfig.initialized():
@@ -54,31 +67,45 @@ def locate(output_dir: str | Path | None = None) -> tuple[Path, Path]:
     return start_dir, output_dir
 
 
-def setup_runtime(cfg: DictConfig, output_dir: str | Path | None = None, overrides: list[str] | None = None) -> Runtime:
-    """Check `_target_` nodes, seed, set threads and pick device/dtype; return where things go."""
-    inline_specs(cfg)
-    validate_values(cfg)
-    check_targets(cfg)
-    start_dir, output_dir = locate(output_dir)
-    threads = cfg.get("threads")
-    if threads is None and HydraConfig.initialized():
-        launcher = HydraConfig.get().launcher
-        if "joblib" in str(launcher.get("_target_", "")):
-            n_jobs = int(launcher.get("n_jobs", -1) or -1)
-            if n_jobs < 1:
-                n_jobs = os.cpu_count() or 1
-            threads = max(1, (os.cpu_count() or 1) // n_jobs)
+def launcher_threads() -> int | None:
+    """Threads per job when Hydra's joblib launcher runs jobs side by side (cores / jobs), else None."""
+    if not HydraConfig.initialized():
+        return None
+    launcher = HydraConfig.get().launcher
+    if "joblib" not in str(launcher.get("_target_", "")):
+        return None
+    n_jobs = int(launcher.get("n_jobs", -1) or -1)
+    if n_jobs < 1:
+        n_jobs = os.cpu_count() or 1
+    return max(1, (os.cpu_count() or 1) // n_jobs)
+
+
+def make_runtime(
+    *,
+    seed: int,
+    device: str,
+    dtype: str,
+    threads: int | None,
+    output_dir: str | Path | None = None,
+    overrides: list[str] | None = None,
+    memory_check: bool = True,
+) -> Runtime:
+    """Seed torch, set its CPU threads (None: the launcher's share, else torch's default) and pick device and
+    dtype; the run directory is created."""
+    if dtype not in DTYPES:
+        raise ConfigError(f"dtype={dtype!r} is not supported; choose one of {sorted(DTYPES)}.")
+    start_dir, out_dir = locate(output_dir)
+    threads = threads if threads is not None else launcher_threads()
     if threads:
         torch.set_num_threads(int(threads))
-    torch.manual_seed(int(cfg.seed))
-    if cfg.dtype not in DTYPES:
-        raise ConfigError(f"dtype={cfg.dtype!r} is not supported; choose one of {sorted(DTYPES)}.")
+    torch.manual_seed(int(seed))
     return Runtime(
-        device=resolve_device(str(cfg.device)),
-        dtype=DTYPES[cfg.dtype],
+        device=resolve_device(device),
+        dtype=DTYPES[dtype],
         start_dir=start_dir,
-        output_dir=output_dir,
+        output_dir=out_dir,
         overrides=hydra_overrides() if overrides is None else list(overrides),
+        memory_check=memory_check,
     )
 
 
@@ -90,25 +117,12 @@ def describe_device(device: torch.device) -> str:
     return f"{device.type} ({torch.get_num_threads()} thread{'s' if torch.get_num_threads() != 1 else ''})"
 
 
-def inline_specs(cfg: DictConfig) -> None:
-    """`system.spec=<file>` / `model.spec=<file>` (model=equations, system=equations): replace the file name by
-    the file's content, so that checkpoints, dataset cache keys and summaries carry the equations themselves."""
-    from mpsim.spec import load_spec_file
-
-    start_dir = Path(HydraConfig.get().runtime.cwd) if HydraConfig.initialized() else Path.cwd()
-    for key in ("system", "model"):
-        node = cfg.get(key)
-        if not isinstance(node, DictConfig) or not isinstance(node.get("spec"), str):
-            continue
-        path = resolve_path(node.spec, start_dir)
-        content = load_spec_file(path)
-        with open_dict(cfg):
-            node.spec = content
-            if key == "system" and "name" in node and node.name is None and not content.get("name"):
-                node.name = file_stem(path) or "equations"
-
-
 def resolve_path(path: str | Path, start_dir: Path) -> Path:
     """An absolute path as given, else relative to the directory the command was started from."""
     path = Path(os.path.expanduser(str(path)))
     return path if path.is_absolute() else start_dir / path
+
+
+def given(overrides: list[str], key: str) -> bool:
+    """Whether `key` was given on the command line."""
+    return any(a.split("=", 1)[0].lstrip("+~") == key for a in overrides)

@@ -8,35 +8,32 @@ import logging
 import math
 import shutil
 import time
-from dataclasses import replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from mpsim import plotting
-from mpsim.commands.building import build, build_system, model_and_data
-from mpsim.commands.checkpoints import capped_meta, checkpoint_base, load_init
-from mpsim.commands.evaluation import evaluate_checkpoint, evaluate_model, horizon_rows
-from mpsim.commands.runtime import Runtime, describe_device, is_multirun, resolve_path, setup_runtime
-from mpsim.commands.splits import check_training_memory, noisy_train
-from mpsim.config import check_target_node, plain_dict, read_overrides_file
+from mpsim.commands.building import build
+from mpsim.commands.guards import check_training_memory, noisy_train
+from mpsim.commands.prepare import Job, prepare, resolve_mode
+from mpsim.commands.resumed import record_stopping
+from mpsim.commands.runtime import describe_device, is_multirun, resolve_path
+from mpsim.commands.scoring import EvalOptions, evaluate_checkpoint, horizon_rows, score
+from mpsim.config import check_target_node, plain_dict
 from mpsim.console import duration, fmt, print_summary
-from mpsim.errors import CheckpointError, ConfigError, DataError, OutputError
+from mpsim.errors import ConfigError, OutputError
 from mpsim.files import atomic_write, child_path, file_sha256, keep_previous, safe_name, write_json
 from mpsim.metrics import epochs_x_min_error
-from mpsim.safeload import RECORD_BYTES, load_yaml
 from mpsim.training import distributed
-from mpsim.training.checkpoint import load_checkpoint
-from mpsim.training.distributed import DistContext
+from mpsim.training.checkpoint import capped_meta, checkpoint_base
 from mpsim.training.loggers import Logger, LoggerGroup, flatten
-from mpsim.training.trainer import check_resume
+from mpsim.training.trainer import Trainer
 from mpsim.version import __version__
 
 log = logging.getLogger(__name__)
 
-MODES = ("scratch", "finetune", "zeroshot")
 # summary.json entries that `objective=` may name (a dotted path goes inside a mapping: test.rmse, final.val_error)
 OBJECTIVES = (
     "best_val_error",
@@ -53,15 +50,15 @@ OBJECTIVES = (
 )
 
 
-def resolve_mode(name: str, init: str | None) -> str:
-    """scratch (default) becomes finetune when `init=` is given; finetune and zeroshot need `init=`."""
-    if name not in MODES:
-        raise ConfigError(f"mode={name!r} is unknown; choose one of {', '.join(MODES)}.")
-    if name == "scratch":
-        return "finetune" if init else "scratch"
-    if not init:
-        raise ConfigError(f"mode={name} needs init=<checkpoint> (a path, or a name in paths.ckpt_dir).")
-    return name
+@dataclass(frozen=True)
+class Outputs:
+    """What a finished training run writes besides its run directory: the export, the sweep objective, the
+    scoring of its best model."""
+
+    export: bool  # copy best.ckpt to <ckpt_dir>/<system name>.ckpt
+    ckpt_dir: str
+    objective: str
+    eval: EvalOptions
 
 
 def run_train(cfg: DictConfig, output_dir: str | Path | None = None, overrides: list[str] | None = None) -> dict:
@@ -70,151 +67,127 @@ def run_train(cfg: DictConfig, output_dir: str | Path | None = None, overrides: 
 
     Under `torchrun` every process runs this; they train one model data-parallel (`mpsim.training.distributed`),
     and rank 0 alone evaluates the result and writes files."""
-    rt = setup_runtime(cfg, output_dir, overrides)
+    started = time.perf_counter()
     _check_objective(cfg.get("objective"))
-    ctx = distributed.setup(rt.device)
+    zero_shot = resolve_mode(cfg.mode.name, cfg.init) == "zeroshot"
+    job = prepare(cfg, "train", output_dir, overrides, training=not zero_shot, distributed_run=True)
+    outputs = Outputs(
+        bool(cfg.export),
+        str(cfg.paths.ckpt_dir),
+        str(cfg.objective),
+        EvalOptions(cfg.eval.n_plot, cfg.eval.plots, cfg.eval.save_predictions),
+    )
     done = False
     try:
-        summary = _run(cfg, replace(rt, device=ctx.device), ctx)
+        if zero_shot:
+            summary = evaluate_checkpoint(job, outputs.eval, "train", started) if job.dist.is_main else _rank_only(job)
+        else:
+            trainer = build(plain_dict(cfg.trainer), "trainer")
+            loggers = build_loggers(plain_dict(cfg.logger) if cfg.get("logger") and job.dist.is_main else {})
+            if job.resumed is not None and job.dist.is_main:
+                record_stopping(
+                    job.runtime.output_dir, {k: cfg.trainer[k] for k in ("max_epochs", "early_stop_patience")}
+                )
+            loggers.start(job.runtime.output_dir, flatten(plain_dict(cfg)), _history(job))
+            summary = train(job, trainer, loggers, outputs, started)
         done = True
         return summary
     finally:  # after a success the ranks leave together (rank 1 waits for rank 0's evaluation); not after an error
-        distributed.teardown(ctx, together=done)
+        distributed.teardown(job.dist, together=done)
 
 
-def _run(cfg: DictConfig, rt: Runtime, ctx: DistContext) -> dict:
-    mode = resolve_mode(cfg.mode.name, cfg.init)
-    if mode == "zeroshot":
-        return evaluate_checkpoint(cfg, rt, task="train") if ctx.is_main else {"task": "train", "rank": ctx.rank}
-    t0 = time.perf_counter()
-    last = _resume_checkpoint(cfg, rt)
-    ckpt = load_init(cfg, rt) if last is None else None
-    system = None if cfg.data.path and cfg.data.graph != "system" else build_system(cfg)
-    if not ctx.is_main:  # rank 0 simulates (and caches) the data first; the other ranks then read the cache
-        ctx.barrier()
-    if last is None:
-        model, model_cfg, splits = model_and_data(
-            cfg, rt, system, ckpt, bool(cfg.mode.refit_normalisation), training=True
-        )
-    else:  # the interrupted run's own model (config, weights, normalisation)
-        model, model_cfg, splits = model_and_data(cfg, rt, system, last, refit=False, training=True)
-    if ctx.is_main:
-        ctx.barrier()
-        if last is None and cfg.data.path:  # lets `resume=` accept the same file moved along with the run
-            data_file = resolve_path(cfg.data.path, rt.start_dir)
-            write_json(rt.output_dir / "data.json", {"path": str(data_file), "sha256": file_sha256(data_file)})
-    init_path = last.get("init") if last is not None else (None if ckpt is None else ckpt["path"])
-    if cfg.data.noise_std > 0:
+def _rank_only(job: Job) -> dict[str, Any]:
+    return {"task": "train", "rank": job.dist.rank}
+
+
+def _history(job: Job) -> list[dict[str, Any]]:
+    return [] if job.resumed is None else job.resumed["trainer"]["history"]
+
+
+def train(job: Job, trainer: Trainer, loggers: LoggerGroup, outputs: Outputs, started: float) -> dict:
+    """Train `job`'s model with `trainer` (resuming its run where `job.resumed` says), then score the best model,
+    write the summary and export the checkpoint. Rank 0 alone scores and writes."""
+    model, splits, rt = job.model, job.splits, job.runtime
+    assert model is not None and splits is not None  # prepared with data
+    if job.dist.is_main and job.resumed is None and job.data.from_file:  # `resume=` accepts the file moved along
+        data_file = resolve_path(str(job.data.path), rt.start_dir)
+        write_json(rt.output_dir / "data.json", {"path": str(data_file), "sha256": file_sha256(data_file)})
+    if job.data.noise_std > 0:
         std = model.state_std.detach().cpu().double()
-        splits = noisy_train(splits, std, cfg.data.noise_std, cfg.data.seed, rt.dtype)
-    train, val, test = splits.train, splits.val, splits.test
-    if last is None:
+        splits = noisy_train(splits, std, job.data.noise_std, job.data.seed, rt.dtype)
+    train_split = splits.train
+    if job.resumed is None:
         log.info(
-            f"{mode}: {model.describe()['model']} ({model.describe()['n_params']:,} params) on "
-            f"{train.system_name}: {len(train)}/{len(val)}/{len(test)} trajectories, N={train.n_nodes}, "
-            f"{train.n_times - 1} steps of {fmt(train.meta.get('dt'))}"
+            f"{job.mode}: {model.describe()['model']} ({model.describe()['n_params']:,} params) on "
+            f"{train_split.system_name}: {len(train_split)}/{len(splits.val)}/{len(splits.test)} trajectories, "
+            f"N={train_split.n_nodes}, {train_split.n_times - 1} steps of {fmt(train_split.meta.get('dt'))}"
         )
     base = checkpoint_base(
-        model_cfg,
+        job.model_config,
         model,
-        train.meta,
-        {"mode": mode, "init": init_path, "mpsim_version": __version__},
+        train_split.meta,
+        {"mode": job.mode, "init": _init_path(job), "mpsim_version": __version__},
     )
-    check_training_memory(cfg, rt, model, model_cfg, train)
-    trainer = build(cfg.trainer, "trainer")
-    if last is not None and ctx.is_main:
-        _record_stopping(cfg, rt.output_dir)
-    loggers = build_loggers(cfg) if ctx.is_main else LoggerGroup()
-    loggers.start(
-        rt.output_dir,
-        flatten(plain_dict(cfg)),
-        [] if last is None else last["trainer"]["history"],
-    )
+    check_training_memory(rt, model, job.model_config, train_split, trainer.batch_size, trainer.window)
     trainer.fit(
         model,
-        train,
-        val,
-        test,
+        train_split,
+        splits.val,
+        splits.test,
         run_dir=rt.output_dir,
-        seed=cfg.seed,
+        seed=job.seed,
         checkpoint_base=base,
-        resume_state=None if last is None else last["trainer"],
+        resume_state=None if job.resumed is None else job.resumed["trainer"],
         on_epoch=loggers.log_epoch,
-        dist=ctx,
+        dist=job.dist,
     )
-    if not ctx.is_main:  # rank 0 evaluates the trained model and writes the run's files
-        return {"task": "train", "rank": ctx.rank, "status": trainer.status_, "best_val_error": trainer.best_val_}
+    if not job.dist.is_main:  # rank 0 evaluates the trained model and writes the run's files
+        return {**_rank_only(job), "status": trainer.status_, "best_val_error": trainer.best_val_}
+    return finish(job, trainer, loggers, outputs, started)
+
+
+def _init_path(job: Job) -> str | None:
+    if job.resumed is not None:
+        return job.resumed.get("init")
+    return None if job.checkpoint is None else job.checkpoint["path"]
+
+
+def finish(job: Job, trainer: Trainer, loggers: LoggerGroup, outputs: Outputs, started: float) -> dict:
+    """After training: learning curves, the best model scored on the test split, summary.json, the export."""
+    model, splits, rt = job.model, job.splits, job.runtime
+    assert model is not None and splits is not None
+    train_split = splits.train
     history = trainer.history_
     plotting.learning_curves(
-        history, rt.output_dir / "plots" / "learning_curves.png", title=f"{train.system_name}: {mode}"
+        history, rt.output_dir / "plots" / "learning_curves.png", title=f"{train_split.system_name}: {job.mode}"
     )
-    metrics = evaluate_model(
-        model,
-        test,
-        rt.output_dir,
-        list(cfg.eval.horizons),
-        None if cfg.data.path else system,
-        cfg.eval.n_plot,
-        cfg.eval.plots,
-        title=f"{train.system_name}: {mode}, best epoch {trainer.best_epoch_}",
-        save_predictions=cfg.eval.save_predictions,
-    )
-    trained = [r for r in history if r["epoch"] >= 1]
-    table2 = epochs_x_min_error([r["epoch"] for r in trained], [r["test_error"] for r in trained])
+    title = f"{train_split.system_name}: {job.mode}, best epoch {trainer.best_epoch_}"
+    metrics = score(job, model, splits.test, outputs.eval, title)
     best_path = rt.output_dir / "checkpoints" / "best.ckpt"
     exported, previous, export_error = None, None, None
     try:  # a failed export must not lose the run: the summary is written first, then the error is reported
         # the best epoch may be 0 (e.g. a white-box model already at its optimum); a run that diverged before
         # improving on its start exports nothing
         usable = trainer.best_epoch_ >= 1 or trainer.status_ != "diverged"
-        exported, previous = _export(best_path, cfg, rt, train.system_name) if usable else (None, None)
+        if usable and outputs.export:
+            exported, previous = export(
+                best_path, resolve_path(outputs.ckpt_dir, rt.start_dir), train_split.system_name
+            )
     except OutputError as err:
         export_error = err
-    summary: dict[str, Any] = {
-        "task": "train",
-        "mode": mode,
-        "status": trainer.status_,
-        "divergence": trainer.divergence_,
-        "init": init_path,
-        "system": {
-            "name": train.system_name,
-            "n_nodes": train.n_nodes,
-            "state_names": train.state_names,
-            "params": capped_meta(
-                {k: v for k, v in train.meta.get("params", {}).items() if k != "H"}, "summary.json's system.params"
-            ),
-        },
-        "model": {**model.describe(), "config": model_cfg, **model.report()},
-        "data": {
-            **splits.sizes(),
-            "n_times": train.n_times,
-            "dt": train.meta.get("dt"),
-            "source": cfg.data.path or "simulated",
-            "seed": cfg.data.seed,
-            "noise_std": cfg.data.noise_std,
-        },
-        "seed": cfg.seed,
-        "epochs_run": history[-1]["epoch"],
-        "best_epoch": trainer.best_epoch_,
-        "best_val_error": trainer.best_val_,
-        **table2,
-        "initial_test_error": history[0]["test_error"],
-        "final": {"val_error": history[-1]["val_error"], "test_error": history[-1]["test_error"]},
-        "test": metrics,
-        "wall_time": history[-1]["wall_time"],
-        "command_time": time.perf_counter() - t0,
-        "run_dir": str(rt.output_dir),
-        "checkpoint": str(best_path),
-        "exported": None if exported is None else str(exported),
-        "export_replaced": None if previous is None else str(previous),
-        "export_error": None if export_error is None else str(export_error),
-        "distributed": {"world_size": ctx.world_size, "backend": ctx.backend},
-        "device": describe_device(rt.device),
-    }
-    summary["objective"] = {"name": cfg.objective, "value": objective_value(summary, cfg.objective)}
+    summary = summarise(job, trainer, metrics, started)
+    summary.update(
+        {
+            "checkpoint": str(best_path),
+            "exported": None if exported is None else str(exported),
+            "export_replaced": None if previous is None else str(previous),
+            "export_error": None if export_error is None else str(export_error),
+        }
+    )
+    summary["objective"] = {"name": outputs.objective, "value": objective_value(summary, outputs.objective)}
     write_json(rt.output_dir / "summary.json", summary)
     loggers.finish(summary)
-    _print(summary, train, model.report_lines())
+    _print(summary, train_split, model.report_lines())
     if export_error is not None:
         raise OutputError(
             f"{export_error} The run itself is complete: its model is {best_path} and its summary "
@@ -223,13 +196,58 @@ def _run(cfg: DictConfig, rt: Runtime, ctx: DistContext) -> dict:
     return summary
 
 
-def build_loggers(cfg: DictConfig) -> LoggerGroup:
+def summarise(job: Job, trainer: Trainer, metrics: dict[str, Any], started: float) -> dict[str, Any]:
+    """summary.json of a finished training run (without its export entries and objective)."""
+    model, splits, rt, data = job.model, job.splits, job.runtime, job.data
+    assert model is not None and splits is not None
+    train_split, history = splits.train, trainer.history_
+    trained = [r for r in history if r["epoch"] >= 1]
+    table2 = epochs_x_min_error([r["epoch"] for r in trained], [r["test_error"] for r in trained])
+    params = {k: v for k, v in train_split.meta.get("params", {}).items() if k != "H"}
+    return {
+        "task": "train",
+        "mode": job.mode,
+        "status": trainer.status_,
+        "divergence": trainer.divergence_,
+        "init": _init_path(job),
+        "system": {
+            "name": train_split.system_name,
+            "n_nodes": train_split.n_nodes,
+            "state_names": train_split.state_names,
+            "params": capped_meta(params, "summary.json"),
+        },
+        "model": {**model.describe(), "config": job.model_config, **model.report()},
+        "data": {
+            **splits.sizes(),
+            "n_times": train_split.n_times,
+            "dt": train_split.meta.get("dt"),
+            "source": data.path or "simulated",
+            "seed": data.seed,
+            "noise_std": data.noise_std,
+        },
+        "seed": job.seed,
+        "epochs_run": history[-1]["epoch"],
+        "best_epoch": trainer.best_epoch_,
+        "best_val_error": trainer.best_val_,
+        **table2,
+        "initial_test_error": history[0]["test_error"],
+        "final": {"val_error": history[-1]["val_error"], "test_error": history[-1]["test_error"]},
+        "test": metrics,
+        "wall_time": history[-1]["wall_time"],
+        "command_time": time.perf_counter() - started,
+        "run_dir": str(rt.output_dir),
+        "distributed": {"world_size": job.dist.world_size, "backend": job.dist.backend},
+        "device": describe_device(rt.device),
+    }
+
+
+def build_loggers(nodes: dict[str, Any]) -> LoggerGroup:
     """The loggers of the `logger` group (one `_target_` node per key; null or empty: none)."""
     loggers = []
-    for name, node in (cfg.get("logger") or {}).items():
+    for name, node in nodes.items():
         if node is None:
             continue
-        check_target_node(OmegaConf.to_container(node, resolve=True), f"logger.{name}")
+        check_target_node(node, f"logger.{name}")
         logger = build(node, f"logger.{name}")
         if not isinstance(logger, Logger):
             raise ConfigError(f"logger.{name}._target_={node.get('_target_')} is not an mpsim.training.loggers.Logger.")
@@ -266,111 +284,20 @@ def objective_value(summary: dict[str, Any], name: str) -> float:
     return float(value)
 
 
-def _resume_checkpoint(cfg: DictConfig, rt: Runtime) -> dict | None:
-    """`<run dir>/checkpoints/last.ckpt` when `resume` is set (the CLI points the run directory at the run
-    being resumed)."""
-    if not cfg.resume:
-        return None
-    last = rt.output_dir / "checkpoints" / "last.ckpt"
-    if not last.is_file():
-        raise CheckpointError(
-            f"resume: no {last}. Resume reruns the same command in the directory of the run it continues; "
-            "pass resume=<run dir> to name it, or drop resume=true to start afresh."
-        )
-    state = load_checkpoint(last)
-    if "trainer" not in state:
-        raise CheckpointError(f"resume: {last} holds no trainer state.")
-    _check_trainer_state(state["trainer"], last)
-    check_resume(state["trainer"], int(cfg.trainer.max_epochs), int(cfg.trainer.early_stop_patience))
-    return state
-
-
-def _record_stopping(cfg: DictConfig, run_dir: Path) -> None:
-    """Write a resume's new `trainer.max_epochs` / `trainer.early_stop_patience` into the run's `.hydra/` record
-    (overrides.yaml and config.yaml, atomically), so a report of the run shows the budget it trained under. The
-    rest of the record stays as the run wrote it."""
-    record = run_dir / ".hydra"
-    try:
-        config = load_yaml(record / "config.yaml", RECORD_BYTES, str(record / "config.yaml"), "Restore it")
-        overrides = read_overrides_file(run_dir)
-    except (OSError, UnicodeDecodeError, yaml.YAMLError, DataError):
-        return  # no record to keep up to date (the CLI refused a damaged one and warned of a missing one)
-    if not isinstance(config, dict) or not isinstance(config.get("trainer"), dict) or overrides is None:
-        return
-    changed = {
-        key: int(cfg.trainer[key])
-        for key in ("max_epochs", "early_stop_patience")
-        if config["trainer"].get(key) != int(cfg.trainer[key])
-    }
-    if not changed:
-        return
-    for key, value in changed.items():
-        config["trainer"][key] = value
-        kept = [o for o in overrides if str(o).split("=", 1)[0].lstrip("+~") != f"trainer.{key}"]
-        overrides = [*kept, f"trainer.{key}={value}"]
-    text = yaml.safe_dump(overrides, sort_keys=False)
-    atomic_write(record / "overrides.yaml", lambda f: f.write(text), mode="w")
-    config_text = yaml.safe_dump(config, sort_keys=False)
-    atomic_write(record / "config.yaml", lambda f: f.write(config_text), mode="w")
-    log.info(f"recorded {', '.join(f'trainer.{k}={v}' for k, v in changed.items())} in {record}")
-
-
-#: what a resume reads from a last.ckpt's trainer state, and the type each must have
-_TRAINER_STATE: dict[str, type | tuple[type, ...]] = {
-    "epoch": int,
-    "best_epoch": int,
-    "since_best": int,
-    "max_epochs": int,
-    "best_val": (int, float),
-    "model_state": dict,
-    "best_state": dict,
-    "optimizer": dict,
-    "scheduler": dict,
-    "history": list,
-}
-
-
-def _check_trainer_state(trainer: dict, path: Path) -> None:
-    """The counters and mappings a resume reads: present (`max_epochs` only in newer files), of their types, the
-    counters >= 0 (one message naming the first that is wrong)."""
-    import torch
-
-    for key, kind in _TRAINER_STATE.items():
-        if key not in trainer:
-            if key == "max_epochs":
-                continue
-            raise CheckpointError(f"resume: {path} lacks 'trainer.{key}'; the file is damaged. Start the run afresh.")
-        value = trainer[key]
-        if (
-            isinstance(value, bool)
-            or not isinstance(value, kind)
-            or (kind is int and isinstance(value, int) and value < 0)
-        ):
-            raise CheckpointError(
-                f"resume: {path}: 'trainer.{key}' is {value!r:.60}, not what a trainer writes "
-                f"({'a count >= 0' if kind is int else 'a ' + getattr(kind, '__name__', 'number')}); the file is "
-                "damaged. Start the run afresh."
-            )
-    if not isinstance(trainer.get("shuffle_rng"), torch.Tensor):
-        raise CheckpointError(
-            f"resume: {path} lacks the tensor 'trainer.shuffle_rng'; the file is damaged. Start the run afresh."
-        )
-
-
-def _export(best: Path, cfg: DictConfig, rt: Runtime, name: str) -> tuple[Path | None, Path | None]:
-    """Copy best.ckpt to <paths.ckpt_dir>/<name>.ckpt atomically (so `init=<name>.ckpt` finds it).
+def export(best: Path, ckpt_dir: Path, name: str) -> tuple[Path | None, Path | None]:
+    """Copy best.ckpt to <ckpt_dir>/<name>.ckpt atomically (so `init=<name>.ckpt` finds it).
 
     No run silently replaces another run's model: a sweep job exports nothing (its model stays in its own run
     directory), and a single run that replaces an existing export first keeps it as
     ``<name>.<its modification time>.ckpt`` beside it. `name` comes from the data (e.g. a file's ``meta.system``)
-    and is reduced to ``[A-Za-z0-9_.-]``, so the export stays inside `paths.ckpt_dir`.
+    and is reduced to ``[A-Za-z0-9_.-]``, so the export stays inside `ckpt_dir`.
 
     Returns:
         (the exported file, where the model it replaced was kept), each None when there is none.
     """
-    if not cfg.export or not best.is_file() or is_multirun():
+    if not best.is_file() or is_multirun():
         return None, None
-    dest = child_path(resolve_path(cfg.paths.ckpt_dir, rt.start_dir), f"{safe_name(name)}.ckpt")
+    dest = child_path(ckpt_dir, f"{safe_name(name)}.ckpt")
     previous = keep_previous(dest) if dest.is_file() else None
     with open(best, "rb") as src:
         atomic_write(dest, lambda f: shutil.copyfileobj(src, f))

@@ -9,6 +9,7 @@ shares its steps across a batch, so trajectories agree to its tolerance).
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -137,7 +138,7 @@ SPLITS = ("train", "val", "test")
 
 
 def split_trajectories(
-    data: Trajectories, fractions: tuple[float, float, float], seed: int = 0, need: tuple[str, ...] = SPLITS
+    data: Trajectories, fractions: Sequence[float], seed: int = 0, need: tuple[str, ...] = SPLITS
 ) -> Splits:
     """Split loaded data by trajectory with a seeded permutation (`fractions`: shares of train/val/test, normalised).
 

@@ -24,7 +24,7 @@ import json
 import logging
 import re
 import sys
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +32,8 @@ import torch
 
 from mpsim.errors import CheckpointError
 from mpsim.files import atomic_write
+from mpsim.memory import fmt_bytes
+from mpsim.models.base import Model
 from mpsim.safeload import not_a_regular_file, parse_json
 
 log = logging.getLogger(__name__)
@@ -297,3 +299,69 @@ def check_config_targets(node: Any, where: str, allowed: Iterable[str] = ()) -> 
             )
 
     walk(node, "model")
+
+
+# the data metadata a checkpoint keeps ("system"): first the keys that name the system and its shape, which mpsim
+# reads back (`system` and `state_names` in messages, `n_nodes` for models tied to one graph size), then the rest
+# within the budget
+META_READ_BACK = ("system", "system_class", "state_names", "control_names", "n_nodes", "dt")
+META_BUDGET = 64_000  # bytes of JSON; best.ckpt, last.ckpt (rewritten every epoch) and the export each hold it
+
+
+def checkpoint_base(
+    model_cfg: dict[str, Any], model: Model, system_meta: dict[str, Any], extra: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """The static part of every checkpoint a run writes."""
+    return {
+        "model": {"config": model_cfg, "state_dim": model.state_dim, "control_dim": model.control_dim},
+        "normalisation": {
+            "mean": model.state_mean.detach().cpu().clone(),
+            "std": model.state_std.detach().cpu().clone(),
+        },
+        "system": capped_meta(system_meta, "the checkpoints"),
+        **(extra or {}),
+    }
+
+
+def capped_meta(meta: Mapping[str, Any], where: str, budget: int = META_BUDGET) -> dict[str, Any]:
+    """`meta` reduced to plain values and at most `budget` bytes of JSON, so that a data file's large metadata is
+    not copied into every checkpoint (or summary) written from it.
+
+    The keys in `META_READ_BACK` are kept first, then the others from the smallest up while they fit; those
+    left out are named in one warning (`where`: what is written). A key whose value cannot be serialised
+    (nested too deeply) counts as too large.
+    """
+    plain: dict[str, Any] = {}
+    sizes: dict[str, float] = {}
+    for key, value in meta.items():
+        try:
+            plain[str(key)] = _plain_meta(value)
+            sizes[str(key)] = len(json.dumps({str(key): plain[str(key)]}))
+        except (RecursionError, ValueError, TypeError):
+            plain[str(key)], sizes[str(key)] = None, float("inf")
+    kept, used = set(), 0.0
+    for key in sorted(plain, key=lambda k: (k not in META_READ_BACK, sizes[k])):
+        if used + sizes[key] <= budget:
+            kept.add(key)
+            used += sizes[key]
+    dropped = [k for k in plain if k not in kept]
+    if dropped:
+        named = ", ".join(
+            f"{k} ({fmt_bytes(sizes[k]) if sizes[k] < float('inf') else 'nested too deeply'})" for k in dropped
+        )
+        log.warning(
+            f"data metadata not copied into {where} (at most {fmt_bytes(budget)} of it is; the data file keeps it "
+            f"all): {named}"
+        )
+    return {k: v for k, v in plain.items() if k in kept}
+
+
+def _plain_meta(obj: Any) -> Any:
+    """Metadata reduced to containers that `torch.load(weights_only=True)` accepts."""
+    if isinstance(obj, dict):
+        return {str(k): _plain_meta(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_plain_meta(v) for v in obj]
+    if obj is None or isinstance(obj, bool | int | float | str):
+        return obj
+    return str(obj)

@@ -1,20 +1,17 @@
-"""Evaluating a model on a test split: metrics, plots, and the summary of a checkpoint evaluated without
-training. Shared by `mpsim eval` and `mpsim train` (its final test, and `mode=zeroshot`)."""
+"""Scoring a model on a test split: metrics, plots, and the summary of a checkpoint scored without training.
+Shared by `mpsim eval` and `mpsim train` (its final test, and `mode=zeroshot`)."""
 
 from __future__ import annotations
 
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig
 
 from mpsim import plotting
-from mpsim.commands.building import build_system, model_and_data
-from mpsim.commands.checkpoints import load_init
-from mpsim.commands.runtime import Runtime
+from mpsim.commands.prepare import Job
 from mpsim.console import fmt, print_summary
 from mpsim.data.io import save_npz
 from mpsim.data.trajectories import Trajectories
@@ -90,28 +87,38 @@ def horizon_rows(metrics: dict[str, Any]) -> list[tuple[str, str]]:
     return [("test RMSE at", f"{cells} (normalised)"), ("", f"{raw} (raw units)")]
 
 
-def evaluate_checkpoint(cfg: DictConfig, rt: Runtime, task: str) -> dict:
-    """Shared by `mpsim eval` and `mpsim train mode=zeroshot`."""
-    t0 = time.perf_counter()
-    ckpt = load_init(cfg, rt)
-    assert ckpt is not None  # both callers require init= (`mpsim eval`, `resolve_mode` for zeroshot)
-    system = None if cfg.data.path and cfg.data.graph != "system" else build_system(cfg)
-    # nothing trains: a file's train and val shares may be zero (data.split=[0,0,1] evaluates every trajectory)
-    model, model_cfg, splits = model_and_data(cfg, rt, system, ckpt, refit=False, need=("test",))
-    test = splits.test
-    n_file = sum(splits.sizes().values())
-    title = f"{test.system_name}: {ckpt['system'].get('system')} checkpoint, no training"
-    metrics = evaluate_model(
+@dataclass(frozen=True)
+class EvalOptions:
+    """How a model is scored on the test split (the `eval.*` keys but `horizons`, which `Job` holds fitted to the
+    record)."""
+
+    n_plot: int = 2
+    plots: bool = True
+    save_predictions: bool = False
+
+
+def score(job: Job, model: Model, test: Trajectories, options: EvalOptions, title: str) -> dict[str, Any]:
+    """`evaluate_model` with the job's horizons and run directory; the energy error for simulated data."""
+    return evaluate_model(
         model,
         test,
-        rt.output_dir,
-        list(cfg.eval.horizons),
-        None if cfg.data.path else system,
-        cfg.eval.n_plot,
-        cfg.eval.plots,
-        title,
-        cfg.eval.save_predictions,
+        job.runtime.output_dir,
+        job.horizons,
+        None if job.data.from_file else job.system,
+        options.n_plot,
+        options.plots,
+        title=title,
+        save_predictions=options.save_predictions,
     )
+
+
+def evaluate_checkpoint(job: Job, options: EvalOptions, task: str, started: float) -> dict:
+    """Score `job`'s checkpoint on its test split without training: `mpsim eval` and `mpsim train mode=zeroshot`."""
+    ckpt, model, splits = job.checkpoint, job.model, job.splits
+    assert ckpt is not None and model is not None and splits is not None  # prepared with init= and data
+    test = splits.test
+    title = f"{test.system_name}: {ckpt['system'].get('system')} checkpoint, no training"
+    metrics = score(job, model, test, options, title)
     summary = {
         "task": task,
         "mode": "zeroshot",
@@ -119,27 +126,35 @@ def evaluate_checkpoint(cfg: DictConfig, rt: Runtime, task: str) -> dict:
         "init": ckpt["path"],
         "trained_on": ckpt["system"].get("system"),
         "system": {"name": test.system_name, "n_nodes": test.n_nodes, "state_names": test.state_names},
-        "model": {**model.describe(), "config": model_cfg, **model.report()},
+        "model": {**model.describe(), "config": job.model_config, **model.report()},
         "data": {
             "n_test": len(test),
             "n_times": test.n_times,
             "dt": test.meta.get("dt"),
-            "source": cfg.data.path or "simulated",
+            "source": job.data.path or "simulated",
         },
         "test": metrics,
         "test_error": metrics["rmse"],
-        "wall_time": time.perf_counter() - t0,
-        "run_dir": str(rt.output_dir),
+        "wall_time": time.perf_counter() - started,
+        "run_dir": str(job.runtime.output_dir),
     }
-    write_json(rt.output_dir / "summary.json", summary)
+    write_json(job.runtime.output_dir / "summary.json", summary)
+    print_summary(f"mpsim {task}: {test.system_name} (zero-shot)", _zero_shot_rows(summary, job, model))
+    return summary
+
+
+def _zero_shot_rows(summary: dict[str, Any], job: Job, model: Model) -> list[tuple[str, str]]:
+    splits, metrics = job.splits, summary["test"]
+    assert splits is not None
+    test, n_file = splits.test, sum(splits.sizes().values())
     rows = [
-        ("checkpoint", f"{ckpt['path']} (trained on {summary['trained_on']})"),
+        ("checkpoint", f"{summary['init']} (trained on {summary['trained_on']})"),
         (
             "evaluated on",
             f"{test.system_name}: {len(test)} test trajectories, N={test.n_nodes}, {test.n_times - 1} steps"
             + (
                 f" (the test share of the file's {n_file}; data.split=[0,0,1] evaluates every one)"
-                if cfg.data.path and len(test) < n_file
+                if job.data.from_file and len(test) < n_file
                 else ""
             ),
         ),
@@ -157,6 +172,5 @@ def evaluate_checkpoint(cfg: DictConfig, rt: Runtime, task: str) -> dict:
         )
     if metrics.get("n_diverged"):
         rows.append(("diverged", f"{metrics['n_diverged']} of {len(test)} test trajectories"))
-    rows.append(("run dir", str(rt.output_dir)))
-    print_summary(f"mpsim {task}: {test.system_name} (zero-shot)", rows)
-    return summary
+    rows.append(("run dir", str(job.runtime.output_dir)))
+    return rows

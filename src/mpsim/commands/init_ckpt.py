@@ -1,21 +1,18 @@
-"""Checkpoints at the command layer: finding `init=`, loading it with its `_target_` allowlist, checking that it fits
-the data and the model (naming the config key that differs), and the static part of every checkpoint a run writes.
+"""The `init=` checkpoint: finding it, loading it with its `_target_` allowlist, checking that it fits the data and
+the model (naming the config key that differs). What a run's own checkpoints hold: `mpsim.training.checkpoint`.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
 
 from mpsim.commands.runtime import Runtime, resolve_path
 from mpsim.errors import CheckpointError, IncompatibleError
-from mpsim.memory import fmt_bytes
 from mpsim.models.base import Model
 from mpsim.safeload import not_a_regular_file
 from mpsim.training.checkpoint import config_targets, load_checkpoint
@@ -55,12 +52,13 @@ def resolve_init(init: str, rt: Runtime, ckpt_dir: str) -> Path:
     raise CheckpointError(f"init={init}: no such checkpoint (looked for {looked}).{listing}")
 
 
-def load_init(cfg: DictConfig, rt: Runtime) -> dict[str, Any] | None:
-    if not cfg.init:
+def load_init(init: str | None, rt: Runtime, ckpt_dir: str, model_config: Any = None) -> dict[str, Any] | None:
+    """The checkpoint `init=` names (None without one), loaded safely: its `_target_`s may be mpsim's classes and
+    those the command's own model config (`model_config`, plain data) names, e.g. `model._target_=...`."""
+    if not init:
         return None
-    path = resolve_init(str(cfg.init), rt, cfg.paths.ckpt_dir)
-    # a checkpoint may name mpsim's classes, and those the user's own config names (e.g. model._target_=...)
-    allowed = config_targets(OmegaConf.to_container(cfg.model, resolve=True)) if cfg.get("model") is not None else set()
+    path = resolve_init(str(init), rt, ckpt_dir)
+    allowed = config_targets(model_config) if model_config is not None else set()
     ckpt = load_checkpoint(path, allowed, need_config=True)
     log.info(f"init: {path}")
     return ckpt
@@ -136,62 +134,3 @@ def check_checkpoint_system(ckpt: dict[str, Any], state_dim: int, control_dim: i
             f"{ck_c} controls per node) but this data has {state_dim} states {state_names} and {control_dim} "
             f"controls per node. {fix}."
         )
-
-
-def checkpoint_base(
-    model_cfg: dict[str, Any], model: Model, system_meta: dict[str, Any], extra: dict[str, Any] | None = None
-) -> dict[str, Any]:
-    """The static part of every checkpoint a run writes."""
-    return {
-        "model": {"config": model_cfg, "state_dim": model.state_dim, "control_dim": model.control_dim},
-        "normalisation": {
-            "mean": model.state_mean.detach().cpu().clone(),
-            "std": model.state_std.detach().cpu().clone(),
-        },
-        "system": capped_meta(system_meta, "the checkpoints"),
-        **(extra or {}),
-    }
-
-
-def capped_meta(meta: Mapping[str, Any], where: str, budget: int = META_BUDGET) -> dict[str, Any]:
-    """`meta` reduced to plain values and at most `budget` bytes of JSON, so that a data file's large metadata is
-    not copied into every checkpoint (or summary) written from it.
-
-    The keys in `META_READ_BACK` are kept first, then the others from the smallest up while they fit; those
-    left out are named in one warning (`where`: what is written). A key whose value cannot be serialised
-    (nested too deeply) counts as too large.
-    """
-    plain: dict[str, Any] = {}
-    sizes: dict[str, float] = {}
-    for key, value in meta.items():
-        try:
-            plain[str(key)] = _plain(value)
-            sizes[str(key)] = len(json.dumps({str(key): plain[str(key)]}))
-        except (RecursionError, ValueError, TypeError):
-            plain[str(key)], sizes[str(key)] = None, float("inf")
-    kept, used = set(), 0.0
-    for key in sorted(plain, key=lambda k: (k not in META_READ_BACK, sizes[k])):
-        if used + sizes[key] <= budget:
-            kept.add(key)
-            used += sizes[key]
-    dropped = [k for k in plain if k not in kept]
-    if dropped:
-        named = ", ".join(
-            f"{k} ({fmt_bytes(sizes[k]) if sizes[k] < float('inf') else 'nested too deeply'})" for k in dropped
-        )
-        log.warning(
-            f"data metadata not copied into {where} (at most {fmt_bytes(budget)} of it is; the data file keeps it "
-            f"all): {named}"
-        )
-    return {k: v for k, v in plain.items() if k in kept}
-
-
-def _plain(obj: Any) -> Any:
-    """Metadata reduced to containers that `torch.load(weights_only=True)` accepts."""
-    if isinstance(obj, dict):
-        return {str(k): _plain(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_plain(v) for v in obj]
-    if obj is None or isinstance(obj, bool | int | float | str):
-        return obj
-    return str(obj)

@@ -1,0 +1,130 @@
+"""A command's data as one pipeline of small steps, composed in one place (`load_splits`) from plain options.
+
+Measured data: read (by the file's extension: `.npz`, long `.csv`) → map columns (controls apart from states) →
+check that the model's precision holds them → split by trajectory → (the caller) normalise with the training
+split's statistics. Simulated data: simulate the three splits from their own seed streams (cached). Each step is a
+function with one job; a new reader or step slots in here without touching the others.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from mpsim.data.dataset import SPLITS, DatasetSpec, Simulator, Splits, simulate_splits, split_trajectories
+from mpsim.data.io import check_representable, load_trajectories
+from mpsim.data.trajectories import Trajectories
+from mpsim.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DataOptions:
+    """Where a command's data come from and how they are split: the `data.*` keys, as plain values (their
+    defaults and meanings: `mpsim.config`'s `DataConf`, which `tests/test_defaults.py` holds to these)."""
+
+    path: str | None = None
+    edges: str | None = None
+    graph: str | None = None
+    control_columns: list[str] = field(default_factory=list)
+    n_train: int = 200
+    n_val: int = 50
+    n_test: int = 50
+    split: list[float] = field(default_factory=lambda: [0.7, 0.15, 0.15])
+    dt: float | None = None
+    horizon: int | None = None
+    burn_in: int = 0
+    seed: int = 0
+    noise_std: float = 0.0
+    cache: bool = True
+    gt_rtol: float = 1.0e-8
+    gt_atol: float = 1.0e-10
+
+    @property
+    def from_file(self) -> bool:
+        return bool(self.path)
+
+    def dataset_spec(self, system_config: dict[str, Any]) -> DatasetSpec:
+        """What a simulated dataset is (its cache key): the system's config and the sizes, seed and sampling."""
+        return DatasetSpec(
+            system=system_config,
+            n_train=self.n_train,
+            n_val=self.n_val,
+            n_test=self.n_test,
+            seed=self.seed,
+            dt=self.dt,
+            horizon=self.horizon,
+            burn_in=self.burn_in,
+            rtol=self.gt_rtol,
+            atol=self.gt_atol,
+        )
+
+
+def resolve(path: str | Path, start_dir: Path) -> Path:
+    """A path as given when absolute (`~` expanded), else relative to the directory the command was started from."""
+    path = Path(path).expanduser()
+    return path if path.is_absolute() else start_dir / path
+
+
+def file_graph(options: DataOptions, system_graph: torch.Tensor | None) -> torch.Tensor | None:
+    """The graph a file without its own takes: the system's with `data.graph=system` (else None: the file's)."""
+    if options.graph == "system":
+        if system_graph is None:
+            raise ConfigError("data.graph=system needs system=<name>.")
+        return system_graph
+    if options.graph is not None:
+        raise ConfigError(f"data.graph={options.graph!r}: use null (graph from the file) or 'system'.")
+    return None
+
+
+def read(options: DataOptions, start_dir: Path, system_graph: torch.Tensor | None = None) -> Trajectories:
+    """Read step: `data.path` by its extension, with its graph (an edge list, or the system's) and the columns
+    that are controls (`data.control_columns`)."""
+    assert options.path is not None
+    edges = resolve(options.edges, start_dir) if options.edges else None
+    loaded = load_trajectories(
+        resolve(options.path, start_dir), edges, file_graph(options, system_graph), list(options.control_columns)
+    )
+    log.info(
+        f"loaded {len(loaded)} trajectories from {options.path}: T={loaded.n_times}, N={loaded.n_nodes}, "
+        f"D={loaded.state_dim}"
+    )
+    return loaded
+
+
+def load_splits(
+    options: DataOptions,
+    start_dir: Path,
+    dtype_name: str,
+    need: tuple[str, ...] = SPLITS,
+    system: Simulator | None = None,
+    system_graph: torch.Tensor | None = None,
+    system_config: dict[str, Any] | None = None,
+    cache_dir: Path | None = None,
+) -> Splits:
+    """The data of a command, train/val/test: a file read and split by trajectory (the splits in `need` get a
+    share > 0), or the system's three splits simulated (cached in `cache_dir`; None: no cache).
+
+    Args:
+        dtype_name: the model's precision (`float32`/`float64`): a file's values must fit it.
+        system, system_graph, system_config: the ground truth when simulating (its graph also serves a file
+            given with `data.graph=system`); its config is part of the cache key.
+    """
+    if options.from_file:
+        data = read(options, start_dir, system_graph)
+        check_representable(data, dtype_name, str(options.path))
+        return split_trajectories(data, tuple(options.split), options.seed, need)
+    if system is None:
+        raise ConfigError("no data: pass system=<name> or data.path=<file>.")
+    return simulate_splits(system, options.dataset_spec(system_config or {}), cache_dir)
+
+
+def record_steps(options: DataOptions, system: Any) -> int:
+    """Steps per trajectory of the data before they are loaded: a simulated record's horizon (a file's is known
+    once read)."""
+    return int(options.horizon or system.horizon)
