@@ -23,7 +23,7 @@ graph must still be acyclic):
     7  config     config                                         config -> objects; keys and run records
     8  report     report                                         reports of finished runs (plain values, no cfg)
     9  commands   commands                                       `run_<cmd>(cfg) -> dict`
-   10  entry      cli, __main__, mpsim (the package facade)        command dispatch, process set-up
+   10  entry      cli, resume, __main__, mpsim (the facade)      command dispatch, resume=, process set-up
 
 A command (one of `COMMANDS`) never imports another command: what two commands share lives in a helper module of
 `mpsim.commands` (`runtime`, `building`, `console`, ...) or in a library module below; a helper never imports a command.
@@ -89,7 +89,7 @@ LAYERS: list[tuple[str, list[str]]] = [
     ("config", ["mpsim.config"]),
     ("report", ["mpsim.report"]),
     ("commands", ["mpsim.commands"]),
-    ("entry", ["mpsim.cli", "mpsim.help", "mpsim.__main__", "mpsim"]),
+    ("entry", ["mpsim.cli", "mpsim.resume", "mpsim.help", "mpsim.__main__", "mpsim"]),
 ]
 # The command modules (`mpsim <command>`); every other module of `mpsim.commands` is a helper.
 COMMANDS = {f"mpsim.commands.{c}" for c in ("train", "eval", "simulate", "diagnose", "report", "bench")}

@@ -2,17 +2,16 @@
 
 Hydra has no subcommands, so `main` pops the command word, rewrites `sys.argv` and calls that command's
 `@hydra.main` wrapper, a thin shell around a plain `run_<command>(cfg) -> dict`. Before Hydra starts a run,
-the command line is composed and checked (`mpsim.config.compose_command`) without importing torch, so
-`--help`, typos and bad values answer at once and leave no run directory behind. User-facing errors
-(`MpsimError`, and failed writes or allocations) end with one message on stderr and the exit code of their
-kind (`mpsim.errors`); anything else is a bug and keeps its traceback.
+the command line is composed and checked (`mpsim.config.compose_command`; `resume=` is turned into the run's own
+command line by `mpsim.resume`) without importing torch, so `--help`, typos and bad values answer at once and leave
+no run directory behind. User-facing errors (`MpsimError`, and failed writes or allocations) end with one message on
+stderr and the exit code of their kind (`mpsim.errors`); anything else is a bug and keeps its traceback.
 """
 
 from __future__ import annotations
 
 import logging
 import os
-import re
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -41,8 +40,6 @@ examples:
   mpsim train -m system=lorenz10 data.n_train=50,100,500 init=lorenz3.ckpt,null
   mpsim train --help                               # every config group and option
 """
-
-TRUE = {"true", "yes", "1", "on"}
 
 
 def _fail(command: str, err: MpsimError) -> None:
@@ -93,6 +90,7 @@ def _interrupt_hint(command: str, run_dir: Path | None = None) -> str:
     from hydra.core.hydra_config import HydraConfig
 
     from mpsim.commands.runtime import hydra_overrides, is_multirun
+    from mpsim.config.keys import override_key
     from mpsim.runfolder import shown_path
 
     if command != "train":
@@ -101,7 +99,7 @@ def _interrupt_hint(command: str, run_dir: Path | None = None) -> str:
             "run the same command again to redo it (resume= is for mpsim train)."
         )
     given = HydraConfig.initialized() and any(
-        _key(str(o)) == "hydra.run.dir" for o in HydraConfig.get().overrides.hydra
+        override_key(str(o)) == "hydra.run.dir" for o in HydraConfig.get().overrides.hydra
     )
     if run_dir is not None and (given or is_multirun()):
         return f"Completed epochs are saved in last.ckpt; continue with:\n  mpsim train resume={shown_path(run_dir)}"
@@ -174,165 +172,6 @@ def _hydra_command(command: str) -> Callable[[], None]:
 COMMANDS: dict[str, Callable[[], None]] = {
     name: _hydra_command(name) for name in ("train", "eval", "simulate", "report", "bench", "diagnose")
 }
-
-
-def _key(arg: str) -> str:
-    return arg.split("=", 1)[0].lstrip("+~")
-
-
-def _own(args: list[str]) -> list[str]:
-    """The overrides that define a run (not `resume` or `overwrite`, not Hydra's own settings)."""
-    return [
-        a for a in args if not _key(a).startswith(("resume", "hydra", "overwrite")) and a not in ("-m", "--multirun")
-    ]
-
-
-def find_resumable(args: list[str], command: str = "train") -> Path | None:
-    """The newest earlier run of `mpsim <command>` with the same overrides (ignoring `resume` and when training
-    stops: `trainer.max_epochs=` raised with resume=true trains the same run further) that has a `last.ckpt`,
-    under `paths.output_root`."""
-    from mpsim.config import read_overrides_file, stopping_rule
-
-    def defining(overrides: list[str]) -> list[str]:
-        return sorted(a for a in _own(overrides) if not stopping_rule(_key(a)))
-
-    key = defining(args)
-    root = next((a.split("=", 1)[1] for a in args if a.startswith("paths.output_root=")), "outputs")
-    found = []
-    for overrides in Path(root).glob(f"{command}/*/*/.hydra/overrides.yaml"):
-        run = overrides.parent.parent
-        try:
-            saved = read_overrides_file(run)
-        except MpsimError:
-            continue  # a damaged record matches nothing; resume=<that run> names the damage
-        last = run / "checkpoints" / "last.ckpt"
-        if saved is not None and defining(saved) == key and last.is_file():
-            found.append((last.stat().st_mtime, run))
-    return max(found)[1] if found else None
-
-
-def _with_resume(args: list[str]) -> list[str]:
-    """Point Hydra's run directory at the run that `resume=` continues, with that run's own overrides.
-
-    The resumed run keeps its `.hydra/` record (nothing is rewritten there). Overrides that differ from the
-    run's own (other data, another learning rate, ...) are refused: they would silently change the run. Where it
-    writes (`paths.*`) and how it shows its progress (`trainer.progress`, `trainer.log_every[_s]`) are not what it
-    computes: those given now replace the run's own, so a run directory moved to another disk or machine resumes
-    there, and a run started with a bar can be resumed in the background without one. Nor is the hardware it
-    computes on (`device`, `threads`): a run started on a GPU resumes on a CPU with device=cpu. Nor is when it
-    stops (`trainer.max_epochs`, `trainer.early_stop_patience`): a finished run trains on with a larger
-    `trainer.max_epochs` (the trainer refuses fewer epochs than the run has already run). `data.path` may
-    differ too when the file holds the bytes the run trained on (the SHA-256 it recorded in `data.json`, or the
-    file at its own path): data moved along with its run.
-    """
-    values = [a.split("=", 1)[1] for a in args if a.startswith("resume=")]
-    if not values or values[-1].lower() in {"false", "no", "0", "off", "null"}:
-        return args
-    if "-m" in args or "--multirun" in args:
-        raise MpsimError("resume works for single runs; resume each sweep job with resume=<its run directory>.")
-    value = values[-1]
-    if value.lower() in TRUE:
-        run = find_resumable(args)
-        if run is None:
-            shown = " ".join(a for a in args if not a.startswith("resume="))
-            raise MpsimError(
-                f"resume=true: no earlier run of `mpsim train {shown}` with a checkpoints/last.ckpt under "
-                "outputs/train. Run it without resume=true first, or pass resume=<run directory>."
-            )
-    else:
-        run = Path(value)
-        if not (run / "checkpoints" / "last.ckpt").is_file():
-            raise MpsimError(
-                f"resume={value}: {run}/checkpoints/last.ckpt does not exist. Pass the directory of an "
-                "earlier train run (it holds checkpoints/last.ckpt)."
-            )
-    from mpsim.config import read_overrides_file
-
-    saved = read_overrides_file(run)  # a damaged record is refused here, by name (a DataError)
-    if saved is None:
-        print(
-            f"mpsim train: warning: {run}/.hydra/overrides.yaml is missing; resuming with the overrides given "
-            "now, which cannot be checked against the run's own.",
-            file=sys.stderr,
-        )
-        own = _own(args)
-    else:
-        from mpsim.config import host_only, output_only, stopping_rule  # where it writes and runs, when it stops
-
-        mine, theirs = dict(_split(a) for a in _own(args)), dict(_split(a) for a in _own(saved))
-        # the data file may have moved with the run (a copied results folder) if it holds the same bytes
-        data_moved = (
-            "data.path" in mine
-            and "data.path" in theirs
-            and mine["data.path"] != theirs["data.path"]
-            and _same_data(run, mine["data.path"], theirs["data.path"])
-        )
-
-        def free(k: str) -> bool:  # may differ from the run's own
-            return output_only(k) or host_only(k) or stopping_rule(k) or (k == "data.path" and data_moved)
-
-        differ = [
-            f"{k}={v} (the run has {k}={theirs[k]}{_data_hint(run, theirs[k]) if k == 'data.path' else ''})"
-            if k in theirs
-            else f"{k}={v} (not set in the run)"
-            for k, v in mine.items()
-            if theirs.get(k) != v and not free(k)
-        ]
-        if differ:
-            raise MpsimError(
-                f"resume={value}: {'; '.join(differ)}. A resumed run continues with its own config "
-                f"({' '.join(_own(saved)) or 'no overrides'}); drop the differing overrides, or start a new run "
-                "without resume= (finetune from its checkpoint with init=<run>/checkpoints/best.ckpt)."
-            )
-        moved = {k for k in mine if free(k)}
-        for k in sorted(k for k in moved if host_only(k) and theirs.get(k, "its default") != mine[k]):
-            print(
-                f"mpsim train: resuming with {k}={mine[k]} (the run has {k}={theirs.get(k, 'its default')}): "
-                "the same model, data and optimiser on other hardware; the curve continues, rounded differently.",
-                file=sys.stderr,
-            )
-        own = [a for a in _own(saved) if _split(a)[0] not in moved] + [a for a in _own(args) if _split(a)[0] in moved]
-    print(f"mpsim train: resuming {run}", file=sys.stderr)
-    hydra_args = [a for a in args if _key(a).startswith("hydra")]
-    return [*own, *hydra_args, f"resume={value}", f"hydra.run.dir={run.resolve()}", "hydra.output_subdir=null"]
-
-
-def _recorded_data_digest(run: Path) -> str | None:
-    """The SHA-256 of its data file that a run recorded in `<run>/data.json` (None if absent or malformed)."""
-    from mpsim.safeload import RECORD_BYTES, load_json
-
-    try:  # a damaged, oversized or deeply nested record vouches for nothing
-        record = load_json(run / "data.json", RECORD_BYTES, str(run / "data.json"), "Restore it")
-    except (OSError, ValueError):
-        return None
-    digest = record.get("sha256") if isinstance(record, dict) else None
-    return digest if isinstance(digest, str) and re.fullmatch(r"[0-9a-f]{64}", digest) else None
-
-
-def _same_data(run: Path, new: str, old: str) -> bool:
-    """Whether the file `new` holds the bytes the run trained on: the digest it recorded or, for a run that
-    recorded none, the file at its own `data.path` if that is still there."""
-    from mpsim.files import file_sha256  # imports torch: only on this path
-
-    if not Path(new).is_file():
-        return False
-    recorded = _recorded_data_digest(run)
-    if recorded is None:
-        if not Path(old).is_file():
-            return False
-        recorded = file_sha256(old)
-    return file_sha256(new) == recorded
-
-
-def _data_hint(run: Path, old: str) -> str:
-    if _recorded_data_digest(run) is None and not Path(old).is_file():
-        return "; that file is gone and the run recorded no digest, so a moved copy cannot be checked"
-    return "; a data file may move with its run only if it holds the same bytes"
-
-
-def _split(arg: str) -> tuple[str, str]:
-    key, _, value = arg.partition("=")
-    return key.lstrip("+~"), value
 
 
 def _check_writable(cfg: Any, command: str) -> None:
@@ -423,10 +262,11 @@ def main(argv: list[str] | None = None) -> None:
         print(command_help(command, CONF_DIR))
         return
     from mpsim.config import compose_command, register_schemas
+    from mpsim.resume import with_resume
 
     try:
         if command == "train":
-            rest = _with_resume(rest)
+            rest = with_resume(rest)
         register_schemas()
         cfg = compose_command(command, rest, CONF_DIR)
         if cfg is not None:
