@@ -20,7 +20,7 @@ from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError
 from mpsim.files import write_json
 from mpsim.metrics import rollout_metrics
-from mpsim.training.trainer import predict
+from mpsim.models.rollout import rollout
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +77,7 @@ def run_simulate(cfg: DictConfig, output_dir: str | Path | None = None, override
     ckpt = load_init(cfg, rt)
     if ckpt is not None:
         model, _ = build_model_for(cfg, rt, Shape.of(truth), ckpt)
-        pred, aux = predict(model, truth, aux=True)
+        pred, aux = rollout(model, truth, aux=True)
         model_traj = Trajectories(
             t=truth.t,
             x=pred.double(),
