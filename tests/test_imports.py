@@ -17,13 +17,15 @@ graph must still be acyclic):
                   equations, graphs, solvers                      and metrics, effects, topologies, integrators
     2  data       data                                           trajectories, file IO, splits, cache
     3  systems    systems                                        ground-truth simulators (they make `Trajectories`)
-    4  models     models                                         learnable simulators
-    5  training   training                                       the trainer, checkpoints, loggers, DDP
-    6  analysis   diagnose, bench, plotting                      the residual loop, benchmarks, plots
-    7  config     config                                         config -> objects; keys and run records
-    8  report     report                                         reports of finished runs (plain values, no cfg)
-    9  commands   commands                                       `run_<cmd>(cfg) -> dict`
-   10  entry      cli, resume, __main__, mpsim (the facade)      command dispatch, resume=, process set-up
+    4  models     models                                         learnable simulators, `rollout`
+    5  analysis   diagnose, plotting                             the residual loop (it predicts with `rollout` and
+                                                                   finetunes through a callback), plots
+    6  training   training                                       the trainer, checkpoints, loggers, DDP
+    7  bench      bench                                          benchmarks (one of DDP training)
+    8  config     config                                         config -> objects; keys and run records
+    9  report     report                                         reports of finished runs (plain values, no cfg)
+   10  commands   commands                                       `run_<cmd>(cfg) -> dict`
+   11  entry      cli, resume, __main__, mpsim (the facade)      command dispatch, resume=, process set-up
 
 A command (one of `COMMANDS`) never imports another command: what two commands share lives in a helper module of
 `mpsim.commands` (`runtime`, `building`, `console`, ...) or in a library module below; a helper never imports a command.
@@ -84,8 +86,9 @@ LAYERS: list[tuple[str, list[str]]] = [
     ("data", ["mpsim.data"]),
     ("systems", ["mpsim.systems"]),
     ("models", ["mpsim.models"]),
+    ("analysis", ["mpsim.diagnose", "mpsim.plotting"]),
     ("training", ["mpsim.training"]),
-    ("analysis", ["mpsim.diagnose", "mpsim.bench", "mpsim.plotting"]),
+    ("bench", ["mpsim.bench"]),
     ("config", ["mpsim.config"]),
     ("report", ["mpsim.report"]),
     ("commands", ["mpsim.commands"]),

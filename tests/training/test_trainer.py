@@ -141,7 +141,7 @@ def test_window_training_sees_only_short_windows(tmp_path):
 
 
 def test_without_a_progress_bar_a_heartbeat_line_says_where_the_run_stands(tmp_path, caplog, monkeypatch):
-    import mpsim.training.trainer as trainer_module
+    from mpsim.training import progress
 
     train, val, test = _data()
     with caplog.at_level("INFO", logger="mpsim.training.trainer"):
@@ -157,7 +157,7 @@ def test_without_a_progress_bar_a_heartbeat_line_says_where_the_run_stands(tmp_p
     assert [b.split(":")[0] for b in beats] == ["epoch 2/5", "epoch 4/5"]
 
     caplog.clear()
-    monkeypatch.setattr(trainer_module, "_on_terminal", lambda stream: True)  # a bar needs a terminal
+    monkeypatch.setattr(progress, "on_terminal", lambda stream: True)  # a bar needs a terminal
     with caplog.at_level("INFO", logger="mpsim.training.trainer"):
         _trainer(2, log_every=0, log_every_s=0).fit(_model(train), train, val, test, run_dir=tmp_path / "never")
         Trainer(max_epochs=2, batch_size=5, progress=True, log_every=1, log_every_s=1e-9).fit(

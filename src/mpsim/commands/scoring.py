@@ -18,8 +18,8 @@ from mpsim.data.trajectories import Trajectories
 from mpsim.files import write_json
 from mpsim.metrics import relative_energy_error, rollout_metrics
 from mpsim.models.base import Model
+from mpsim.models.rollout import rollout
 from mpsim.systems.base import System
-from mpsim.training.trainer import predict
 
 
 def evaluate_model(
@@ -40,7 +40,7 @@ def evaluate_model(
         save_predictions: also write `test.npz` (the test split) and `test_model.npz` (the model's rollout of
             it from each first state, raw units) to `output_dir`, in `mpsim simulate`'s format.
     """
-    pred, aux = predict(model, test, aux=True)
+    pred, aux = rollout(model, test, aux=True)
     if save_predictions:
         save_npz(test, output_dir / "test.npz")
         save_npz(

@@ -22,7 +22,7 @@ from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError
 from mpsim.files import write_json
 from mpsim.metrics import rollout_metrics
-from mpsim.training.trainer import predict
+from mpsim.models.rollout import rollout
 
 log = logging.getLogger(__name__)
 
@@ -109,7 +109,7 @@ def export_model(
     ckpt = job.checkpoint
     assert ckpt is not None
     model = job.build_model(Shape.of(truth), ckpt)
-    pred, aux = predict(model, truth, aux=True)
+    pred, aux = rollout(model, truth, aux=True)
     model_traj = Trajectories(
         t=truth.t, x=pred.double(), edge_index=truth.edge_index, u=truth.u, meta={**truth.meta, "model": ckpt["path"]}
     )

@@ -58,6 +58,17 @@ class Trajectories:
         node_features: [N, F] or [B, N, F] static node features (mass, charge, ...), or None.
         meta: plain JSON-able metadata: ``system`` (name), ``state_names``, ``control_names``, ``dt``,
             ``params`` (the generating system's parameters), plus anything a system records.
+
+    Examples:
+        >>> import torch
+        >>> from mpsim import Trajectories
+        >>> t = torch.linspace(0.0, 1.0, 11)
+        >>> x = torch.zeros(4, 11, 3, 2)  # 4 trajectories, 11 times, 3 nodes, 2 states per node
+        >>> data = Trajectories(t=t, x=x, edge_index=torch.tensor([[0, 1], [1, 2]]))
+        >>> len(data), data.n_times, data.n_nodes, data.state_dim
+        (4, 11, 3, 2)
+        >>> tuple(data.subset(slice(0, 2)).time_slice(0, 6).x.shape)
+        (2, 6, 3, 2)
     """
 
     t: torch.Tensor

@@ -30,7 +30,7 @@ from mpsim.diagnose.trial import Trial
 from mpsim.errors import DivergenceError
 from mpsim.metrics import rollout_metrics, valid_prediction_time
 from mpsim.models.base import Model
-from mpsim.training.trainer import predict
+from mpsim.models.rollout import rollout
 
 #: finetune(model with the named effects, tag) -> (finetuned model, its checkpoint path); the tag names the run
 #: ("round1", "round1/control", "round1/<candidate>")
@@ -44,7 +44,7 @@ def holdout_metrics(model: Model, test: Trajectories, horizons: list[int], vpt_t
     std = model.state_std.detach().cpu().double()
     step = one_step_residual(model, test)
     one_step = ((step.pred - test.x[:, 1:].double()) / std).pow(2)
-    pred, _ = predict(model, test)
+    pred, _ = rollout(model, test)
     roll = rollout_metrics(pred.double(), test.x.double(), std, test.t, horizons)
     finite = one_step[torch.isfinite(one_step)]
     return {

@@ -34,7 +34,7 @@ from mpsim.diagnose.shooting import window_predictions
 from mpsim.errors import DivergenceError
 from mpsim.models.base import Model
 from mpsim.models.capabilities import ExpressesEffects
-from mpsim.training.trainer import predict
+from mpsim.models.rollout import rollout
 
 #: groups rerun in each bootstrap resample: the selected ones plus this many of the strongest others
 BOOT_GROUPS = 8
@@ -361,7 +361,7 @@ def _null_simulation(model: Model, data: Trajectories, segment: int | None) -> t
             for s, p in windows:  # in time order: a window's first sample (observed) overwrites the previous end
                 pred[:, s : s + p.shape[1]] = p.detach().double().cpu()
             return pred, [s - 1 for s, _ in windows[1:]]
-    pred, _ = predict(model, data)
+    pred, _ = rollout(model, data)
     return pred, []
 
 

@@ -48,6 +48,19 @@ class Model(nn.Module):
         control_dim: C, control inputs per node (0 without controls).
         effects: named physical terms (`mpsim.effects`) with learnable coefficients that the model adds to
             its vector field (e.g. what `mpsim diagnose fix=true` found missing).
+
+    Examples:
+        A model that predicts that nothing moves (ready-made ones: `mpsim.models`, e.g. `MPNODE`):
+
+        >>> from mpsim import Model, rollout, simulate
+        >>> from mpsim.systems import CoupledPendulums
+        >>> class Still(Model):
+        ...     def rollout(self, x0, t, inputs):  # x0: [B, N, D] -> [B, T, N, D]
+        ...         return x0.unsqueeze(1).expand(-1, len(t), -1, -1)
+        >>> data = simulate(CoupledPendulums(), 2, horizon=5)
+        >>> pred, _ = rollout(Still(state_dim=2), data)
+        >>> bool((pred[:, -1] == data.x[:, 0].float()).all())
+        True
     """
 
     #: whether a trained model can run on a graph with a different number of nodes

@@ -1,4 +1,3 @@
 """Trainer, metrics and checkpoints."""
 
 from mpsim.training.trainer import Trainer as Trainer
-from mpsim.training.trainer import predict as predict

@@ -11,22 +11,23 @@ from __future__ import annotations
 import copy
 import logging
 import math
-import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
-from tqdm.auto import tqdm
 
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError, DivergenceError
-from mpsim.metrics import LOSSES, rollout_metrics
+from mpsim.metrics import LOSSES
 from mpsim.models.base import Model
+from mpsim.models.rollout import rollout, rollout_error
 from mpsim.training.checkpoint import history_row, history_text, save_checkpoint
 from mpsim.training.distributed import SINGLE, DistContext
 from mpsim.training.loggers import CSVLogger
+from mpsim.training.progress import Heartbeat, epoch_bar
 
 OPTIMIZERS = ("adam", "lbfgs")
 
@@ -35,54 +36,33 @@ log = logging.getLogger(__name__)
 METRIC_COLUMNS = ("epoch", "train_loss", "val_error", "test_error", "lr", "grad_norm", "epoch_time", "wall_time")
 
 
-def predict(
-    model: Model,
-    data: Trajectories,
-    batch_size: int = 512,
-    aux: bool = False,
-) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """Roll `model` out from every trajectory's first state, in batches, without gradients.
+@dataclass
+class _Fit:
+    """What one `Trainer.fit` call works with: the model, its optimiser, schedule and batch-shuffling generator,
+    where each epoch's metrics row goes, and where training stands (epochs since the best validation, the wall
+    time and the epoch a resumed run continues from)."""
 
-    A batch whose solve fails (step-size underflow) is filled with NaN and reported as diverged by the
-    metrics instead of aborting the evaluation.
-
-    Returns:
-        ([B, T, N, D] predictions in raw units, auxiliary signals such as MP-NODE messages [B, T, N, M]).
-    """
-    preds, auxes = [], []
-    device = model.state_mean.device
-    t = data.t.to(device)
-    with torch.no_grad():
-        for start in range(0, len(data), batch_size):
-            part = data.subset(slice(start, start + batch_size)).to(device, model.state_mean.dtype)
-            try:
-                x0, tt, inputs = model.initial(part.x), t.to(part.x.dtype), part.inputs()
-                p, a = model.rollout_aux(x0, tt, inputs) if aux else (model.rollout(x0, tt, inputs), {})
-            except DivergenceError:
-                p, a = torch.full_like(part.x, math.nan), {}
-            preds.append(p.cpu())
-            auxes.append({k: v.cpu() for k, v in a.items()})
-    merged = {k: torch.cat([a[k] for a in auxes]) for k in auxes[0]} if auxes and all(auxes) else {}
-    return torch.cat(preds), merged
+    model: Model
+    opt: torch.optim.Optimizer
+    sched: torch.optim.lr_scheduler.ReduceLROnPlateau
+    shuffle: torch.Generator
+    on_epoch: Callable[[dict[str, Any]], None] | None = None
+    since_best: int = 0
+    wall_before: float = 0.0
+    start_epoch: int = 1
 
 
-def rollout_error(model: Model, data: Trajectories, batch_size: int = 512, dist: DistContext = SINGLE) -> float:
-    """Normalised rollout RMSE of `model` on `data` over steps 1..T−1 (NaN if every trajectory diverged).
-
-    Under several processes (`dist`) each rolls out its part of the trajectories and the parts are gathered.
-    """
-    if dist.enabled:
-        part = dist.local_slice(len(data))  # empty on some ranks when there are fewer trajectories than ranks
-        if part.stop > part.start:
-            pred, _ = predict(model, data.subset(part), batch_size)
-        else:
-            pred = data.x[:0].to(model.state_mean.dtype)
-        pred = dist.gather(pred, len(data))
+def _rollout_error(model: Model, data: Trajectories, batch_size: int, dist: DistContext) -> float:
+    """`rollout_error` under several processes (`dist`): each rolls out its part of the trajectories and the parts
+    are gathered, so that every rank measures the same error."""
+    if not dist.enabled:
+        return rollout_error(model, data, batch_size=batch_size)
+    part = dist.local_slice(len(data))  # empty on some ranks when there are fewer trajectories than ranks
+    if part.stop > part.start:
+        pred, _ = rollout(model, data.subset(part), batch_size=batch_size)
     else:
-        pred, _ = predict(model, data, batch_size)
-    std = model.state_std.cpu().to(pred.dtype)
-    periods = data.meta.get("periods")
-    return rollout_metrics(pred, data.x.to(pred.dtype), std, data.t, periods=periods, first=model.context_steps)["rmse"]
+        pred = data.x[:0].to(model.state_mean.dtype)
+    return rollout_error(model, data, pred=dist.gather(pred, len(data)))
 
 
 class Trainer:
@@ -121,6 +101,22 @@ class Trainer:
         optimizer: ``adam`` (neural models) or ``lbfgs`` (quasi-Newton with a strong-Wolfe line search, for the
             few smooth parameters of white-box models such as `model=equations`; use lr 1 and full batches).
         log_every: without the bar, also log that line after every epoch that is a multiple of this (0: never).
+
+    Examples:
+        >>> import tempfile, torch
+        >>> from mpsim import Trainer, simulate
+        >>> from mpsim.data.dataset import fit_normalisation
+        >>> from mpsim.models import MPNODE
+        >>> from mpsim.systems import CoupledPendulums
+        >>> system = CoupledPendulums()
+        >>> train, val = simulate(system, 8, seed=0, horizon=5), simulate(system, 4, seed=1, horizon=5)
+        >>> _ = torch.manual_seed(0)
+        >>> model = MPNODE(state_dim=2, hidden=8)
+        >>> model.set_normalisation(*fit_normalisation(train))
+        >>> with tempfile.TemporaryDirectory() as run_dir:
+        ...     trainer = Trainer(max_epochs=2, batch_size=4, progress=False).fit(model, train, val, run_dir=run_dir)
+        >>> trainer.status_, [row["epoch"] for row in trainer.history_]
+        ('complete', [0, 1, 2])
     """
 
     def __init__(
@@ -201,13 +197,31 @@ class Trainer:
             diverged), divergence_ (message or None), best_state_ (weights of the best epoch).
         """
         run_dir = Path(run_dir)
-        self._ckpt_dir = run_dir / "checkpoints"
-        self._base = dict(checkpoint_base or {})
-        self._dist = dist
+        self._ckpt_dir, self._base, self._dist = run_dir / "checkpoints", dict(checkpoint_base or {}), dist
         self._loss_step = dist.wrap(model)
-        device, dtype = model.state_mean.device, model.state_mean.dtype
-        train_d = train.to(device, dtype)
-        loss_fn = LOSSES[self.loss]
+        train_d = train.to(model.state_mean.device, model.state_mean.dtype)
+        run = _Fit(model, *self._optimiser(model), shuffle=torch.Generator().manual_seed(int(seed)))
+        self.history_: list[dict[str, Any]] = []
+        self._history_json: list[str] = []  # each row of history_ as JSON text, for last.ckpt (`history_text`)
+        self.best_val_, self.best_epoch_, self.status_ = math.inf, 0, "complete"
+        self.divergence_: str | None = None
+        self.best_state_ = copy.deepcopy(model.state_dict())
+        if resume_state is not None:
+            self._restore(run, resume_state)
+        if on_epoch is None and dist.is_main:
+            csv_log = CSVLogger()
+            csv_log.start(run_dir, {}, self.history_)
+            on_epoch = csv_log.log_epoch
+        run.on_epoch = on_epoch
+        if resume_state is None:
+            self._epoch_zero(run, val, test)
+        self._train_epochs(run, train_d, val, test)
+        model.load_state_dict(self.best_state_)
+        return self
+
+    # ---- the steps of `fit` --------------------------------------------------------------------------
+    def _optimiser(self, model: Model) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.ReduceLROnPlateau]:
+        """The optimiser (`optimizer`) and its learning-rate schedule (halved on a validation plateau)."""
         opt: torch.optim.Optimizer
         if self.optimizer == "lbfgs":  # a few smooth parameters (white-box models): quasi-Newton with line search
             opt = torch.optim.LBFGS(
@@ -218,93 +232,86 @@ class Trainer:
         sched = torch.optim.lr_scheduler.ReduceLROnPlateau(
             opt, mode="min", factor=self.plateau_factor, patience=self.plateau_patience, min_lr=self.min_lr
         )
-        shuffle = torch.Generator().manual_seed(int(seed))
-        self.history_: list[dict[str, Any]] = []
-        self._history_json: list[str] = []  # each row of history_ as JSON text, for last.ckpt (`history_text`)
-        self.best_val_, self.best_epoch_, self.status_, self.divergence_ = math.inf, 0, "complete", None
-        self.best_state_ = copy.deepcopy(model.state_dict())
-        since_best, wall_before, start_epoch = 0, 0.0, 1
+        return opt, sched
 
-        if resume_state is not None:
-            model.load_state_dict(resume_state["model_state"])
-            opt.load_state_dict(resume_state["optimizer"])
-            sched.load_state_dict(resume_state["scheduler"])
-            shuffle.set_state(resume_state["shuffle_rng"])
-            self.history_ = list(resume_state["history"])
-            self._history_json = [history_row(row, self._columns()) for row in self.history_]
-            self.best_val_, self.best_epoch_ = resume_state["best_val"], resume_state["best_epoch"]
-            self.best_state_ = resume_state["best_state"]
-            since_best = resume_state["since_best"]
-            wall_before = self.history_[-1]["wall_time"] if self.history_ else 0.0
-            start_epoch = resume_state["epoch"] + 1
-            before = check_resume(resume_state, self.max_epochs, self.early_stop_patience)
-            log.info(
-                f"resuming after epoch {resume_state['epoch']} (best val {self.best_val_:.4g} at epoch "
-                f"{self.best_epoch_})"
-                + (f"; trainer.max_epochs {before} -> {self.max_epochs}" if before != self.max_epochs else "")
-            )
-            if self.early_stop_patience and since_best >= self.early_stop_patience:
-                self.status_ = "early_stopped"  # it had stopped: no epoch more (as if it had never been interrupted)
-                start_epoch = self.max_epochs + 1
-        if on_epoch is None and dist.is_main:
-            csv_log = CSVLogger()
-            csv_log.start(run_dir, {}, self.history_)
-            on_epoch = csv_log.log_epoch
-        if resume_state is None:  # epoch 0: the starting point (untrained, or the checkpoint being finetuned)
-            row = self._evaluate_row(model, val, test, 0, math.nan, opt, math.nan, 0.0, 0.0)
-            self.best_val_ = row["val_error"] if row["val_error"] == row["val_error"] else math.inf
-            self._record(row, on_epoch)
-            self._save_best(model)  # epoch 0 is a candidate: best.ckpt exists even if training never beats it
-            self._save_last(model, opt, sched, shuffle, 0, since_best)
-
-        t_start = time.perf_counter()
-        bar = tqdm(
-            range(start_epoch, self.max_epochs + 1),
-            initial=start_epoch - 1,
-            total=self.max_epochs,
-            disable=not self.progress or not dist.is_main or not _on_terminal(sys.stderr),  # where tqdm writes
-            desc="train",
-            unit="epoch",
-            dynamic_ncols=True,
-            leave=True,
+    def _restore(self, run: _Fit, state: dict[str, Any]) -> None:
+        """Continue from a `last.ckpt`'s trainer `state`: weights, optimiser, schedule, shuffling, history, best."""
+        run.model.load_state_dict(state["model_state"])
+        run.opt.load_state_dict(state["optimizer"])
+        run.sched.load_state_dict(state["scheduler"])
+        run.shuffle.set_state(state["shuffle_rng"])
+        self.history_ = list(state["history"])
+        self._history_json = [history_row(row, self._columns()) for row in self.history_]
+        self.best_val_, self.best_epoch_ = state["best_val"], state["best_epoch"]
+        self.best_state_ = state["best_state"]
+        run.since_best = state["since_best"]
+        run.wall_before = self.history_[-1]["wall_time"] if self.history_ else 0.0
+        run.start_epoch = state["epoch"] + 1
+        before = check_resume(state, self.max_epochs, self.early_stop_patience)
+        log.info(
+            f"resuming after epoch {state['epoch']} (best val {self.best_val_:.4g} at epoch {self.best_epoch_})"
+            + (f"; trainer.max_epochs {before} -> {self.max_epochs}" if before != self.max_epochs else "")
         )
-        quiet = bar.disable and dist.is_main  # no bar: log lines say where the run stands
-        beat = _Heartbeat(
-            self.log_every if quiet else 0, self.log_every_s if quiet else 0.0, start_epoch, self.max_epochs
+        if self.early_stop_patience and run.since_best >= self.early_stop_patience:
+            self.status_ = "early_stopped"  # it had stopped: no epoch more (as if it had never been interrupted)
+            run.start_epoch = self.max_epochs + 1
+
+    def _epoch_zero(self, run: _Fit, val: Trajectories, test: Trajectories | None) -> None:
+        """Epoch 0: the starting point (untrained, or the checkpoint being finetuned), recorded and saved."""
+        row = self._evaluate_row(run.model, val, test, 0, math.nan, run.opt, math.nan, 0.0, 0.0)
+        self.best_val_ = row["val_error"] if row["val_error"] == row["val_error"] else math.inf
+        self._record(row, run.on_epoch)
+        self._save_best(run.model)  # epoch 0 is a candidate: best.ckpt exists even if training never beats it
+        self._save_last(run.model, run.opt, run.sched, run.shuffle, 0, run.since_best)
+
+    def _train_epochs(self, run: _Fit, train: Trajectories, val: Trajectories, test: Trajectories | None) -> None:
+        """Epochs `run.start_epoch`..`max_epochs`, until training diverges or stops early; a bar on a terminal, log
+        lines without one."""
+        t_start = time.perf_counter()
+        bar = epoch_bar(run.start_epoch, self.max_epochs, self.progress and self._dist.is_main)
+        quiet = bar.disable and self._dist.is_main  # no bar: log lines say where the run stands
+        beat = Heartbeat(
+            self.log_every if quiet else 0, self.log_every_s if quiet else 0.0, run.start_epoch, self.max_epochs, log
         )
         for epoch in bar:
-            t0 = time.perf_counter()
-            try:
-                train_loss, grad_norm = self._train_epoch(model, train_d, opt, loss_fn, shuffle, epoch)
-            except DivergenceError as err:
-                self.status_, self.divergence_ = "diverged", str(err)
-                log.error(str(err))
+            row = self._epoch(run, train, val, test, epoch, t_start)
+            if row is None:
                 break
-            epoch_time = time.perf_counter() - t0
-            wall = wall_before + time.perf_counter() - t_start
-            row = self._evaluate_row(model, val, test, epoch, train_loss, opt, grad_norm, epoch_time, wall)
-            val_err = row["val_error"]
-            if val_err == val_err:  # NaN validation error never counts as an improvement
-                sched.step(val_err)
-            if val_err < self.best_val_:
-                self.best_val_, self.best_epoch_, since_best = val_err, epoch, 0
-                self.best_state_ = copy.deepcopy(model.state_dict())
-                self._save_best(model)
-            else:
-                since_best += 1
-            self._record(row, on_epoch)
-            self._save_last(model, opt, sched, shuffle, epoch, since_best)
-            bar.set_postfix(
-                loss=f"{train_loss:.3g}", val=f"{val_err:.3g}", test=f"{row['test_error']:.3g}", lr=f"{row['lr']:.1g}"
-            )
+            loss, val_err, test_err = (f"{row[k]:.3g}" for k in ("train_loss", "val_error", "test_error"))
+            bar.set_postfix(loss=loss, val=val_err, test=test_err, lr=f"{row['lr']:.1g}")
             beat(epoch, row, self.best_val_, self.best_epoch_)
-            if self.early_stop_patience and since_best >= self.early_stop_patience:
+            if self.early_stop_patience and run.since_best >= self.early_stop_patience:
                 self.status_ = "early_stopped"
-                log.info(f"early stop: no validation improvement for {since_best} epochs")
+                log.info(f"early stop: no validation improvement for {run.since_best} epochs")
                 break
         bar.close()
-        model.load_state_dict(self.best_state_)
-        return self
+
+    def _epoch(
+        self, run: _Fit, train: Trajectories, val: Trajectories, test: Trajectories | None, epoch: int, t_start: float
+    ) -> dict[str, Any] | None:
+        """One epoch: train, evaluate, keep the best, record the row and save `last.ckpt`; None if it diverged."""
+        t0, loss_fn = time.perf_counter(), LOSSES[self.loss]
+        try:
+            train_loss, grad_norm = self._train_epoch(run.model, train, run.opt, loss_fn, run.shuffle, epoch)
+        except DivergenceError as err:
+            self.status_, self.divergence_ = "diverged", str(err)
+            log.error(str(err))
+            return None
+        epoch_time = time.perf_counter() - t0
+        wall = run.wall_before + time.perf_counter() - t_start
+        row = self._evaluate_row(run.model, val, test, epoch, train_loss, run.opt, grad_norm, epoch_time, wall)
+        val_err = row["val_error"]
+        if val_err == val_err:  # NaN validation error never counts as an improvement
+            run.sched.step(val_err)
+        if val_err < self.best_val_:
+            self.best_val_, self.best_epoch_, run.since_best = val_err, epoch, 0
+            self.best_state_ = copy.deepcopy(run.model.state_dict())
+            self._save_best(run.model)
+        else:
+            run.since_best += 1
+        self._record(row, run.on_epoch)
+        self._save_last(run.model, run.opt, run.sched, run.shuffle, epoch, run.since_best)
+        return row
 
     def _train_epoch(self, model, data, opt, loss_fn, shuffle, epoch) -> tuple[float, float]:
         model.train()
@@ -378,8 +385,8 @@ class Trainer:
         if self.eval_window:
             val = val.time_slice(0, self.eval_window + 1)
             test = None if test is None else test.time_slice(0, self.eval_window + 1)
-        val_err = rollout_error(model, val, self.eval_batch_size, self._dist)
-        test_err = rollout_error(model, test, self.eval_batch_size, self._dist) if test is not None else math.nan
+        val_err = _rollout_error(model, val, self.eval_batch_size, self._dist)
+        test_err = _rollout_error(model, test, self.eval_batch_size, self._dist) if test is not None else math.nan
         return {
             "epoch": epoch,
             "train_loss": train_loss,
@@ -486,43 +493,3 @@ def _divergence_message(pred: torch.Tensor, t: torch.Tensor, epoch: int, batch: 
         f"training diverged in epoch {epoch}, batch {batch} (trajectories {_ids(idx)}): {where}. "
         "Lower trainer.lr, tighten trainer.clip_norm or use a shorter data.horizon."
     )
-
-
-def _on_terminal(stream: Any) -> bool:
-    """Whether a progress bar on `stream` redraws in place: a terminal, or a notebook (where `tqdm.auto` draws a
-    widget); a file, a pipe or a closed stream is not (there each redraw would append a line)."""
-    notebook = sys.modules.get("tqdm.notebook")
-    if notebook is not None and issubclass(tqdm, notebook.tqdm_notebook):
-        return True
-    try:
-        return bool(stream.isatty())
-    except (AttributeError, ValueError, OSError):
-        return False
-
-
-class _Heartbeat:
-    """Where a run without a progress bar stands: one log line after every epoch that is a multiple of
-    `every_epochs`, and one whenever `every_s` seconds of training have passed since the last (0: never, each)."""
-
-    def __init__(self, every_epochs: int, every_s: float, start_epoch: int, max_epochs: int) -> None:
-        self.every_epochs, self.every_s, self.first, self.max_epochs = every_epochs, every_s, start_epoch, max_epochs
-        self.t_start = self.t_last = time.perf_counter()
-
-    def __call__(self, epoch: int, row: dict, best_val: float, best_epoch: int) -> None:
-        now = time.perf_counter()
-        on_epoch = bool(self.every_epochs) and epoch % self.every_epochs == 0
-        if not on_epoch and not (self.every_s and now - self.t_last >= self.every_s):
-            return
-        self.t_last = now
-        per_epoch = (now - self.t_start) / (epoch - self.first + 1)  # this session's epochs (a resumed run: since then)
-        left = per_epoch * (self.max_epochs - epoch)
-        log.info(
-            f"epoch {epoch}/{self.max_epochs}: train loss {row['train_loss']:.4g}, val {row['val_error']:.4g}, "
-            f"test {row['test_error']:.4g} (best val {best_val:.4g} at epoch {best_epoch}), lr {row['lr']:.2g}; "
-            f"{per_epoch:.3g} s/epoch, about {_duration(left)} left"
-        )
-
-
-def _duration(seconds: float) -> str:
-    minutes = round(seconds / 60)
-    return f"{minutes // 60} h {minutes % 60:02d} min" if minutes >= 60 else f"{minutes} min"
