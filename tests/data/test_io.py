@@ -195,7 +195,7 @@ def test_npz_values_are_never_cast_silently(tmp_path):
 
 
 def test_values_beyond_the_model_precision_are_reported_as_overflow(tmp_path):
-    from mpsim.data.io import check_representable
+    from mpsim.data.precision import check_representable
 
     data = load_trajectories(_npz(tmp_path, x=np.full((2, 3, 2, 1), 1e300)))
     with pytest.raises(DataError, match=r"x\[0, 0, 0, 0\] = 1e\+300: values this large overflow float32"):
@@ -206,7 +206,7 @@ def test_values_beyond_the_model_precision_are_reported_as_overflow(tmp_path):
 
 
 def test_times_beyond_the_model_precision_are_named_with_their_range(tmp_path):
-    from mpsim.data.io import check_representable
+    from mpsim.data.precision import check_representable
 
     huge = load_trajectories(_npz(tmp_path, t=np.array([0.0, 2.5e300, 5e300])))  # finite: not "NaN or inf"
     with pytest.raises(DataError, match=r"a.npz: `t` runs from 0.0 to 5e\+300: values this large overflow float32"):

@@ -140,14 +140,46 @@ def load_csv(
         control_columns: columns that are controls rather than states (default: from the sidecar JSON).
     """
     path = Path(path)
+    frame = _read_frame(path)
+    meta = _read_sidecar(path.with_suffix(".json"))
+    control_columns = list(control_columns) or list(meta.pop("control_columns", []) or [])
+    value_cols, state_cols = _long_columns(frame, path, control_columns)
+    numeric = {c: _numeric_column(frame, c, path) for c in ["t", "node", *value_cols]}
+    node, n = _node_ids(numeric["node"], path)
+    traj_codes, traj_labels = _traj_codes(frame, path)
+    order, times = _long_grid(path, traj_codes, traj_labels, numeric["t"], node, n)
+    b, t_len = len(traj_labels), len(times)
+    x = np.stack([numeric[c][order] for c in state_cols], axis=-1).reshape(b, t_len, n, len(state_cols))
+    u = None
+    if control_columns:
+        u = np.stack([numeric[c][order] for c in control_columns], axis=-1).reshape(b, t_len, n, len(control_columns))
+    meta.update({"state_names": state_cols, "control_names": list(control_columns), "source": str(path)})
+    meta.setdefault("system", path.stem)
+    t = torch.from_numpy(times).double()
+    meta.setdefault("dt", grid_step(t))
+    return _build(
+        path,
+        t=t,
+        x=torch.from_numpy(x).double(),
+        edge_index=_csv_graph(path, edges, edge_index, n, traj_labels),
+        u=None if u is None else torch.from_numpy(u).double(),
+        node_features=None,
+        meta=meta,
+    )
+
+
+def _read_frame(path: Path) -> pd.DataFrame:
+    """The CSV at `path` as a table (one message for a missing, special or unparsable file)."""
     if not path.is_file():
         raise DataError(f"data file {path} {_not_a_file(path)}.")
     try:
-        frame = pd.read_csv(path)
+        return pd.read_csv(path)
     except Exception as err:  # noqa: BLE001
         raise DataError(f"{path}: cannot parse as CSV ({type(err).__name__}: {err}).") from None
-    meta = _read_sidecar(path.with_suffix(".json"))
-    control_columns = list(control_columns) or list(meta.pop("control_columns", []) or [])
+
+
+def _long_columns(frame: pd.DataFrame, path: Path, control_columns: list[str]) -> tuple[list[str], list[str]]:
+    """A long CSV's value columns (all but traj, t, node) and, of those, the state columns (not controls)."""
     missing = [c for c in INDEX_COLUMNS if c not in frame.columns]
     if missing:
         raise DataError(
@@ -165,8 +197,11 @@ def load_csv(
         raise DataError(f"{path}: no state columns besides traj, t, node.")
     if len(frame) == 0:
         raise DataError(f"{path}: the file has a header but no rows.")
-    numeric = {c: _numeric_column(frame, c, path) for c in ["t", "node", *value_cols]}
-    node = numeric["node"]
+    return value_cols, state_cols
+
+
+def _node_ids(node: np.ndarray, path: Path) -> tuple[np.ndarray, int]:  # node: [rows] the 'node' column
+    """The node column as integers, and the node count N (the ids must be 0..N-1, none missing)."""
     if not np.all(node == np.round(node)):
         row = int(np.nonzero(node != np.round(node))[0][0])
         raise DataError(f"{path}: row {row + 2}, column 'node': node ids must be integers; got {node[row]}.")
@@ -178,6 +213,11 @@ def load_csv(
             f"{path}: column 'node' must hold the ids 0..N-1 with none missing; found {len(node_ids)} distinct "
             f"ids from {node_ids.min()} to {node_ids.max()}. Renumber the nodes from 0."
         )
+    return node, n
+
+
+def _traj_codes(frame: pd.DataFrame, path: Path) -> tuple[np.ndarray, Any]:
+    """Each row's trajectory as a code 0..B-1, and the B labels in sorted order (no row may lack one)."""
     missing_traj = frame["traj"].isna().to_numpy()
     if missing_traj.any():
         row = int(np.nonzero(missing_traj)[0][0])
@@ -185,9 +225,20 @@ def load_csv(
             f"{path}: row {row + 2}, column 'traj' is empty ({int(missing_traj.sum())} such rows). Every row needs the "
             "label of the trajectory it belongs to; fill it in or remove the row."
         )
-    traj_codes, traj_labels = pd.factorize(frame["traj"], sort=True)
+    return pd.factorize(frame["traj"], sort=True)
+
+
+def _long_grid(
+    path: Path,
+    traj_codes: np.ndarray,  # [rows] trajectory code of each row
+    traj_labels: Any,
+    t_vals: np.ndarray,  # [rows] time of each row
+    node: np.ndarray,  # [rows] node id of each row
+    n: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The row order that lays the file out as [B, T, N], and the T shared times; refuses repeated rows and
+    trajectories that do not share one full (time × node) grid."""
     b = len(traj_labels)
-    t_vals = numeric["t"]
     key = pd.DataFrame({"traj": traj_codes, "t": t_vals, "node": node})
     dup = key.duplicated(keep=False).to_numpy()
     if dup.any():
@@ -197,16 +248,14 @@ def load_csv(
     counts = np.bincount(traj_codes, minlength=b)
     times = np.unique(t_vals[traj_codes == 0])
     t_len = len(times)
-    for_check = t_vals[order].reshape(-1)
-    expected = b * t_len * n
-    if len(frame) != expected or np.any(counts != t_len * n):
+    if len(t_vals) != b * t_len * n or np.any(counts != t_len * n):
         bad = int(np.nonzero(counts != t_len * n)[0][0]) if np.any(counts != t_len * n) else 0
         raise DataError(
             f"{path}: ragged data: trajectory {_label(traj_labels[bad])} has {counts[bad]} rows but a full grid needs "
             f"{t_len} times × {n} nodes = {t_len * n} (trajectory {_label(traj_labels[0])} has {t_len} time points). "
             "Every trajectory must have every node at the same times; resample or split the file."
         )
-    grid_t = for_check.reshape(b, t_len, n)
+    grid_t = t_vals[order].reshape(b, t_len, n)
     if not np.allclose(grid_t, times[None, :, None], rtol=1e-9, atol=1e-12):
         bad = int(np.nonzero(~np.isclose(grid_t, times[None, :, None]).all(axis=(1, 2)))[0][0])
         raise DataError(
@@ -214,34 +263,28 @@ def load_csv(
             f"{_label(traj_labels[0])} (or not at every node). All trajectories must share one time grid; subtract each "
             "trajectory's start time or resample."
         )
-    x = np.stack([numeric[c][order] for c in state_cols], axis=-1).reshape(b, t_len, n, len(state_cols))
-    u = None
-    if control_columns:
-        u = np.stack([numeric[c][order] for c in control_columns], axis=-1).reshape(b, t_len, n, len(control_columns))
+    return order, times
+
+
+def _csv_graph(
+    path: Path,
+    edges: str | Path | None,
+    edge_index: torch.Tensor | None,  # [2, E] a fallback graph, or None
+    n: int,
+    traj_labels: Any,
+) -> torch.Tensor:
+    """The graph of a long CSV: its edge list (given, or ``<stem>_edges.csv`` beside it), else `edge_index`, else
+    none for one node; more nodes without a graph are refused."""
     edge_path = Path(edges) if edges else path.with_name(f"{path.stem}_edges.csv")
     if edges or edge_path.is_file():
-        ei = load_edges(edge_path, n, traj_labels)
-    elif edge_index is not None:
-        ei = edge_index
-    elif n == 1:  # one node has no neighbours: no edge list needed
-        ei = torch.zeros(2, 0, dtype=torch.long)
-    else:
-        raise DataError(
-            f"{path}: no graph: expected an edge list {edge_path.name} beside it. Pass data.edges=<edges.csv> "
-            "(columns src,dst) or data.graph=system with system=<name>."
-        )
-    meta.update({"state_names": state_cols, "control_names": list(control_columns), "source": str(path)})
-    meta.setdefault("system", path.stem)
-    t = torch.from_numpy(times).double()
-    meta.setdefault("dt", grid_step(t))
-    return _build(
-        path,
-        t=t,
-        x=torch.from_numpy(x).double(),
-        edge_index=ei,
-        u=None if u is None else torch.from_numpy(u).double(),
-        node_features=None,
-        meta=meta,
+        return load_edges(edge_path, n, traj_labels)
+    if edge_index is not None:
+        return edge_index
+    if n == 1:  # one node has no neighbours: no edge list needed
+        return torch.zeros(2, 0, dtype=torch.long)
+    raise DataError(
+        f"{path}: no graph: expected an edge list {edge_path.name} beside it. Pass data.edges=<edges.csv> "
+        "(columns src,dst) or data.graph=system with system=<name>."
     )
 
 
@@ -403,55 +446,6 @@ def _integer_ids(array: np.ndarray, path: Path) -> torch.Tensor:
             "whole numbers. Save edge_index as an integer array (e.g. .astype(int)) with correct ids."
         )
     return torch.from_numpy(array.astype(np.int64))
-
-
-def check_representable(data: Trajectories, dtype_name: str, source: str) -> None:
-    """Refuse values that overflow the model's precision (reported as overflow, not as NaN/inf later).
-
-    float32 holds magnitudes up to 3.4e38; normalisation squares values, so float64 data must stay below 1e150.
-    Time points are checked too (`_check_times`).
-    """
-    _check_times(data.t, dtype_name, source)
-    limit, why = (
-        (float(np.finfo(np.float32).max), "overflow float32 (largest 3.4e38)")
-        if dtype_name == "float32"
-        else (1e150, "overflow float64 when squared for the normalisation statistics")
-    )
-    for name, tensor in (("x", data.x), ("u", data.u)):
-        if tensor is None:
-            continue
-        peak = float(tensor.abs().max())
-        if peak > limit:
-            index = tuple(int(i) for i in torch.nonzero(tensor.abs() == peak)[0])
-            fix = (
-                "rescale the data (other units) or use dtype=float64" if dtype_name == "float32" else "rescale the data"
-            )
-            raise DataError(f"{source}: {name}{list(index)} = {peak:.3g}: values this large {why}. Fix: {fix}.")
-
-
-def _check_times(t: torch.Tensor, dtype_name: str, source: str) -> None:  # t: [T] time points, float64
-    """Time points the model's precision holds: within float32's range and still strictly increasing once rounded
-    to float32 (dtype=float32), with steps that do not overflow float64. Each refusal names the range of `t`."""
-    low, high = float(t.min()), float(t.max())
-    shown = f"`t` runs from {low} to {high}"  # every digit: neighbours that float32 merges differ late
-    fix = "subtract the start time or measure time in a larger unit"
-    if dtype_name == "float32" and max(abs(low), abs(high)) > float(np.finfo(np.float32).max):
-        raise DataError(
-            f"{source}: {shown}: values this large overflow float32 (largest 3.4e38), the precision of "
-            f"dtype=float32. Fix: {fix}, or use dtype=float64."
-        )
-    if not torch.isfinite(t[1:] - t[:-1]).all():
-        raise DataError(f"{source}: {shown}: the steps between time points overflow float64. Fix: {fix}.")
-    if dtype_name == "float32":
-        rounded = t.float()
-        tied = torch.nonzero(rounded[1:] <= rounded[:-1])
-        if len(tied):
-            k = int(tied[0])
-            raise DataError(
-                f"{source}: {shown}: t[{k}] = {float(t[k])} and t[{k + 1}] = {float(t[k + 1])} are the "
-                f"same number in float32 (about 7 significant digits, dtype=float32). Fix: {fix}, or use "
-                "dtype=float64."
-            )
 
 
 def _label(value: Any) -> str:

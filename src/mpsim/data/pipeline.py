@@ -16,7 +16,8 @@ from typing import Any
 import torch
 
 from mpsim.data.dataset import SPLITS, DatasetSpec, Simulator, Splits, simulate_splits, split_trajectories
-from mpsim.data.io import check_representable, load_trajectories
+from mpsim.data.io import load_trajectories
+from mpsim.data.precision import check_representable
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError
 
