@@ -15,7 +15,8 @@ Between two samples t_k, t_{k+1} the input is held as the data's metadata say, `
   (`integrate_held`). Measured on 2000 samples (16 trajectories, a 2-state pendulum, one input, 1 CPU thread):
   1.0 s per rollout with `linear` against 2.2 s with `zoh` at rtol = atol = 1e-4 (2.2 against 7 field
   evaluations per sample); 23 s against 2.2 s at 1e-7, where the kinks of the interpolated input make `linear`
-  the costly one. Solving interval by interval instead of restarting costs another 10–15 %.
+  the costly one. Solving interval by interval instead of restarting costs another 10–15 %. With a delayed
+  effect (fixed-step RK4 with history) the input is read by time: a stage on a sample time sees the new sample.
 
 A one-step batch (every sample's interval from its observed state, `EquationsModel.one_step`) holds each row's
 input on its own interval (`IntervalInput`); the intervals are independent, so both holds run as one batched

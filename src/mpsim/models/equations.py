@@ -187,7 +187,7 @@ class EquationsModel(Model):
         inputs: Inputs,  # the data's graph [2, E] or [B, 2, E], controls [B, T, N, C] on the grid t, meta
     ) -> torch.Tensor:
         """[B, T, N, D] the spec integrated from x0; a driven spec reads `inputs.u` held as
-        `inputs.meta["input_hold"]` says (zoh: one sample interval at a time, see `mpsim.models.driving`)."""
+        `inputs.meta["input_hold"]` says (zoh: no solver step straddles a sample time, see `mpsim.models.driving`)."""
         check_nodes(self.spec, x0.shape[1], "model.spec")
         values = {k: v.to(x0) for k, v in self.parameters_now().items()}
         signal = self._signal(x0, t, inputs)
