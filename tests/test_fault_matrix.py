@@ -719,7 +719,46 @@ CASES: dict[str, Case] = {
         "one direction per objective",
     ),
     "log_every_negative": Case(lambda w, d: ["train", "trainer.log_every=-1"], 2, "trainer.log_every=-1: must be >= 0"),
+    # -- issue 60, driven specs: `inputs:` in model=equations / system=equations, the twin's `system.input`
+    "driven_twin_without_a_signal": Case(
+        lambda w, d: _driven(d, "simulate", "n=2"), 2, "declares the inputs ['u'] but no signal drives them"
+    ),
+    "driven_twin_input_file_missing": Case(
+        lambda w, d: _driven(d, "simulate", "n=2", f"system.input={{file: '{d / 'none.csv'}', column: u}}"),
+        2,
+        "none.csv does not exist",
+    ),
+    "driven_twin_input_file_too_short": Case(
+        lambda w, d: (
+            (d / "u.csv").write_text("t,u\n0,1\n0.5,2\n"),
+            _driven(d, "simulate", "n=2", f"system.input={{file: '{d / 'u.csv'}'}}"),
+        )[1],
+        2,
+        "covers t = 0 to 0.5 but the simulation runs from 0 to 1",
+    ),
+    "driven_model_on_data_without_controls": Case(
+        lambda w, d: [
+            "train",
+            "system=equations",
+            "system.spec={states: [x, v], equations: {x: v, v: -x}, nodes: 1}",
+            "model=equations",
+            f"model.spec={_driven(d, 'train')[2].split('=', 1)[1]}",
+            *TINY_TRAIN[:2],
+        ],
+        2,
+        "model.spec.inputs ['u'] are 1 per node but the data have 0 control(s). Map the file's columns",
+    ),
 }
+
+DRIVEN_SPEC = (
+    "states: [x, v]\ninputs: [u]\nequations: {x: v, v: -k*x + u}\nparams: {k: 4.0}\nnodes: 1\ndt: 0.1\nhorizon: 10\n"
+)
+
+
+def _driven(d: Path, command: str, *extra: str) -> list[str]:
+    """A driven spec file in `d` and the `system=equations` command that simulates it."""
+    (d / "driven.yaml").write_text(DRIVEN_SPEC)
+    return [command, "system=equations", f"system.spec={d / 'driven.yaml'}", *extra]
 
 
 def _declaring(ws: Path, d: Path, **sizes: int) -> Path:

@@ -76,6 +76,7 @@ LAYERS: list[tuple[str, list[str]]] = [
         [
             "mpsim.periodic",
             "mpsim.polynomials",
+            "mpsim.signals",
             "mpsim.metrics",
             "mpsim.effects",
             "mpsim.spec",

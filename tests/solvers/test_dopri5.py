@@ -174,3 +174,34 @@ def test_odesolver_runs_it_by_default_and_torchdiffeqs_on_request(monkeypatch):
     assert torch.allclose(ours, theirs, rtol=1e-12, atol=1e-12)
     with pytest.raises(ConfigError, match="implementation"):
         ODESolver("dopri5", implementation="scipy")
+
+
+def test_restart_never_steps_across_an_output_and_matches_one_solve_per_interval():
+    """A field whose input jumps at every output time (zero-order hold): `restart=True` ends a step on every output
+    time and evaluates the field afresh there; the result is torchdiffeq's solve one interval at a time."""
+    t = torch.linspace(0.0, 2.0, 41, dtype=torch.float64)
+    u = torch.sin(7 * t) + torch.randn(41, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+
+    class Held(nn.Module):  # dy/dt = −y + u_k on [t_k, t_{k+1}): the sample at or before t
+        def __init__(self):
+            super().__init__()
+            self.times = []
+
+        def forward(self, s, y):
+            self.times.append(float(s))
+            k = int(torch.searchsorted(t, s.reshape(1), right=True)) - 1
+            return -y + u[min(k, 40)]
+
+    field, y0 = Held(), torch.tensor([[0.5], [-1.0]], dtype=torch.float64)
+    got = dopri5(field, y0, t, 1e-9, 1e-11, restart=True)
+    steps = [y0]
+    for k in range(40):  # the reference: one solve per interval with the sample fixed (exact: e^{-h} decay to u_k)
+        h = float(t[k + 1] - t[k])
+        steps.append(u[k] + (steps[-1] - u[k]) * math.exp(-h))
+    assert torch.allclose(got, torch.stack(steps), atol=1e-9)
+    assert set(t[1:-1].tolist()) <= set(field.times)  # the field is evaluated afresh on every sample time
+    plain = Held()  # without restart the steps straddle the jumps, and the tolerance shrinks them around each one
+    assert torch.allclose(dopri5(plain, y0, t, 1e-9, 1e-11), got, atol=1e-6)
+    assert len(field.times) < len(plain.times) / 2, (len(field.times), len(plain.times))
+    with pytest.raises(ValueError, match="cannot restart"):
+        ODESolver("rk4")(field, y0, t, restart=True)

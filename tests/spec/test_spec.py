@@ -132,7 +132,7 @@ def test_nothing_in_an_expression_is_executed(tmp_path):
         ("theta_j", "only defined inside sum_nbr"),
         ("sum_nbr(sum_nbr(theta_j))", "cannot be nested"),
         ("sin(theta, omega)", "takes exactly one argument"),
-        ("g_j", "only states and per-node parameters"),
+        ("g_j", "only states, inputs and per-node parameters"),
         ("sin", "is a function"),
         ("omega +", "cannot parse"),
     ],
@@ -221,3 +221,49 @@ def test_a_spec_file_reads_exponent_notation_as_numbers(tmp_path):
     spec = load_spec_file(path)
     assert spec["params"]["k"] == 0.002 and spec["dt"] == 100.0 and spec["name"] == "1e"
     assert float(parse_spec(spec, extra_keys=["dt", "name"]).params["k"]) == 0.002
+
+
+# ---- inputs (issue 60): values the data give, used like states, with no equation of their own -------------
+DRIVEN = {
+    "states": ["x", "v"],
+    "inputs": ["u", "w"],
+    "equations": {"x": "v", "v": "(k*u - Fv*v)/M + c*sum_nbr(u_j - u) + w*sin(x)"},
+    "params": {"k": 2.0, "Fv": 0.3, "M": 1.5, "c": 0.5},
+}
+
+
+def test_inputs_are_read_like_states_and_their_neighbour_values_too():
+    spec = parse_spec(DRIVEN)
+    assert spec.inputs == ("u", "w") and spec.input_dim == 2 and spec.kinematic == ("x",)
+    ei = make_topology("ring", 4)
+    x, u = torch.randn(3, 4, 2, dtype=torch.float64), torch.randn(3, 4, 2, dtype=torch.float64)
+    graph = batch_graph(ei, 3, 4, dtype=x.dtype)
+    out = EquationField(spec)(torch.tensor(0.0), x, dict(spec.params), graph, u)
+    uu, ww = u[..., 0], u[..., 1]
+    nbr = torch.zeros_like(uu).index_add_(1, ei[1], uu[:, ei[0]]) - 2 * uu  # ring: in-degree 2
+    expected = (2.0 * uu - 0.3 * x[..., 1]) / 1.5 + 0.5 * nbr + ww * torch.sin(x[..., 0])
+    assert torch.allclose(out[..., 0], x[..., 1]) and torch.allclose(out[..., 1], expected, atol=1e-13)
+    with pytest.raises(ConfigError, match=r"reads the inputs \['u', 'w'\].* got none"):
+        EquationField(spec)(torch.tensor(0.0), x, dict(spec.params), graph)
+    with pytest.raises(ConfigError, match=r"got shape \[3, 4, 1\]"):
+        EquationField(spec)(torch.tensor(0.0), x, dict(spec.params), graph, u[..., :1])
+
+
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        ({"inputs": ["u", "x"]}, "model.spec.inputs names 'x', which is also a state"),
+        ({"inputs": ["u", "u"]}, "lists a name twice"),
+        ({"inputs": ["u", "w_j"]}, "input name 'w_j' ends in '_j'"),
+        ({"inputs": ["u", "t"]}, "input name 't' is reserved"),
+        ({"inputs": "u"}, "must be a list of names"),
+        ({"params": {"k": 2.0, "Fv": 0.3, "M": 1.5, "c": 0.5, "w": 1.0}}, "params.w has the name of an input"),
+        ({"equations": {"x": "v", "v": "u", "u": "0"}}, "'u' is an input (its values come from the data's controls)"),
+        ({"equations": {"x": "v", "v": "k*G"}}, "unknown name 'G'. Known: states ['x', 'v'], inputs ['u', 'w']"),
+        ({"inputs": None, "equations": {"x": "v", "v": "k*F"}}, "declared under inputs:"),
+    ],
+)
+def test_bad_inputs_get_one_clear_message(changes, message):
+    with pytest.raises(ConfigError) as err:
+        parse_spec({**DRIVEN, **changes})
+    assert message in str(err.value)

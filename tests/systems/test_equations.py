@@ -3,8 +3,12 @@ shipped example specs simulate."""
 
 from __future__ import annotations
 
+import math
+import re
 from pathlib import Path
 
+import numpy as np
+import pandas as pd
 import pytest
 import torch
 
@@ -187,3 +191,116 @@ def test_integrator_keys_are_checked():
             substep=0.01,
             effects=[DelayedFeedback(0.1, delay=0.5, target="v", source="x")],
         )
+
+
+# ---- a driven twin (issue 60): the spec's inputs driven by system.input, stored in the data ----------------
+DRIVEN = {**OSCILLATOR, "inputs": ["u"], "equations": {"x": "v", "v": "-k*x + u"}, "params": {"k": 4.0}}
+
+
+def _piecewise_exact(data, k=4.0):
+    """[B, T, 2] the exact solution of x'' = −k x + u for the data's own u, held as its meta says."""
+    w, hold = k**0.5, data.meta["input_hold"]
+    t, u, s = data.t, data.u[:, :, 0, 0], data.x[:, 0, 0]
+    out = [s]
+    for i in range(t.numel() - 1):  # the reference, one interval at a time
+        h = float(t[i + 1] - t[i])
+        a = u[:, i]
+        b = torch.zeros_like(a) if hold == "zoh" else (u[:, i + 1] - a) / h
+        ex, ev = s[:, 0] - a / k, s[:, 1] - b / k
+        c, sn = math.cos(w * h), math.sin(w * h)
+        s = torch.stack([(a + b * h) / k + ex * c + ev / w * sn, b / k - ex * w * sn + ev * c], -1)
+        out.append(s)
+    return torch.stack(out, 1)
+
+
+@pytest.mark.parametrize("hold", ["zoh", "linear"])
+@pytest.mark.parametrize("kind", ["steps", "prbs", "multisine"])
+def test_a_driven_twin_integrates_exactly_the_input_it_stores(kind, hold):
+    system = EquationsSystem(DRIVEN, input={"kind": kind, "hold": hold, "seed": 1})
+    assert system.control_names == ("u",) and system.control_dim == 1
+    data = system.generate(3, seed=2, dt=0.1, horizon=40)
+    assert data.u.shape == (3, 41, 1, 1) and data.control_names == ["u"] and data.meta["input_hold"] == hold
+    assert torch.allclose(data.x[:, :, 0], _piecewise_exact(data), atol=1e-7)
+    again = system.generate(3, seed=2, dt=0.1, horizon=40)
+    assert torch.equal(again.u, data.u) and torch.equal(again.x, data.x)  # reproducible
+    assert not torch.equal(system.generate(3, seed=3, dt=0.1, horizon=40).u, data.u)  # another split, other draws
+    assert not torch.equal(data.u[0], data.u[1])  # one realisation per trajectory
+
+
+def test_a_driven_twin_with_semi_implicit_euler_and_effects():
+    system = EquationsSystem(
+        DRIVEN,
+        input={"kind": "steps", "levels": [1.0, 2.0], "duration": [0.3, 0.6]},
+        integrator="semi_implicit_euler",
+        substep=0.01,
+        effects=[LinearDamping(0.5, target="v")],
+    )
+    data = system.generate(2, seed=0, dt=0.1, horizon=20)
+    x, u, h = data.x[:, 0, 0], data.u[:, :, 0, 0], 0.01
+    for i in range(20):  # symplectic Euler, the interval's sample held over its ten steps
+        for _ in range(10):
+            v = x[:, 1] + h * (-4.0 * x[:, 0] + u[:, i] - 0.5 * x[:, 1])
+            x = torch.stack([x[:, 0] + h * v, v], -1)
+        assert torch.allclose(data.x[:, i + 1, 0], x, atol=1e-12)
+
+
+def test_a_driven_twin_reads_its_input_from_a_file(tmp_path):
+    path = tmp_path / "drive.csv"
+    t = np.arange(0, 3.001, 0.05)
+    pd.DataFrame({"t": t, "torque": np.sin(2 * t), "other": 0.0}).to_csv(path, index=False)
+    for hold, index in (("zoh", [0, 0, 1, 1]), ("linear", None)):
+        system = EquationsSystem(DRIVEN, input={"file": str(path), "column": "torque", "hold": hold})
+        data = system.generate(2, seed=0, dt=0.025, horizon=40)
+        u = data.u[:, :, 0, 0]
+        assert torch.equal(u[0], u[1])  # the same recorded signal drives every trajectory
+        expected = np.sin(2 * t[index]) if index else np.sin(2 * data.t[:4].numpy())
+        assert np.allclose(u[0, :4].numpy(), expected, atol=1e-3 if hold == "linear" else 1e-12)
+        assert torch.allclose(data.x[:, :, 0], _piecewise_exact(data), atol=1e-7)
+    named = EquationsSystem(
+        {**DRIVEN, "inputs": ["torque"], "equations": {"x": "v", "v": "-k*x + torque"}}, input={"file": str(path)}
+    )
+    assert named.generate(1, seed=0, dt=0.05, horizon=10).u.shape == (1, 11, 1, 1)  # column: the input's name
+    bad = [
+        ({"file": str(tmp_path / "none.csv")}, "does not exist"),
+        ({"file": str(path), "column": "torqe"}, "has no column 'torqe'. Did you mean 'torque'"),
+        ({"file": str(path), "column": "torque", "time_column": "time"}, "has no column 'time'"),
+    ]
+    for config, message in bad:
+        with pytest.raises(ConfigError, match=re.escape(message)):
+            EquationsSystem(DRIVEN, input=config).generate(1, seed=0, dt=0.05, horizon=10)
+    with pytest.raises(ConfigError, match=r"covers t = 0 to 3 but the simulation runs from 0 to 5"):
+        EquationsSystem(DRIVEN, input={"file": str(path), "column": "torque"}).generate(1, 0, dt=0.05, horizon=100)
+    (tmp_path / "gap.csv").write_text("t,u\n0,1\n0.1,\n0.2,3\n")
+    with pytest.raises(ConfigError, match=r"row 3, column 'u' is empty"):
+        EquationsSystem(DRIVEN, input={"file": str(tmp_path / "gap.csv")}).generate(1, 0, dt=0.05, horizon=2)
+
+
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        ({}, "declares the inputs ['u'] but no signal drives them; set system.input"),
+        ({"input": {"kind": "whitenoise"}}, "system.input.kind='whitenoise' is not a signal"),
+        ({"input": {"kind": "prbs", "band": [1, 2]}}, "system.input.band is not a key of a prbs signal"),
+        ({"input": {"kind": "multisine", "rms": 1, "amplitude": 1}}, "give amplitude (of each component) or rms"),
+        ({"input": {"kind": "steps", "levels": [2, 1]}}, "system.input.levels must be [low, high] with low <= high"),
+        ({"input": {"kind": "chirp", "hold": "cubic"}}, "system.input.hold='cubic': use zoh"),
+        ({"input": {"kind": "prbs", "sequence": "gold"}}, "use mls (maximal length) or random"),
+        ({"input": "multisine"}, "system.input must be a mapping"),
+        ({"inputs": None, "equations": {"x": "v", "v": "-x"}, "input": {"kind": "chirp"}}, "declares no inputs"),
+    ],
+)
+def test_driven_twin_keys_are_checked(changes, message):
+    with pytest.raises(ConfigError) as err:
+        EquationsSystem({**DRIVEN, **changes})
+    assert message in str(err.value)
+
+
+def test_several_inputs_each_with_its_own_signal():
+    spec = {**DRIVEN, "inputs": ["u", "f"], "equations": {"x": "v", "v": "-k*x + u + f"}}
+    both = EquationsSystem(spec, input={"u": {"kind": "chirp"}, "f": {"kind": "prbs", "clock": 0.2}})
+    data = both.generate(2, seed=0, dt=0.05, horizon=40)
+    assert data.control_names == ["u", "f"] and set(data.u[..., 1].unique().tolist()) == {-1.0, 1.0}
+    with pytest.raises(ConfigError, match="the inputs' holds differ"):
+        EquationsSystem(spec, input={"u": {"kind": "chirp"}, "f": {"kind": "prbs", "hold": "linear"}})
+    with pytest.raises(ConfigError, match=r"gives signals for \['u'\] but not for the inputs \['f'\]"):
+        EquationsSystem(spec, input={"u": {"kind": "chirp"}})

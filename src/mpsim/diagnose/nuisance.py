@@ -7,6 +7,7 @@ columns of every effect kind (and state polynomial) it can express by itself.
 
 from __future__ import annotations
 
+import inspect
 from typing import Any, cast
 
 import torch
@@ -18,6 +19,7 @@ from mpsim.diagnose.select import project_out
 from mpsim.models.base import Model
 from mpsim.models.capabilities import ExpressesEffects, Interpretable
 from mpsim.polynomials import monomial_features
+from mpsim.signals import input_hold
 
 
 def project(y: torch.Tensor, groups: list[torch.Tensor], base: torch.Tensor | None):
@@ -39,19 +41,30 @@ def target_rows(library: list[Candidate], res: Residual, d: int, keep: torch.Ten
 
 @torch.no_grad()
 def model_sensitivities(model: Model, data: Trajectories) -> torch.Tensor | None:
-    """[B, T−1, N, D, P] step-averaged sensitivities of the model's field to its own parameters (or None)."""
+    """[B, T−1, N, D, P] step-averaged sensitivities of the model's field to its own parameters (or None).
+
+    With inputs (a driven white-box model) each sample's sensitivity is taken with its own input; under a
+    zero-order hold (`meta["input_hold"] = "zoh"`) step k's input is u_k at both of its ends."""
     if not isinstance(model, Interpretable):
         return None
     b, n_t, n, d = data.x.shape
     device, dtype = model.state_mean.device, model.state_mean.dtype
-    flat = data.x.reshape(b * n_t, n, d).to(device=device, dtype=dtype)
-    t = data.t[None, :].expand(b, n_t).reshape(b * n_t, 1).to(device=device, dtype=dtype)
-    with torch.enable_grad():
-        sens = model.sensitivities(t, flat, data.edge_index)
-    if sens is None:
-        return None
-    sens = sens.detach().double().cpu().reshape(b, n_t, n, d, -1)
-    return 0.5 * (sens[:, 1:] + sens[:, :-1])
+    u_all = data.u if "u" in inspect.signature(model.sensitivities).parameters else None  # models that read inputs
+
+    def at(x: torch.Tensor, t: torch.Tensor, u: torch.Tensor | None) -> torch.Tensor | None:  # x: [B, T', N, D]
+        m = x.shape[0] * x.shape[1]
+        flat = x.reshape(m, n, d).to(device=device, dtype=dtype)
+        times = t[None, :].expand(b, -1).reshape(m, 1).to(device=device, dtype=dtype)
+        extra = {} if u is None else {"u": u.reshape(m, n, -1).to(device=device, dtype=dtype)}
+        with torch.enable_grad():
+            sens = model.sensitivities(times, flat, data.edge_index, **extra)
+        return None if sens is None else sens.detach().double().cpu().reshape(b, x.shape[1], n, d, -1)
+
+    if u_all is not None and input_hold(data.meta) == "zoh":
+        start, end = at(data.x[:, :-1], data.t[:-1], u_all[:, :-1]), at(data.x[:, 1:], data.t[1:], u_all[:, :-1])
+        return None if start is None or end is None else 0.5 * (start + end)
+    sens = at(data.x, data.t, u_all)
+    return None if sens is None else 0.5 * (sens[:, 1:] + sens[:, :-1])
 
 
 def nuisance_columns(model: Model, data: Trajectories, represented: tuple[str, ...]) -> tuple[torch.Tensor | None, int]:

@@ -67,7 +67,8 @@ class Interpretable(Protocol):
         x: torch.Tensor,  # [M, N, D] states (raw units)
         edge_index: torch.Tensor,  # [2, E] graph
     ) -> torch.Tensor | None:
-        """[M, N, D, P] derivatives of the model's vector field with respect to its P parameters, or None."""
+        """[M, N, D, P] derivatives of the model's vector field with respect to its P parameters, or None. A model
+        whose field reads inputs also takes them, as the keyword `u` [M, N, C] (the inputs with those states)."""
         ...
 
     def sensitivity_names(self) -> list[str]:

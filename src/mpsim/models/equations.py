@@ -6,6 +6,10 @@ The spec's learnable parameters are trained by the same trainer as any model (fu
 the model's ODE solver); the rest stay fixed. Neighbour terms run over the data's own graph (one per trajectory
 where the data has several). The spec is plain data inside the checkpoint, so finetune, eval and zero-shot work
 as for any model, and `mpsim diagnose` reads the parameters' sensitivities and the kinematic rows.
+
+A driven spec (`inputs: [u, ...]`) reads the data's controls, matched by name (the data's `control_names` must be
+the spec's inputs, in order), in physical units, held between samples as the data's `meta["input_hold"]` says
+(`linear` by default, or `zoh`; see `mpsim.models.driving`).
 """
 
 from __future__ import annotations
@@ -23,27 +27,50 @@ from mpsim.errors import ConfigError, IncompatibleError
 from mpsim.graphs.batch import BatchedGraph, batch_graph
 from mpsim.models.base import Model
 from mpsim.models.capabilities import one_step_by_rollouts
+from mpsim.models.controls import HeldField, integrate_held
+from mpsim.models.driving import (
+    GridInput,
+    IntervalInput,
+    check_input_count,
+    check_input_names,
+    input_hold,
+)
 from mpsim.solvers.odeint import ODESolver
 from mpsim.spec import SYSTEM_KEYS, EquationField, Spec, check_nodes, check_states, merge_spec, parse_spec
 
 ENTRY = re.compile(r"^(?P<name>\w+)\[(?P<i>\d+)\]$")
 
 
-class _Field(nn.Module):
+class _Field(HeldField):
+    """The spec's field (plus effects) of one rollout; `signal` gives the inputs at the solver's time (None: the
+    spec has none). `u` and `held` are what `integrate_held` reads and sets (zero-order-hold inputs)."""
+
     def __init__(
         self,
         model: EquationsModel,
         values: dict[str, torch.Tensor],
         graph: BatchedGraph | None,
         offset: torch.Tensor | None = None,  # [B, 1] start time of each sample (one-step batches), else None
+        signal: GridInput | IntervalInput | None = None,
     ) -> None:
         super().__init__()
-        self.model, self.values, self.graph, self.offset = model, values, graph, offset
+        self.model, self.values, self.graph, self.offset, self.signal = model, values, graph, offset, signal
+        self.u = signal.u if isinstance(signal, GridInput) and signal.hold == "zoh" else None
+
+    @property
+    def held(self) -> int | None:
+        return self.signal.held if isinstance(self.signal, GridInput) else None
+
+    @held.setter
+    def held(self, k: int | None) -> None:
+        if isinstance(self.signal, GridInput):
+            self.signal.held = k
 
     def forward(self, t: torch.Tensor, x: torch.Tensor, history=None) -> torch.Tensor:  # x: [B, N, D] raw
+        u = None if self.signal is None else self.signal(t)  # [B, N, C] at the solver's (local) time
         if self.offset is not None:
             t = t + self.offset
-        dx = self.model.field(t, x, self.values, self.graph)
+        dx = self.model.field(t, x, self.values, self.graph, u)
         if len(self.model.effects):
             assert self.graph is not None  # `EquationsModel._graph` builds it whenever there are effects
             dx = dx + total(self.model.effects, t, x, EffectContext(self.graph, history))
@@ -54,9 +81,11 @@ class EquationsModel(Model):
     """Equations from a spec, with the spec's learnable parameters trainable (plus optional learnable effects).
 
     Args:
-        state_dim, control_dim: set from the data (the spec's states must match the data's).
+        state_dim, control_dim: set from the data (the spec's states must match the data's, and its inputs the
+            data's controls).
         spec: the spec as a mapping (`model.spec=<file>` is loaded by the command layer).
-        states, equations, params, learnable, kinematic, nodes: the same keys inline (they override `spec`'s).
+        states, inputs, equations, params, learnable, kinematic, nodes: the same keys inline (they override
+            `spec`'s).
         init: starting values {name: value} of learnable parameters (default: the spec's values).
         effects: extra named terms with learnable coefficients.
         solver: ODE solver of the rollouts.
@@ -68,6 +97,7 @@ class EquationsModel(Model):
         control_dim: int = 0,
         spec: dict[str, Any] | None = None,
         states: list[str] | None = None,
+        inputs: list[str] | None = None,
         equations: dict[str, Any] | None = None,
         params: dict[str, Any] | None = None,
         learnable: list[str] | None = None,
@@ -80,6 +110,7 @@ class EquationsModel(Model):
         super().__init__(state_dim, control_dim, effects)
         inline = {
             "states": states,
+            "inputs": inputs,
             "equations": equations,
             "params": params,
             "learnable": learnable,
@@ -92,8 +123,7 @@ class EquationsModel(Model):
                 f"model.spec has {self.spec.state_dim} states {list(self.spec.states)} but the data "
                 f"has {state_dim} per node."
             )
-        if control_dim:
-            raise ConfigError("model=equations has no control inputs yet; the data has controls. Use model=mpnode.")
+        check_input_count(self.spec.inputs, control_dim)
         self.field = EquationField(self.spec)
         self.solver = solver or ODESolver()
         values = dict(self.spec.params)
@@ -131,35 +161,71 @@ class EquationsModel(Model):
         check_states(self.spec, state_names, "model.spec")
         super().bind_effects(state_names)
 
+    def bind_inputs(self, control_names: Sequence[str]) -> None:
+        """Check the data's control names against the spec's inputs (same names, same order).
+
+        Raises:
+            ConfigError: one message naming both lists and `data.control_columns` / `data.columns` as the fix.
+        """
+        check_input_names(self.spec.inputs, control_names)
+
     def check_compatible(
         self, state_dim: int, control_dim: int, n_nodes: int, trained_nodes: int | None = None
     ) -> None:
-        super().check_compatible(state_dim, control_dim, n_nodes, None)
         try:
+            check_input_count(self.spec.inputs, control_dim)
             check_nodes(self.spec, n_nodes, "model.spec")
         except ConfigError as err:
             raise IncompatibleError(str(err)) from None
+        super().check_compatible(state_dim, control_dim, n_nodes, None)
 
     # ---- rollout ------------------------------------------------------------------------------------------
     def rollout(
         self,
         x0: torch.Tensor,  # [B, N, D] initial states (raw units)
         t: torch.Tensor,  # [T] times
-        inputs: Inputs,  # only the data's graph [2, E] or [B, 2, E] (neighbour terms run over it; no controls)
+        inputs: Inputs,  # the data's graph [2, E] or [B, 2, E], controls [B, T, N, C] on the grid t, meta
     ) -> torch.Tensor:
+        """[B, T, N, D] the spec integrated from x0; a driven spec reads `inputs.u` held as
+        `inputs.meta["input_hold"]` says (zoh: no solver step straddles a sample time, see `mpsim.models.driving`)."""
         check_nodes(self.spec, x0.shape[1], "model.spec")
         values = {k: v.to(x0) for k, v in self.parameters_now().items()}
-        return self.integrate(_Field(self, values, self._graph(inputs.edge_index, x0)), x0, t, self.solver)
+        signal = self._signal(x0, t, inputs)
+        field = _Field(self, values, self._graph(inputs.edge_index, x0), signal=signal)
+        if field.u is not None and min_delay(self.effects) == 0:  # zero-order hold: no step straddles a jump
+            if getattr(self.solver, "restarts", False):  # dopri5 steps to every sample and restarts there
+                return self.solver(field, x0, t, restart=True)
+            return integrate_held(lambda f, y, tt: self.integrate(f, y, tt, self.solver), field, x0, t)
+        return self.integrate(field, x0, t, self.solver)
+
+    def _signal(self, x0: torch.Tensor, t: torch.Tensor, inputs: Inputs) -> GridInput | None:  # x0: [B, N, D]
+        """The rollout's inputs on its grid (None for a spec without inputs), checked against the spec by name
+        (the data's `control_names`, where the data name them) and by shape."""
+        names = inputs.meta.get("control_names")
+        if names:
+            check_input_names(self.spec.inputs, list(names))
+        elif inputs.u is not None:
+            check_input_count(self.spec.inputs, inputs.u.shape[-1])
+        if not self.spec.inputs:
+            return None
+        u, want = inputs.u, (x0.shape[0], t.numel(), x0.shape[1], self.spec.input_dim)
+        if u is None or tuple(u.shape) != want:
+            got = "no controls" if u is None else f"controls of shape {list(u.shape)}"
+            raise ConfigError(
+                f"model.spec.inputs {list(self.spec.inputs)} need the controls [B, T, N, C] = {list(want)} on the "
+                f"rollout's grid; got {got}."
+            )
+        return GridInput(t.to(x0), u.to(x0), input_hold(inputs.meta))
 
     def one_step(
         self,
         x: torch.Tensor,  # [B, T, N, D] observed states (raw units)
         t: torch.Tensor,  # [T] times
-        inputs: Inputs,  # only the data's graph [2, E] or [B, 2, E] (neighbour terms run over it; no controls)
+        inputs: Inputs,  # the data's graph [2, E] or [B, 2, E], controls [B, T, N, C] on the grid t, meta
     ) -> torch.Tensor:
         """[B, T−1, N, D] one step from every observed state, all steps in one batched integration (the
-        equations have no latent state; each sample keeps its absolute start time). Falls back to one step at a
-        time for delayed effects (they read a history) and per-recording drives."""
+        equations have no latent state; each sample keeps its absolute start time and its own input interval).
+        Falls back to one step at a time for delayed effects (they read a history) and per-recording drives."""
         b, n_t, n, d = x.shape
         dts = t[1:] - t[:-1]
         uniform = n_t > 1 and bool((dts - dts[0]).abs().max() <= 1e-9 * dts[0].abs().clamp(min=1e-300))
@@ -172,7 +238,13 @@ class EquationsModel(Model):
         ei = edge_index if edge_index.dim() == 2 else edge_index.repeat_interleave(n_t - 1, dim=0)
         check_nodes(self.spec, n, "model.spec")
         values = {k: v.to(x) for k, v in self.parameters_now().items()}
-        field = _Field(self, values, self._graph(ei, x0), offset)
+        grid = self._signal(x[:, 0], t, inputs)
+        signal = None
+        if grid is not None:
+            u0 = grid.u[:, :-1].reshape(b * (n_t - 1), n, -1)  # [B·(T−1), N, C] each interval's first sample
+            du = None if grid.hold == "zoh" else (grid.u[:, 1:] - grid.u[:, :-1]).reshape(u0.shape)
+            signal = IntervalInput(u0, du, dts[0].to(x))
+        field = _Field(self, values, self._graph(ei, x0), offset, signal)
         local = torch.stack([torch.zeros_like(dts[0]), dts[0]]).to(x)
         return self.integrate(field, x0, local, self.solver)[:, 1].reshape(b, n_t - 1, n, d)
 
@@ -193,9 +265,21 @@ class EquationsModel(Model):
                 out += [(f"{n}[{i}]", n, i) for i in range(v.numel())]
         return out
 
-    def sensitivities(self, t, x, edge_index):
-        """[M, N, D, P] ∂f/∂p of the equations at the given states for every learnable scalar and per-node entry
-        (one forward-mode derivative each; matrix parameters are left out)."""
+    def sensitivities(
+        self,
+        t: torch.Tensor,  # [M, 1] or [] times
+        x: torch.Tensor,  # [M, N, D] states (raw units)
+        edge_index: torch.Tensor,  # [2, E] graph
+        u: torch.Tensor | None = None,  # [M, N, C] the inputs with those states (a driven spec needs them)
+    ) -> torch.Tensor | None:
+        """[M, N, D, P] ∂f/∂p of the equations at the given states (and inputs) for every learnable scalar and
+        per-node entry (one forward-mode derivative each; matrix parameters are left out)."""
+        if self.spec.inputs and u is None:
+            raise ConfigError(
+                f"model.spec.inputs {list(self.spec.inputs)}: the sensitivities of a driven spec need the inputs "
+                "[M, N, C] with the states (u=...)."
+            )
+        u = None if u is None else u.to(x)
         values = {n: v.detach().to(x) for n, v in self.parameters_now().items()}
         graph = self._graph(edge_index, x) if self.field.uses_graph else None
         columns = []
@@ -207,7 +291,7 @@ class EquationsModel(Model):
                 tangent[index] = 1.0
 
             def f(v: torch.Tensor, name: str = name) -> torch.Tensor:
-                return self.field(t, x, {**values, name: v}, graph)
+                return self.field(t, x, {**values, name: v}, graph, u)
 
             columns.append(torch.func.jvp(f, (values[name],), (tangent,))[1])
         if not columns:
@@ -241,6 +325,7 @@ class EquationsModel(Model):
         return {
             "physical_parameters": values,
             "equations": self.spec.equation_text(),
+            **({"inputs": list(self.spec.inputs)} if self.spec.inputs else {}),
             "kinematic": self.kinematic_states,
             "effects": [e.describe() for e in self.effects],
         }

@@ -98,6 +98,11 @@ class ODESolver:
             )
 
     @property
+    def restarts(self) -> bool:
+        """Whether `__call__(..., restart=True)` is available: mpsim's own dopri5 (stacked, without the adjoint)."""
+        return self.method == "dopri5" and self.implementation == "mpsim" and self.stacked and not self.adjoint
+
+    @property
     def options(self) -> dict[str, Any]:
         if self.method in ADAPTIVE:
             return {"max_num_steps": self.max_num_steps}
@@ -108,19 +113,25 @@ class ODESolver:
         func: nn.Module,  # vector field: forward(t [], y [B, ...]) -> [B, ...]
         y0: torch.Tensor,  # [B, ...] initial state
         t: torch.Tensor,  # [T] output times
+        restart: bool = False,
     ) -> torch.Tensor:
         """[B, T, ...] the solution at each time in `t`.
+
+        `restart=True` (only where `restarts`): the field jumps at every output time (a zero-order-hold input);
+        no step straddles one and the field is evaluated afresh on each (`mpsim.solvers.dopri5`).
 
         Raises:
             DivergenceError: the state became NaN/inf or the adaptive step size underflowed.
         """
+        if restart and not self.restarts:
+            raise ValueError(f"{self!r} cannot restart at output times; solve one interval at a time instead.")
         t = t.to(device=y0.device, dtype=y0.dtype)
         if self.step_size is not None and self.method in FIXED and t.numel() > 1:
             self._check_fixed_steps(float((t[1:] - t[:-1]).abs().max()))
         own = self.method == "dopri5" and self.implementation == "mpsim" and self.stacked and not self.adjoint
         try:
             if own:
-                ys = dopri5(func, y0, t, self.rtol, self.atol, self.max_num_steps)
+                ys = dopri5(func, y0, t, self.rtol, self.atol, self.max_num_steps, restart)
             else:
                 stacked = self.stacked and SOLVERS is not None
                 solve = odeint_adjoint if self.adjoint else _odeint_stacked if stacked else odeint

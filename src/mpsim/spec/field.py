@@ -20,14 +20,15 @@ Value = Any  # torch.Tensor ([], [N], [B, N] or [E']) or a Python float
 
 
 class _Env:
-    """What one evaluation reads: time, states, parameter values, graph, and a per-call cache."""
+    """What one evaluation reads: time, states, inputs, parameter values, graph, and a per-call cache."""
 
-    __slots__ = ("t", "x", "cols", "p", "graph", "cache", "b", "n")
+    __slots__ = ("t", "x", "cols", "ucols", "p", "graph", "cache", "b", "n")
 
-    def __init__(self, t, x, p, graph) -> None:  # x: [B, N, D]
+    def __init__(self, t, x, u, p, graph) -> None:  # x: [B, N, D], u: [B, N, C] or None
         self.cache: dict = {}
         self.t, self.x, self.p, self.graph = t, x, p, graph
         self.cols = x.unbind(-1)  # D views [B, N]: one operation for every state's column
+        self.ucols = () if u is None else u.to(x).unbind(-1)  # C views [B, N]
         self.b, self.n = x.shape[0], x.shape[1]
 
 
@@ -39,7 +40,7 @@ def _full(v: Value, env: _Env) -> torch.Tensor:
 
 
 class EquationField:
-    """The compiled right-hand side of a spec: `field(t, x, params, graph) -> dx/dt [B, N, D]`.
+    """The compiled right-hand side of a spec: `field(t, x, params, graph, u) -> dx/dt [B, N, D]`.
 
     Args:
         spec: the parsed spec.
@@ -48,6 +49,7 @@ class EquationField:
     def __init__(self, spec: Spec) -> None:
         self.spec = spec
         self.index = {s: i for i, s in enumerate(spec.states)}
+        self.input_index = {s: i for i, s in enumerate(spec.inputs)}
         self.node_memo: dict[Any, tuple[int, Callable]] = {}
         self.edge_memo: dict[Any, Callable] = {}
         self.counts: dict[Any, int] = {}
@@ -69,11 +71,19 @@ class EquationField:
         x: torch.Tensor,  # [B, N, D] states
         params: Mapping[str, torch.Tensor],  # name -> [] / [N] / [N·D, N·D] value
         graph: BatchedGraph | None = None,  # the B graphs flattened (needed for neighbour terms and deg)
+        u: torch.Tensor | None = None,  # [B, N, C] the spec's inputs at time t (None: the spec has none)
     ) -> torch.Tensor:
         """[B, N, D] dx/dt."""
         if self.uses_graph and graph is None:
             raise ConfigError("these equations have neighbour terms (sum_nbr, mean_nbr, deg) but no graph was given.")
-        env = _Env(t, x, params, graph)
+        c = len(self.spec.inputs)
+        if c and (u is None or u.shape != (*x.shape[:2], c)):
+            got = "none" if u is None else f"shape {list(u.shape)}"
+            raise ConfigError(
+                f"{self.spec.where} reads the inputs {list(self.spec.inputs)}: their values [B, N, C] = "
+                f"{[*x.shape[:2], c]} at time t are needed; got {got}."
+            )
+        env = _Env(t, x, u if c else None, params, graph)
         b, n = x.shape[0], x.shape[1]
         out = []
         for f in self.columns:
@@ -107,6 +117,9 @@ class EquationField:
             if name in self.index:
                 i = self.index[name]
                 return 3, lambda env: env.cols[i]
+            if name in self.input_index:
+                k = self.input_index[name]
+                return 3, lambda env: env.ucols[k]
             if name == "t":
                 return 3, lambda env: env.t
             if name == "deg":
@@ -150,7 +163,12 @@ class EquationField:
             n
             for n in names
             if n not in nbr
-            and (n in self.index or n in ("t", "deg") or (n in self.spec.params and self.spec.params[n].dim() == 1))
+            and (
+                n in self.index
+                or n in self.input_index
+                or n in ("t", "deg")
+                or (n in self.spec.params and self.spec.params[n].dim() == 1)
+            )
         }
         if not nbr:
             rank, fn = self.node(expr, -1)

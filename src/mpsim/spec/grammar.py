@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import ast
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import sympy
@@ -54,14 +54,27 @@ class Parser:
         ast.Pow: lambda a, b: a**b,
     }
 
-    def __init__(self, states: list[str], params: dict[str, torch.Tensor], where: str) -> None:
-        self.states, self.params, self.where = states, params, where
+    def __init__(
+        self, states: list[str], params: dict[str, torch.Tensor], where: str, inputs: Sequence[str] = ()
+    ) -> None:
+        self.states, self.params, self.where, self.inputs = states, params, where, list(inputs)
         per_node = [p for p, v in params.items() if v.dim() == 1]
-        self.own = {n: sympy.Symbol(n) for n in [*states, *params]}
+        self.own = {n: sympy.Symbol(n) for n in [*states, *self.inputs, *params]}
         self.neighbour = {
-            f"{n}{NEIGHBOUR_SUFFIX}": sympy.Symbol(f"{n}{NEIGHBOUR_SUFFIX}") for n in [*states, *per_node]
+            f"{n}{NEIGHBOUR_SUFFIX}": sympy.Symbol(f"{n}{NEIGHBOUR_SUFFIX}") for n in [*states, *self.inputs, *per_node]
         }
-        self.known = [*states, *params, *self.neighbour, "t", "deg", "pi", *FUNCS, *NEIGHBOUR_FUNCS, "lin"]
+        self.known = [
+            *states,
+            *self.inputs,
+            *params,
+            *self.neighbour,
+            "t",
+            "deg",
+            "pi",
+            *FUNCS,
+            *NEIGHBOUR_FUNCS,
+            "lin",
+        ]
 
     def parse(self, state: str, text: Any) -> sympy.Expr:
         self.at = f"{self.where}.equations.{state}"
@@ -132,13 +145,15 @@ class Parser:
                 )
             return self.neighbour[n]
         if n.endswith(NEIGHBOUR_SUFFIX) and n[: -len(NEIGHBOUR_SUFFIX)] in self.params:
-            raise self.fail(node, f"{n!r}: only states and per-node parameters have a neighbour's value")
+            raise self.fail(node, f"{n!r}: only states, inputs and per-node parameters have a neighbour's value")
         if n in FUNCS or n in NEIGHBOUR_FUNCS or n == "lin":
             raise self.fail(node, f"{n!r} is a function: call it, e.g. {n}(...)")
+        inputs = f"inputs {self.inputs}, " if self.inputs else ""
         raise self.fail(
             node,
-            f"unknown name {n!r}.{did_you_mean(n, self.known)} Known: states {self.states}, "
-            f"parameters {sorted(self.params)}, t, deg, pi",
+            f"unknown name {n!r}.{did_you_mean(n, self.known)} Known: states {self.states}, {inputs}"
+            f"parameters {sorted(self.params)}, t, deg, pi (a value the data give, such as a force, is "
+            "declared under inputs:)",
         )
 
     def call(self, node: ast.Call, in_nbr: bool) -> sympy.Expr:

@@ -14,9 +14,21 @@ from mpsim.errors import ConfigError, did_you_mean
 from mpsim.spec.grammar import NEIGHBOUR_SUFFIX, RESERVED, Parser
 
 #: spec keys every spec may have; systems add their own (initial ranges, graph, ...)
-MODEL_KEYS = ("states", "equations", "params", "learnable", "kinematic", "nodes", "description")
+MODEL_KEYS = ("states", "inputs", "equations", "params", "learnable", "kinematic", "nodes", "description")
 #: what a simulation also needs (`system=equations`); a model reads the same file and ignores them
-SYSTEM_KEYS = ("name", "graph", "graph_params", "edges", "directed", "init", "dt", "horizon", "integrator", "substep")
+SYSTEM_KEYS = (
+    "name",
+    "graph",
+    "graph_params",
+    "edges",
+    "directed",
+    "init",
+    "dt",
+    "horizon",
+    "integrator",
+    "substep",
+    "input",
+)
 
 
 @dataclass(frozen=True)
@@ -32,6 +44,8 @@ class Spec:
         n_nodes: N when the spec fixes it (a per-node or matrix parameter, or `nodes:`), else None.
         raw: the spec as plain data (what checkpoints store).
         where: the config key it was given as (messages name it).
+        inputs: C input names per node (`inputs:`): values the data give (its controls, matched by name), used
+            in the equations like states but with no equation of their own.
     """
 
     states: tuple[str, ...]
@@ -42,10 +56,15 @@ class Spec:
     n_nodes: int | None
     raw: dict[str, Any] = field(repr=False)
     where: str = "model.spec"
+    inputs: tuple[str, ...] = ()
 
     @property
     def state_dim(self) -> int:
         return len(self.states)
+
+    @property
+    def input_dim(self) -> int:
+        return len(self.inputs)
 
     def equation_text(self) -> dict[str, str]:
         return {s: str(e) for s, e in zip(self.states, self.rhs, strict=True)}
@@ -148,14 +167,16 @@ def parse_spec(spec: Mapping[str, Any], where: str = "model.spec", extra_keys: S
         raise ConfigError(f"{where}.states lists a name twice: {states}.")
     for s in states:
         _check_name(s, where, "state")
+    inputs = _inputs(spec.get("inputs"), states, where)
     raw_params = spec.get("params") or {}
     if not isinstance(raw_params, Mapping):
         raise ConfigError(f"{where}.params must be a mapping name: value; got {type(raw_params).__name__}.")
     params: dict[str, torch.Tensor] = {}
     for name, value in raw_params.items():
         _check_name(str(name), where, "parameter")
-        if name in states:
-            raise ConfigError(f"{where}.params.{name} has the name of a state; rename the parameter.")
+        if name in states or name in inputs:
+            what = "a state" if name in states else "an input"
+            raise ConfigError(f"{where}.params.{name} has the name of {what}; rename the parameter.")
         params[str(name)] = _param_value(str(name), value, where)
     n_nodes = _node_count(spec.get("nodes"), params, len(states), where)
 
@@ -163,6 +184,11 @@ def parse_spec(spec: Mapping[str, Any], where: str = "model.spec", extra_keys: S
     if not isinstance(equations, Mapping):
         raise ConfigError(f"{where}.equations is missing: give one expression per state, e.g. {{{states[0]}: ...}}.")
     for key in equations:
+        if key in inputs:
+            raise ConfigError(
+                f"{where}.equations.{key}: {key!r} is an input (its values come from the data's controls), not a "
+                "state; inputs have no equation. Remove it, or list it under states."
+            )
         if key not in states:
             raise ConfigError(
                 f"{where}.equations.{key}: {key!r} is not a state.{did_you_mean(str(key), states)} States: {states}."
@@ -170,7 +196,7 @@ def parse_spec(spec: Mapping[str, Any], where: str = "model.spec", extra_keys: S
     missing = [s for s in states if s not in equations]
     if missing:
         raise ConfigError(f"{where}.equations has no equation for {missing}; give d/dt of every state.")
-    parser = Parser(states, params, where)
+    parser = Parser(states, params, where, inputs)
     rhs = tuple(parser.parse(s, equations[s]) for s in states)
 
     learnable = list(params) if spec.get("learnable") is None else _names(spec.get("learnable"), "learnable", where)
@@ -186,7 +212,22 @@ def parse_spec(spec: Mapping[str, Any], where: str = "model.spec", extra_keys: S
         if name not in states:
             raise ConfigError(f"{where}.kinematic names {name!r}, which is not a state.{did_you_mean(name, states)}")
     plain = {k: _plain(v) for k, v in spec.items()}
-    return Spec(tuple(states), rhs, params, tuple(learnable), tuple(kinematic), n_nodes, plain, where)
+    return Spec(tuple(states), rhs, params, tuple(learnable), tuple(kinematic), n_nodes, plain, where, tuple(inputs))
+
+
+def _inputs(value: Any, states: list[str], where: str) -> list[str]:
+    """The spec's input names, checked: identifiers, each once, none the name of a state."""
+    inputs = _names(value, "inputs", where)
+    if len(set(inputs)) != len(inputs):
+        raise ConfigError(f"{where}.inputs lists a name twice: {inputs}.")
+    for name in inputs:
+        _check_name(name, where, "input")
+        if name in states:
+            raise ConfigError(
+                f"{where}.inputs names {name!r}, which is also a state; a name is either a state (with an "
+                "equation) or an input (given by the data). Rename one."
+            )
+    return inputs
 
 
 def _plain(value: Any) -> Any:

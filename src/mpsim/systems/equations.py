@@ -20,6 +20,13 @@ Extra spec keys (each may also be given under `system.`, which wins):
     horizon: 50               # default steps per trajectory
     integrator: dopri5        # dopri5 (adaptive, default) | semi_implicit_euler (fixed step, as physics engines)
     substep: 0.005            # semi_implicit_euler's step h; dt must be a whole number of steps
+    input: {kind: multisine, band: [0.1, 2.0], hold: zoh, seed: 0}   # the signal driving the spec's inputs
+
+A driven spec (`inputs: [u, ...]`) needs `input`: a generator (multisine, steps, chirp, prbs) or a CSV column
+(`{file: u.csv, column: u}`), every key in `mpsim.systems.inputs`. The generated u [B, T, N, C] is stored in the
+data (`control_names` = the spec's inputs, `meta["input_hold"]` = the signal's hold), and the ground truth
+integrates exactly that input: zoh piecewise constant (dopri5 steps to every sample time and restarts there, so
+no step straddles a jump), linear interpolated (dopri5 steps to every sample time, where the slope changes).
 
 `integrator: semi_implicit_euler` steps as rigid-body engines do (symplectic Euler): every dynamic row first,
 v_{k+1} = v_k + h·f_v(t_k, x_k, v_k), then the kinematic rows (`kinematic`, by default those whose equation is
@@ -36,14 +43,19 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import torch
+from torchdiffeq import odeint
 
 from mpsim.data.trajectories import Trajectories, grid_step
 from mpsim.effects import min_delay
 from mpsim.errors import ConfigError, did_you_mean
 from mpsim.graphs.batch import BatchedGraph, batch_graph
 from mpsim.graphs.topology import make_topology
+from mpsim.signals import HOLD_KEY, GridInput
+from mpsim.solvers.dde import delay_substeps, rk4_delay
+from mpsim.solvers.odeint import ADAPTIVE
 from mpsim.spec import SYSTEM_KEYS, EquationField, check_nodes, merge_spec, parse_spec
-from mpsim.systems.base import System
+from mpsim.systems.base import GROUND_TRUTH_MAX_STEPS, System, check_fixed_steps
+from mpsim.systems.inputs import InputSignals
 
 SAFE_NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
 INTEGRATORS = ("dopri5", "semi_implicit_euler")
@@ -54,8 +66,8 @@ class EquationsSystem(System):
 
     Args:
         spec: the spec as a mapping (`system.spec=<file>` is loaded by the command layer).
-        name, n_nodes, graph, graph_params, edges, directed, init, dt, horizon, integrator, substep: as the spec's
-            keys of the same meaning (`n_nodes` is the spec's `nodes`); given here they win over the spec's.
+        name, n_nodes, graph, graph_params, edges, directed, init, dt, horizon, integrator, substep, input: as the
+            spec's keys of the same meaning (`n_nodes` is the spec's `nodes`); given here they win over the spec's.
         effects: extra terms added to the dynamics.
 
     Raises:
@@ -77,6 +89,7 @@ class EquationsSystem(System):
         effects: Sequence[Any] = (),
         integrator: str | None = None,
         substep: float | None = None,
+        input: dict[str, Any] | None = None,
     ) -> None:
         over = {
             "name": name,
@@ -90,10 +103,13 @@ class EquationsSystem(System):
             "horizon": horizon,
             "integrator": integrator,
             "substep": substep,
+            "input": input,
         }
         raw = merge_spec(spec, over, "system")
         self.spec = parse_spec(raw, "system.spec", extra_keys=SYSTEM_KEYS)
         self.state_names = self.spec.states  # per instance: the spec names them
+        self.control_names = self.spec.inputs
+        self.input = self._input(raw.get("input"))
         self.field = EquationField(self.spec)
         name = str(raw.get("name") or "equations")
         if not SAFE_NAME.match(name):
@@ -122,6 +138,24 @@ class EquationsSystem(System):
         self.values = dict(self.spec.params)
         self.raw = self.spec.raw
         self._graphs: dict[tuple, BatchedGraph] = {}
+        self._seed: int | None = None  # the dataset seed while `generate` runs (the inputs' realisations)
+
+    def _input(self, config: Any) -> InputSignals | None:
+        """The signal driving the spec's inputs (None without inputs)."""
+        if not self.spec.inputs:
+            if config is not None:
+                raise ConfigError(
+                    "system.input is given but system.spec declares no inputs; declare them (inputs: [u]) and use "
+                    "them in the equations, or remove system.input."
+                )
+            return None
+        if config is None:
+            raise ConfigError(
+                f"system.spec declares the inputs {list(self.spec.inputs)} but no signal drives them; set "
+                "system.input, e.g. {kind: multisine, band: [0.1, 2.0]} or {file: u.csv, column: u} "
+                "(docs/equations.md)."
+            )
+        return InputSignals(config, self.spec.inputs)
 
     @staticmethod
     def _integrator(name: Any, substep: Any) -> tuple[str, float | None]:
@@ -237,7 +271,7 @@ class EquationsSystem(System):
         self,
         t: torch.Tensor,  # [] time
         x: torch.Tensor,  # [B, N, D] node states
-        u: torch.Tensor | None = None,  # unused: no controls
+        u: torch.Tensor | None = None,  # [B, N, C] the spec's inputs at t (None without inputs)
     ) -> torch.Tensor:
         graph = None
         if self.field.uses_graph:
@@ -246,7 +280,70 @@ class EquationsSystem(System):
                 self._graphs[key] = batch_graph(self.edge_index.to(x.device), x.shape[0], x.shape[1], dtype=x.dtype)
             graph = self._graphs[key]
         values = {k: v.to(x) for k, v in self.values.items()}
-        return self.field(t, x, values, graph)
+        return self.field(t, x, values, graph, u)
+
+    # ---- data ----------------------------------------------------------------------------------------
+    def generate(self, n, seed, dt=None, horizon=None, rtol=1e-8, atol=1e-10, burn_in=0) -> Trajectories:
+        """As `System.generate`; a driven spec's inputs are drawn from `seed` too (one realisation each)."""
+        self._seed = int(seed)
+        try:
+            return super().generate(n, seed, dt=dt, horizon=horizon, rtol=rtol, atol=atol, burn_in=burn_in)
+        finally:
+            self._seed = None
+
+    def simulate(
+        self,
+        x0: torch.Tensor,  # [B, N, D] initial states
+        t: torch.Tensor,  # [T] output times
+        rtol: float = 1e-8,
+        atol: float = 1e-10,
+        method: str = "dopri5",
+        u: torch.Tensor | None = None,  # [B, T, N, C] inputs (default: drawn from system.input)
+    ) -> Trajectories:
+        """The ground truth from `x0`; a driven spec integrates the inputs `u` (drawn from `system.input` with the
+        dataset's seed when not given), held as the signal's `hold` says, and stores them in the data."""
+        if self.input is None:
+            if u is not None:
+                raise ConfigError("system.spec declares no inputs; simulate it without u.")
+            return super().simulate(x0, t, rtol, atol, method)
+        x0, t = x0.to(torch.float64), t.to(torch.float64)
+        want = (x0.shape[0], t.numel(), x0.shape[1], self.spec.input_dim)
+        if u is None:
+            u = self.input.sample(t, x0.shape[0], x0.shape[1], 0 if self._seed is None else self._seed)
+        elif tuple(u.shape) != want:
+            raise ConfigError(f"simulate: u must be [B, T, N, C] = {list(want)}; got {list(u.shape)}.")
+        signal = GridInput(t, u.to(x0), self.input.hold)
+        with torch.no_grad():  # ground truth: effect coefficients are constants here
+            x = self._driven(x0, t, signal, rtol, atol, method)
+        meta = {**self.meta(grid_step(t)), HOLD_KEY: self.input.hold}
+        return Trajectories(t=t, x=x.contiguous(), edge_index=self.edge_index, u=signal.u, meta=meta)
+
+    def _driven(self, x0, t, signal: GridInput, rtol, atol, method) -> torch.Tensor:
+        """[B, T, N, D] the driven ground truth (x0 [B, N, D], t [T]): the input read from `signal` at each time."""
+        if self.integrator == "semi_implicit_euler":
+            assert self.substep is not None  # _integrator requires it for semi_implicit_euler
+            return semi_implicit_euler(
+                lambda tt, xx: self.rhs(tt, xx, signal(tt)),
+                self._kinematic_mask(x0),
+                x0,
+                t,
+                self.substep,
+                self._steps_per_interval(t),
+            )
+        delay = min_delay(self.effects)
+        if delay > 0:  # the input read at each RK4 stage's time (a stage on a sample time sees the new sample)
+            interval = float(t[1] - t[0]) if t.numel() > 1 else 0.0
+            check_fixed_steps(self.name, delay_substeps(interval, 1e-3, delay), interval, self.dt)
+            return rk4_delay(
+                lambda tt, xx, hist: self.rhs(tt, xx, signal(tt), history=hist), x0, t, step=1e-3, min_delay=delay
+            )
+        options: dict[str, Any] = {"max_num_steps": GROUND_TRUTH_MAX_STEPS} if method in ADAPTIVE else {}
+        if method in ADAPTIVE and t.numel() > 2:  # step to every sample time: the input jumps (zoh) or bends there
+            options["jump_t" if signal.hold == "zoh" else "step_t"] = t[1:-1]
+        x = odeint(
+            lambda tt, xx: self.rhs(tt, xx, signal(tt)), x0, t, rtol=rtol, atol=atol, method=method, options=options
+        )
+        return x.transpose(0, 1)
 
     def _simulate(self, x0, t, rtol, atol, method) -> Trajectories:
         if self.integrator == "dopri5":
