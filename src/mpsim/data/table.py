@@ -1,0 +1,109 @@
+"""`Table`: the named columns of one measured recording as read from a file, before they are mapped to a model.
+
+The readers (`mpsim.data.wide.read_wide_csv`, `mpsim.data.matfile.read_mat`) make one; `mpsim.data.recording.
+to_recording` picks and renames its columns into a `Trajectories`. The time column is checked here, once for every
+format: finite and strictly increasing (`check_times`), or made from `data.dt` when the file has none (`time_grid`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mpsim.errors import DataError, did_you_mean
+
+#: the largest data file (wide CSV or .mat) mpsim reads; far above a 131 072-row recording (about 15 MB as CSV)
+DATA_BYTES = 1 << 30
+
+
+@dataclass(frozen=True)
+class Table:
+    """Columns of one recording.
+
+    Attributes:
+        t: [T] float64 absolute times (the file's time column, or k·`data.dt`), or None when the file has no time
+            column and its columns differ in length (a `.mat` file: the length comes from the columns picked).
+        columns: {name: [T_name] float64} every numeric column (a `.mat` file's variables may differ in length;
+            a CSV's all have T). Non-finite values are kept: only the columns a model uses must be finite.
+        source: the file, as messages name it.
+        dt: the `data.dt` the times were made from (None: from the file's time column).
+        time_column: the column the times came from (None: made from `data.dt`).
+        unusable: {name: why} variables that could not become columns (text, cell arrays, 3-D arrays, ...).
+        where: row index -> how a message names that row ("row 5 (line 7)"); default "row <i + 1>".
+    """
+
+    t: np.ndarray | None  # [T] float64 absolute times
+    columns: dict[str, np.ndarray]  # {name: [T] float64}
+    source: str
+    dt: float | None = None
+    time_column: str | None = None
+    unusable: dict[str, str] = field(default_factory=dict)
+    where: Callable[[int], str] | None = None
+
+    def row(self, i: int) -> str:
+        """How a message names row `i` (0-based) of the file."""
+        return self.where(i) if self.where is not None else f"row {i + 1}"
+
+
+def check_times(t: np.ndarray, source: str, column: str, where: Callable[[int], str]) -> None:  # t: [T] float64
+    """Refuse times that are not finite or not strictly increasing, naming the file, the row and the fix."""
+    if len(t) < 2:
+        raise DataError(f"{source}: the recording has {len(t)} sample(s); need at least 2 time points.")
+    bad = ~np.isfinite(t)
+    if bad.any():
+        i = int(np.nonzero(bad)[0][0])
+        raise DataError(
+            f"{source}: {where(i)}, time column '{column}' holds {t[i]} (not a finite number; {int(bad.sum())} "
+            "such values). Fill in the time of that sample or remove the row."
+        )
+    steps = np.diff(t)
+    if (steps <= 0).any():
+        i = int(np.nonzero(steps <= 0)[0][0]) + 1
+        what = "repeats" if steps[i - 1] == 0 else "goes back to"
+        raise DataError(
+            f"{source}: {where(i)}, time column '{column}' {what} {float(t[i])!r} after {float(t[i - 1])!r} in the row before; "
+            "times must be strictly increasing. Sort the rows by time and drop repeated samples, or, if the clock "
+            "restarted, split the file in two (data.path can take several files)."
+        )
+
+
+def time_grid(
+    columns: dict[str, np.ndarray],
+    time_column: str | None,
+    dt: float | None,
+    source: str,
+    where: Callable[[int], str],
+) -> tuple[np.ndarray | None, str | None]:
+    """The times of a recording and the column they came from (None: made from `dt`), from its `columns`.
+
+    The time column is used when the file has it (and `dt`, if given, must agree with its median step within 1 %);
+    without it, `dt` gives t = k·dt — for the default name ``t`` only: a time column named explicitly must exist.
+    When the columns differ in length (a `.mat` file) and there is no time column, the times are None and
+    `mpsim.data.recording.to_recording` makes them from the length of the columns it picks.
+    """
+    if dt is not None and not (np.isfinite(dt) and dt > 0):
+        raise DataError(f"{source}: data.dt must be a finite number > 0 (the sampling step in seconds); got {dt}.")
+    if time_column is not None and time_column in columns:
+        t = np.asarray(columns[time_column], dtype=np.float64)
+        check_times(t, source, time_column, where)
+        step = float(np.median(np.diff(t)))
+        if dt is not None and abs(step - dt) > 0.01 * dt:
+            raise DataError(
+                f"{source}: the time column '{time_column}' steps by {step:.6g} s (median) but data.dt={dt:g}. "
+                "Leave data.dt unset to use the file's times, or set data.time_column=null to use data.dt instead."
+            )
+        return t, time_column
+    if dt is None or (time_column is not None and time_column != "t"):
+        names = sorted(columns)
+        hint = did_you_mean(time_column, names) if time_column else ""
+        raise DataError(
+            f"{source}: no time column '{time_column}' (data.time_column) among the file's columns {names}.{hint} "
+            "Name the time column with data.time_column=<name>, or, for a file without one, give the sampling step "
+            "with data.dt=<seconds> (and data.time_column=null)."
+        )
+    lengths = {len(v) for v in columns.values()}
+    if len(lengths) != 1:
+        return None, None
+    return np.arange(lengths.pop(), dtype=np.float64) * dt, None
