@@ -111,6 +111,29 @@ class Trajectories:
         return list(names) if names else [f"x{i}" for i in range(self.state_dim)]
 
     @property
+    def observed_index(self) -> list[int]:
+        """Indices of the measured state columns: the names in ``meta["observed"]`` (`mpsim.data.latent`), every
+        column when the data hold every state (no ``observed`` key). Losses and errors read these columns only; the
+        others are latent (estimated, e.g. a velocity from a measured position)."""
+        observed = self.meta.get("observed")
+        names = self.state_names
+        if observed is None:
+            return list(range(self.state_dim))
+        unknown = [o for o in observed if o not in names]
+        if unknown or not observed:
+            raise DataError(
+                f"{self.meta.get('source', 'trajectories')}: meta['observed'] = {list(observed)} must name at least "
+                f"one of the states {names}" + (f"; unknown: {unknown}" if unknown else "") + "."
+            )
+        return [d for d, name in enumerate(names) if name in observed]
+
+    @property
+    def latent_index(self) -> list[int]:
+        """Indices of the state columns that are not measured (estimated; see `observed_index`)."""
+        observed = set(self.observed_index)
+        return [d for d in range(self.state_dim) if d not in observed]
+
+    @property
     def control_names(self) -> list[str]:
         names = self.meta.get("control_names")
         return list(names) if names else [f"u{i}" for i in range(self.control_dim)]
