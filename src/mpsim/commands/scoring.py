@@ -52,7 +52,7 @@ def evaluate_model(
     metrics = rollout_metrics(
         pred, true, std, test.t, horizons, test.meta.get("periods"), model.context_steps, test.observed_index
     )
-    metrics.update(latent_facts(test))
+    metrics.update(test.measured_states())  # which states were measured, how the others were estimated
     features = test.node_features  # [N, F] or [B, N, F]
     probe = None if features is None else (features[:1] if features.dim() == 3 else features)
     if system is not None and system.energy(test.x[:1, :1], probe) is not None:
@@ -77,18 +77,6 @@ def evaluate_model(
         )
         plotting.error_growth(test.t, metrics["per_step_rmse"], plot_dir / "error_growth.png", title=title)
     return metrics
-
-
-def latent_facts(data: Trajectories) -> dict[str, Any]:
-    """For data with unmeasured states: which states were measured (the errors are on those alone) and how each
-    latent one was estimated (``meta["observed"]``, ``meta["estimated"]``, set by `mpsim.data.latent`); {} else."""
-    if not data.latent_index:
-        return {}
-    names, how = data.state_names, data.meta.get("estimated") or {}
-    return {
-        "observed": [names[d] for d in data.observed_index],
-        "estimated": {names[d]: how.get(names[d], "no estimate recorded") for d in data.latent_index},
-    }
 
 
 def horizon_rows(metrics: dict[str, Any]) -> list[tuple[str, str]]:

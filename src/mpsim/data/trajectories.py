@@ -133,6 +133,19 @@ class Trajectories:
         observed = set(self.observed_index)
         return [d for d in range(self.state_dim) if d not in observed]
 
+    def measured_states(self) -> dict[str, Any]:
+        """What a report says about unmeasured states: {} when every state is measured, else ``observed`` (the
+        measured state names: errors and losses are on these) and ``estimated`` ({latent state: how it was
+        estimated}, from ``meta["estimated"]``)."""
+        latent = self.latent_index
+        if not latent:
+            return {}
+        names, how = self.state_names, self.meta.get("estimated") or {}
+        return {
+            "observed": [names[d] for d in self.observed_index],
+            "estimated": {names[d]: str(how.get(names[d], "no estimate recorded")) for d in latent},
+        }
+
     @property
     def control_names(self) -> list[str]:
         names = self.meta.get("control_names")

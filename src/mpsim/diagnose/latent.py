@@ -33,9 +33,12 @@ from mpsim.errors import DivergenceError
 from mpsim.models.base import Model
 
 #: Levenberg–Marquardt iterations of a state estimation from the data's estimate, and of each refresh inside a fit
-LATENT_ITERS, REFRESH_ITERS = 6, 2
-#: central-difference step of the latent starts (normalised units): far above an adaptive solver's tolerance
+#: (warm-started from the last evaluation; the starts enter the measured states nearly linearly)
+LATENT_ITERS, REFRESH_ITERS = 6, 1
+#: difference step of the latent starts (normalised units): far above an adaptive solver's tolerance
 FD_STEP = 1e-3
+#: a state estimation stops when no window's start moves more than this (normalised units)
+STEP_TOL = 1e-6
 
 
 @dataclass(frozen=True)
@@ -83,59 +86,74 @@ def fitted_latent(model: Model, data: Trajectories, length: int, iters: int = LA
     return None if latent is None else fit_latent(model, data, latent, iters)
 
 
-def _costs(
-    model: Model, data: Trajectories, latent: LatentStarts, z: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """([B, K, M] flattened window residuals, [B, K] their sums of squares; inf where a rollout failed)."""
+def _residuals(model: Model, data: Trajectories, latent: LatentStarts, zs: torch.Tensor) -> torch.Tensor:
+    """[S, B, K, M] flattened window residuals at S sets of latent starts `zs` [S, B, K, N, L], all in one batched
+    rollout (the records repeated S times: an adaptive solver's steps cost the same for a batch of S·B); inf
+    everywhere when that rollout failed."""
+    n_sets, b = zs.shape[:2]
+    tiled = data.subset(torch.arange(b).repeat(n_sets))
     try:
-        res, _ = window_residuals(model, data, latent.length, replace(latent, z=z).states(model, data))
+        starts = replace(latent, z=zs.flatten(0, 1)).states(model, tiled)
+        res, _ = window_residuals(model, tiled, latent.length, starts)
     except DivergenceError:
-        shape = (*z.shape[:2], 1)
-        return torch.full(shape, torch.inf, dtype=z.dtype), torch.full(z.shape[:2], torch.inf, dtype=z.dtype)
-    r = res.flatten(2).to(z)
-    cost = r.pow(2).sum(-1)
-    return r, torch.where(torch.isfinite(cost), cost, torch.full_like(cost, torch.inf))
+        return torch.full((*zs.shape[:3], 1), torch.inf, dtype=zs.dtype)
+    r = res.flatten(2).to(zs).reshape(n_sets, b, *res.shape[1:2], -1)
+    return torch.where(torch.isfinite(r), r, torch.full_like(r, torch.inf))
+
+
+def _directions(z: torch.Tensor) -> torch.Tensor:  # z: [B, K, N, L] -> [P, B, K, N, L]
+    """`FD_STEP` along each of the P = N·L latent columns, for every window at once."""
+    eye = torch.eye(z[0, 0].numel(), dtype=z.dtype) * FD_STEP  # [P, P]
+    return eye.reshape(-1, 1, 1, *z.shape[2:]).expand(-1, *z.shape)
+
+
+def _linearise(
+    model: Model, data: Trajectories, latent: LatentStarts, z: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """([B, K, M] residuals, [B, K, M, P] forward-difference Jacobian, [B, K] cost) at the starts `z`, from one
+    rollout of the records at z and at z moved along each latent column."""
+    r = _residuals(model, data, latent, torch.cat([z[None], z[None] + _directions(z)]))
+    if r.shape[-1] == 1 and not torch.isfinite(r).all():  # the rollout failed
+        inf = torch.full(z.shape[:2], torch.inf, dtype=z.dtype)
+        return r[0], r[1:].permute(1, 2, 3, 0), inf
+    jac = ((r[1:] - r[:1]) / FD_STEP).permute(1, 2, 3, 0)
+    cost = r[0].pow(2).sum(-1)
+    return r[0], jac, torch.where(torch.isfinite(cost), cost, torch.full_like(cost, torch.inf))
 
 
 def latent_jacobian(model: Model, data: Trajectories, latent: LatentStarts) -> torch.Tensor:
     """[B, K, M, P] each window's Jacobian of its flattened residuals with respect to its own latent start
-    (P = N·L columns), by central differences of all windows at once (one pair of rollouts per column)."""
-    z = latent.z
-    cols = []
-    for p in range(z[0, 0].numel()):  # one column per node and latent state (a handful), every window at once
-        step = torch.zeros_like(z).flatten(2)
-        step[..., p] = FD_STEP
-        plus, _ = _costs(model, data, latent, z + step.reshape(z.shape))
-        minus, _ = _costs(model, data, latent, z - step.reshape(z.shape))
-        cols.append((plus - minus) / (2 * FD_STEP))
-    return torch.stack(cols, dim=-1)
+    (P = N·L columns), by central differences of every window at once (one batched rollout)."""
+    step = _directions(latent.z)
+    r = _residuals(model, data, latent, torch.cat([latent.z[None] + step, latent.z[None] - step]))
+    plus, minus = r.chunk(2)
+    return ((plus - minus) / (2 * FD_STEP)).permute(1, 2, 3, 0)
 
 
 @torch.no_grad()
 def fit_latent(model: Model, data: Trajectories, latent: LatentStarts, iters: int = LATENT_ITERS) -> LatentStarts:
-    """`latent` refined by `iters` Levenberg–Marquardt steps on every window's measured residuals, the model fixed;
-    a window keeps its start where a step does not lower its error."""
+    """`latent` refined by up to `iters` Levenberg–Marquardt steps on every window's measured residuals, the model
+    fixed; a window keeps its start where a step does not lower its error. One batched rollout per step."""
     z = latent.z.clone()
-    r, cost = _costs(model, data, latent, z)
+    r, jac, cost = _linearise(model, data, latent, z)
     damping = torch.full(cost.shape, 1e-3, dtype=z.dtype)  # [B, K]
-    eye = torch.eye(z[0, 0].numel(), dtype=z.dtype)
     for _ in range(iters):  # iterations of one batched solve over every window
-        jac = latent_jacobian(model, data, replace(latent, z=z))
         if not (torch.isfinite(jac).all() and torch.isfinite(r).all()):
             break
         a = jac.mT @ jac  # [B, K, P, P]
         g = (jac.mT @ r[..., None])[..., 0]  # [B, K, P]
-        scale = a.diagonal(dim1=-2, dim2=-1).clamp_min(1e-12)
-        lhs = a + damping[..., None, None] * torch.diag_embed(scale) + 1e-12 * eye
-        step = -torch.linalg.solve(lhs, g[..., None])[..., 0].reshape(z.shape)
-        r_new, cost_new = _costs(model, data, latent, z + step)
+        scale = torch.diag_embed(a.diagonal(dim1=-2, dim2=-1).clamp_min(1e-12))
+        step = -torch.linalg.solve(a + damping[..., None, None] * scale, g[..., None])[..., 0].reshape(z.shape)
+        if float(step.abs().max()) < STEP_TOL:
+            break
+        r_new, jac_new, cost_new = _linearise(model, data, latent, z + step)
         better = cost_new < cost  # [B, K]
         z = torch.where(better[..., None, None], z + step, z)
-        r = torch.where(better[..., None], r_new, r) if r_new.shape == r.shape else r
+        if r_new.shape == r.shape:
+            r = torch.where(better[..., None], r_new, r)
+            jac = torch.where(better[..., None, None], jac_new, jac)
         cost = torch.where(better, cost_new, cost)
         damping = torch.where(better, damping * 0.3, damping * 10.0)
-        if float(step.abs().max()) < 1e-7:
-            break
     return replace(latent, z=z)
 
 
