@@ -35,7 +35,9 @@ def test_the_fitted_latent_start_recovers_the_true_velocity(clean):
     for length in (100, 40):  # the whole segment; windows of 40, 40 and 20 steps
         estimate = initial_latent(model, data, length)
         fitted = fitted_latent(model, data, length)
-        assert estimate is not None and fitted is not None and fitted.z.shape == (8, len(window_starts(101, length)), 1, 1)
+        assert (
+            estimate is not None and fitted is not None and fitted.z.shape == (8, len(window_starts(101, length)), 1, 1)
+        )
         # the smoothed derivative is off by ~1e-3 at a segment's edge; the start that fits q is off by ~1e-5
         assert _start_error(estimate, model, v, length) > 5e-4
         assert _start_error(fitted, model, v, length) < 1e-4

@@ -86,7 +86,12 @@ def fitted_latent(model: Model, data: Trajectories, length: int, iters: int = LA
     return None if latent is None else fit_latent(model, data, latent, iters)
 
 
-def _residuals(model: Model, data: Trajectories, latent: LatentStarts, zs: torch.Tensor) -> torch.Tensor:
+def _residuals(
+    model: Model,
+    data: Trajectories,
+    latent: LatentStarts,
+    zs: torch.Tensor,  # [S, B, K, N, L] S sets of normalised latent starts
+) -> torch.Tensor:
     """[S, B, K, M] flattened window residuals at S sets of latent starts `zs` [S, B, K, N, L], all in one batched
     rollout (the records repeated S times: an adaptive solver's steps cost the same for a batch of S·B); inf
     everywhere when that rollout failed."""
@@ -108,7 +113,10 @@ def _directions(z: torch.Tensor) -> torch.Tensor:  # z: [B, K, N, L] -> [P, B, K
 
 
 def _linearise(
-    model: Model, data: Trajectories, latent: LatentStarts, z: torch.Tensor
+    model: Model,
+    data: Trajectories,
+    latent: LatentStarts,
+    z: torch.Tensor,  # [B, K, N, L] normalised latent starts
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """([B, K, M] residuals, [B, K, M, P] forward-difference Jacobian, [B, K] cost) at the starts `z`, from one
     rollout of the records at z and at z moved along each latent column."""
