@@ -129,6 +129,7 @@ def _linearise(
     return r[0], jac, torch.where(torch.isfinite(cost), cost, torch.full_like(cost, torch.inf))
 
 
+@torch.no_grad()
 def latent_jacobian(model: Model, data: Trajectories, latent: LatentStarts) -> torch.Tensor:
     """[B, K, M, P] each window's Jacobian of its flattened residuals with respect to its own latent start
     (P = N·L columns), by central differences of every window at once (one batched rollout)."""
