@@ -3,6 +3,8 @@ the residual loop's held-out report and the benchmarks all read their numbers fr
 
 Errors are computed on full rollouts. "Normalised" means in units of each state feature's standard
 deviation over the training split (the model's `state_std`), so errors are comparable across features.
+With `features` (the measured columns, `Trajectories.observed_index`) errors are averaged over those features
+only: a latent state (estimated, not measured) is not a target.
 """
 
 from __future__ import annotations
@@ -41,15 +43,28 @@ def mse_loss(
 LOSSES: dict[str, Callable[..., torch.Tensor]] = {"huber": huber_loss, "mse": mse_loss}
 
 
+def select_features(
+    x: torch.Tensor,  # [..., D] states (or per-feature values)
+    features: Sequence[int] | None,  # the feature columns to keep (None: all)
+) -> torch.Tensor:
+    """[..., D'] the chosen feature columns of `x` (`x` itself when `features` is None or every column)."""
+    if features is None or list(features) == list(range(x.shape[-1])):
+        return x
+    return x[..., list(features)]
+
+
 def squared_errors(
     pred: torch.Tensor,  # [B, T, N, D] predicted states, raw units
     target: torch.Tensor,  # [B, T, N, D] true states, raw units
     std: torch.Tensor,  # [D] per-feature scale
     periods: Sequence[float | None] | None = None,  # per feature: period, or None
+    features: Sequence[int] | None = None,  # feature columns the errors are on (None: all)
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """([B, T] mean squared error in normalised units, [B, T] in raw units), averaged over nodes and features."""
-    diff = state_difference(pred, target, periods)
-    return (diff / std).pow(2).mean(dim=(2, 3)), diff.pow(2).mean(dim=(2, 3))
+    """([B, T] mean squared error in normalised units, [B, T] in raw units), averaged over nodes and features
+    (the chosen `features` only)."""
+    diff = select_features(state_difference(pred, target, periods), features)
+    scaled = diff / select_features(std, features)
+    return scaled.pow(2).mean(dim=(2, 3)), diff.pow(2).mean(dim=(2, 3))
 
 
 def rollout_metrics(
@@ -60,19 +75,20 @@ def rollout_metrics(
     horizons: Sequence[int] = (),
     periods: Sequence[float | None] | None = None,  # per feature: period of a periodic coordinate, or None
     first: int = 1,
+    features: Sequence[int] | None = None,  # feature columns the errors are on (None: all; the measured ones)
 ) -> dict:
     """Rollout RMSE over steps `first`..T−1 (the steps before `first` were given to the model) and at named
-    horizons (steps), in raw and normalised units.
+    horizons (steps), in raw and normalised units, over the chosen `features` (a latent state is no target).
 
     Trajectories whose prediction is not finite count as diverged: they are excluded from the RMSEs and
     counted in ``n_diverged`` (a NaN is a result to report, not a crash).
     """
-    finite = torch.isfinite(pred).flatten(1).all(dim=1)  # [B]
+    finite = torch.isfinite(select_features(pred, features)).flatten(1).all(dim=1)  # [B]
     n_div = int((~finite).sum())
     if finite.sum() == 0:
         nan = math.nan
         return {"rmse": nan, "rmse_raw": nan, "per_step_rmse": [], "horizons": {}, "n_diverged": n_div}
-    se_n, se_r = squared_errors(pred[finite], target[finite], std, periods)  # [B', T]
+    se_n, se_r = squared_errors(pred[finite], target[finite], std, periods, features)  # [B', T]
     per_step = se_n.mean(0).sqrt()  # [T]
     out: dict[str, Any] = {
         "rmse": float(se_n[:, first:].mean().sqrt()),
@@ -115,10 +131,12 @@ def valid_prediction_time(
     std: torch.Tensor,  # [D] feature scale
     t: torch.Tensor,  # [T] times
     threshold: float = 0.3,
+    features: Sequence[int] | None = None,  # feature columns the error is on (None: all)
 ) -> float:
-    """Mean over trajectories of the time until the normalised RMSE (over nodes and features) first exceeds
-    `threshold` (the whole horizon if it never does)."""
-    err = ((pred - true) / std).pow(2).mean(dim=(2, 3)).sqrt()  # [B, T]
+    """Mean over trajectories of the time until the normalised RMSE (over nodes and the chosen features) first
+    exceeds `threshold` (the whole horizon if it never does)."""
+    scaled = select_features((pred - true) / std, features)
+    err = scaled.pow(2).mean(dim=(2, 3)).sqrt()  # [B, T]
     err = torch.where(torch.isfinite(err), err, torch.full_like(err, math.inf))
     over = err > threshold
     first = torch.where(over.any(dim=1), over.float().argmax(dim=1), torch.full((err.shape[0],), err.shape[1] - 1))

@@ -86,3 +86,19 @@ def test_latent_states_that_cannot_be_estimated_are_refused():
     uneven = _data(t**1.01 + t, [x], ["q"])
     with pytest.raises(DataError, match="needs a uniform time grid.*data.resample"):
         estimate_latent(uneven, {"v": "q"})
+
+
+def test_the_measured_columns_travel_with_the_data():
+    t, x, _ = _sine()
+    out = estimate_latent(_data(t, [x], ["q"]), {"v": "q"}, states=["v", "q"])
+    assert out.observed_index == [1] and out.latent_index == [0]
+    for part in (out.subset([0]), out.time_slice(0, 10), out.to(dtype=torch.float32)):
+        assert part.observed_index == [1] and part.meta["estimated"] == out.meta["estimated"]
+    summary = out.measured_states()
+    assert summary["observed"] == ["q"] and summary["estimated"]["v"].startswith("Savitzky–Golay derivative of q")
+    full = _data(t, [x, x], ["q", "v"])
+    assert full.observed_index == [0, 1] and full.latent_index == [] and full.measured_states() == {}
+    bad = _data(t, [x, x], ["q", "v"])
+    bad.meta["observed"] = ["w"]
+    with pytest.raises(DataError, match=r"meta\['observed'\] = \['w'\] must name at least one of the states"):
+        _ = bad.observed_index

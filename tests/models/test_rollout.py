@@ -1,5 +1,6 @@
 import math
 
+import pytest
 import torch
 
 from mpsim.data.trajectories import Trajectories
@@ -61,3 +62,31 @@ def test_rollout_error_is_the_normalised_rmse_after_the_first_state():
     err = ((pred - data.x.float())[:, 1:] / model.state_std).pow(2).mean().sqrt()
     assert math.isclose(rmse, float(err), rel_tol=1e-6)
     assert math.isnan(rollout_error(model, data, pred=torch.full_like(pred, math.nan)))
+
+
+def _partly_measured(data: Trajectories) -> Trajectories:
+    """`data` with its second state latent (meta['observed'] names the first), that state's values after the first
+    sample corrupted: an estimate nobody should fit to."""
+    x = data.x.clone()
+    x[:, 1:, :, 1] += 1e3
+    meta = {**data.meta, "state_names": ["q", "v"], "observed": ["q"]}
+    return Trajectories(t=data.t, x=x, edge_index=data.edge_index, meta=meta)
+
+
+def test_losses_and_errors_on_the_measured_states_ignore_a_corrupted_latent_one():
+    from mpsim.metrics import mse_loss
+
+    data, model = _data(), Drift()
+    latent = _partly_measured(data)
+    assert latent.observed_index == [0] and latent.latent_index == [1] and data.observed_index == [0, 1]
+    t = data.t.float()
+    with torch.no_grad():
+        loss, _ = model.training_loss(latent.to(dtype=torch.float32), t, mse_loss)
+        pred = model.rollout(data.x[:, 0].float(), t, data.inputs())
+        assert float(loss) == pytest.approx(float(mse_loss(pred[..., :1], data.x[..., :1].float())))
+        assert float(model.training_loss(data.to(dtype=torch.float32), t, mse_loss)[0]) != pytest.approx(float(loss))
+    err = rollout_error(model, latent)
+    expected = rollout_metrics(pred, data.x.float(), model.state_std, data.t, features=[0])["rmse"]
+    assert err == pytest.approx(expected) and err < 1.0
+    every = Trajectories(t=latent.t, x=latent.x, edge_index=latent.edge_index)  # no meta: every state is a target
+    assert rollout_error(model, every) > 100.0

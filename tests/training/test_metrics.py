@@ -47,3 +47,24 @@ def test_periodic_features_are_compared_on_the_circle():
     m = rollout_metrics(pred, true, torch.ones(2), t, periods=[2 * math.pi, None])
     assert m["rmse"] == pytest.approx(0.1, rel=1e-5)
     assert rollout_metrics(pred, true, torch.ones(2), t)["rmse"] > 4  # without the period it is a huge error
+
+
+def test_errors_on_the_measured_features_ignore_a_latent_one():
+    """Issue 60: with only some states measured, a latent feature (estimated, not measured) is no target."""
+    from mpsim.metrics import squared_errors, valid_prediction_time
+
+    t = torch.arange(5.0)
+    true = torch.zeros(2, 5, 1, 2)
+    pred = true.clone()
+    pred[:, 1:, :, 0] = 0.5  # the measured feature: error 0.5
+    wild = pred.clone()
+    wild[..., 1] = 1e3  # the latent one: anything
+    std = torch.tensor([1.0, 2.0])
+    for p in (pred, wild):
+        m = rollout_metrics(p, true, std, t, horizons=[2], features=[0])
+        assert m["rmse"] == pytest.approx(0.5) and m["horizons"]["2"]["rmse"] == pytest.approx(0.5)
+        normalised, raw = squared_errors(p, true, std, features=[0])
+        assert torch.allclose(normalised[:, 1:], torch.full((2, 4), 0.25))
+        assert valid_prediction_time(p, true, std, t, threshold=0.3, features=[0]) == 1.0
+    assert rollout_metrics(wild, true, std, t)["rmse"] > 100  # all features: the latent one counts
+    assert valid_prediction_time(wild, true, std, t, threshold=0.3) == 0.0  # over at once

@@ -50,8 +50,9 @@ def evaluate_model(
     true = test.x.to(pred.dtype)
     std = model.state_std.detach().cpu().to(pred.dtype)
     metrics = rollout_metrics(
-        pred, true, std, test.t, horizons, periods=test.meta.get("periods"), first=model.context_steps
+        pred, true, std, test.t, horizons, test.meta.get("periods"), model.context_steps, test.observed_index
     )
+    metrics.update(test.measured_states())  # which states were measured, how the others were estimated
     features = test.node_features  # [N, F] or [B, N, F]
     probe = None if features is None else (features[:1] if features.dim() == 3 else features)
     if system is not None and system.energy(test.x[:1, :1], probe) is not None:

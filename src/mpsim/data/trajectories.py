@@ -111,6 +111,42 @@ class Trajectories:
         return list(names) if names else [f"x{i}" for i in range(self.state_dim)]
 
     @property
+    def observed_index(self) -> list[int]:
+        """Indices of the measured state columns: the names in ``meta["observed"]`` (`mpsim.data.latent`), every
+        column when the data hold every state (no ``observed`` key). Losses and errors read these columns only; the
+        others are latent (estimated, e.g. a velocity from a measured position)."""
+        observed = self.meta.get("observed")
+        names = self.state_names
+        if observed is None:
+            return list(range(self.state_dim))
+        unknown = [o for o in observed if o not in names]
+        if unknown or not observed:
+            raise DataError(
+                f"{self.meta.get('source', 'trajectories')}: meta['observed'] = {list(observed)} must name at least "
+                f"one of the states {names}" + (f"; unknown: {unknown}" if unknown else "") + "."
+            )
+        return [d for d, name in enumerate(names) if name in observed]
+
+    @property
+    def latent_index(self) -> list[int]:
+        """Indices of the state columns that are not measured (estimated; see `observed_index`)."""
+        observed = set(self.observed_index)
+        return [d for d in range(self.state_dim) if d not in observed]
+
+    def measured_states(self) -> dict[str, Any]:
+        """What a report says about unmeasured states: {} when every state is measured, else ``observed`` (the
+        measured state names: errors and losses are on these) and ``estimated`` ({latent state: how it was
+        estimated}, from ``meta["estimated"]``)."""
+        latent = self.latent_index
+        if not latent:
+            return {}
+        names, how = self.state_names, self.meta.get("estimated") or {}
+        return {
+            "observed": [names[d] for d in self.observed_index],
+            "estimated": {names[d]: str(how.get(names[d], "no estimate recorded")) for d in latent},
+        }
+
+    @property
     def control_names(self) -> list[str]:
         names = self.meta.get("control_names")
         return list(names) if names else [f"u{i}" for i in range(self.control_dim)]

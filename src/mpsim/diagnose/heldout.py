@@ -71,6 +71,7 @@ class Judgement:
     trials: list[Trial] = field(default_factory=list)
     model: Model | None = None  # the refit model with the named effects (never worse on held-out data)
     notes: list[str] = field(default_factory=list)
+    measured: dict[str, Any] = field(default_factory=dict)  # unmeasured states: which were measured, how estimated
 
     @property
     def exit_code(self) -> int:
@@ -100,7 +101,35 @@ def judge(
     """Test the screened candidates (strongest share of their row first) on held-out prediction; name the
     ones that pass, greedily, and return the verdict with the model that carries them. With
     `test_candidates=False` only the levels are measured (given, refit, null) and the verdict is *nothing
-    missing* or *unexplained*: the caller tests the candidates another way (by finetuning a network)."""
+    missing* or *unexplained*: the caller tests the candidates another way (by finetuning a network). With
+    unmeasured states the judgement says which states were measured and how the others were handled."""
+    out = _judge(model, diag, library, train, test, params, seed, test_candidates)
+    out.measured = test.measured_states()
+    if out.measured:
+        out.notes.append(latent_note(out.measured))
+    return out
+
+
+def latent_note(measured: dict[str, Any]) -> str:
+    """How unmeasured states enter the judgement (`measured`: `Trajectories.measured_states`)."""
+    how = "; ".join(f"{s}: {text}" for s, text in measured["estimated"].items())
+    return (
+        f"measured states {measured['observed']}: errors are on these only. Not measured — {how}. Each window's "
+        "unmeasured start is fitted to the window's measured samples: jointly with the parameters in every "
+        "multiple-shooting fit (variable projection), with the model fixed on held-out windows (state estimation)"
+    )
+
+
+def _judge(
+    model: Model,
+    diag: Diagnosis,
+    library: list[Candidate],
+    train: Trajectories,
+    test: Trajectories,
+    params: DiagnoseParams,
+    seed: int,
+    test_candidates: bool,
+) -> Judgement:
     train = train.subset(slice(0, params.fit_trajectories))  # a handful of parameters: a few records suffice
     horizon = params.horizon or horizon_from_data(model, train, params.vpt_threshold)
     given = float(window_error(model, test, horizon).mean())

@@ -11,7 +11,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import torch
@@ -21,6 +21,7 @@ from mpsim.data.trajectories import Trajectories
 from mpsim.diagnose.findings import Diagnosis
 from mpsim.diagnose.finetuned import FinetuneAll, FinetuneJudgement, judge_by_finetune, serial
 from mpsim.diagnose.heldout import EFFECTS_NAMED, EXIT_CODES, NOTHING_MISSING, Judgement, dynamic_rows, judge
+from mpsim.diagnose.latent import fitted_latent
 from mpsim.diagnose.library import Candidate, build_library
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.diagnose.residual import one_step_residual
@@ -28,7 +29,7 @@ from mpsim.diagnose.search import find_effects
 from mpsim.diagnose.shooting import horizon_from_data, own_parameters, window_error
 from mpsim.diagnose.trial import Trial
 from mpsim.errors import DivergenceError
-from mpsim.metrics import rollout_metrics, valid_prediction_time
+from mpsim.metrics import rollout_metrics, select_features, valid_prediction_time
 from mpsim.models.base import Model
 from mpsim.models.rollout import rollout
 
@@ -40,21 +41,40 @@ Save = Callable[[Model, int], str]
 
 
 def holdout_metrics(model: Model, test: Trajectories, horizons: list[int], vpt_threshold: float) -> dict[str, Any]:
-    """Held-out one-step error, rollout RMSE at fixed horizons and valid prediction time (normalised units)."""
+    """Held-out one-step error, rollout RMSE at fixed horizons and valid prediction time (normalised units), on
+    the measured states. With unmeasured states each record's rollout starts from the latent state that fits its
+    measured samples best, the model fixed (`diagnose.latent`); the one-step error steps from the data's estimate."""
     std = model.state_std.detach().cpu().double()
+    observed = test.observed_index
     step = one_step_residual(model, test)
-    one_step = ((step.pred - test.x[:, 1:].double()) / std).pow(2)
-    pred, _ = rollout(model, test)
-    roll = rollout_metrics(pred.double(), test.x.double(), std, test.t, horizons)
+    one_step = select_features((step.pred - test.x[:, 1:].double()) / std, observed).pow(2)
+    pred, _ = rollout(model, with_latent_start(model, test))
+    roll = rollout_metrics(pred.double(), test.x.double(), std, test.t, horizons, features=observed)
     finite = one_step[torch.isfinite(one_step)]
     return {
         "one_step_rmse": float(finite.mean().sqrt()) if finite.numel() else math.nan,
         "rollout_rmse": roll["rmse"],
         "horizons": roll["horizons"],
-        "valid_prediction_time": valid_prediction_time(pred.double(), test.x.double(), std, test.t, vpt_threshold),
+        "valid_prediction_time": valid_prediction_time(
+            pred.double(), test.x.double(), std, test.t, vpt_threshold, features=observed
+        ),
         "n_diverged": roll["n_diverged"],
         "per_step_rmse": roll["per_step_rmse"],
     }
+
+
+def with_latent_start(model: Model, data: Trajectories) -> Trajectories:
+    """`data` with each record's first latent state fitted to its measured samples over the whole record (the
+    model fixed); `data` itself when every state is measured or the fit fails."""
+    try:
+        latent = fitted_latent(model, data, data.n_times - 1)
+    except DivergenceError:
+        return data
+    if latent is None:
+        return data
+    x = data.x.clone()
+    x[:, 0] = latent.states(model, data)[:, 0].to(x)
+    return replace(data, x=x)
 
 
 def screen(model: Model, data: Trajectories, params: DiagnoseParams, seed: int) -> tuple[Diagnosis, list]:

@@ -7,7 +7,9 @@ integrator — the model (plus the candidate) is rolled out from observed states
 the observations that follow — and candidates are judged by the held-out error of such rollouts.
 
 Windows start every `length` steps at the same step index in every trajectory (one batched rollout per start,
-so absolute time stays right for time-dependent terms); the last window may be shorter.
+so absolute time stays right for time-dependent terms); the last window may be shorter (`diagnose.windows`).
+Errors are on the measured states; with unmeasured ones (`data.observed`) each window's latent start is fitted
+(`diagnose.latent`): jointly with the parameters in a fit, with the model fixed on held-out windows.
 """
 
 from __future__ import annotations
@@ -22,6 +24,18 @@ import torch
 from torch import nn
 
 from mpsim.data.trajectories import Trajectories
+from mpsim.diagnose.latent import (
+    REFRESH_ITERS,
+    LatentStarts,
+    fit_latent,
+    fitted_latent,
+    initial_latent,
+    latent_jacobian,
+    profile_out,
+)
+from mpsim.diagnose.windows import window_predictions as window_predictions
+from mpsim.diagnose.windows import window_residuals
+from mpsim.diagnose.windows import window_starts as _starts
 from mpsim.errors import DivergenceError
 from mpsim.models.base import Model
 from mpsim.models.capabilities import Interpretable
@@ -40,38 +54,22 @@ def own_parameters(model: Model) -> list[nn.Parameter]:
     return []
 
 
-def _starts(n_times: int, length: int) -> list[int]:
-    return list(range(0, n_times - 1, max(length, 1)))
-
-
-def window_predictions(model: Model, data: Trajectories, length: int) -> list[tuple[int, torch.Tensor]]:
-    """[(start, [B, L+1, N, D] rollout from x[:, start] over the next ≤ length steps)], gradients kept."""
-    device, dtype = model.state_mean.device, model.state_mean.dtype
-    x = data.x.to(device=device, dtype=dtype)
-    t = data.t.to(device=device, dtype=dtype)
-    out = []
-    for s in _starts(data.n_times, length):  # sequential in time only; each rollout batches every trajectory
-        end = min(s + length, data.n_times - 1)
-        out.append((s, model.rollout(x[:, s], t[s : end + 1], data.inputs(s, end + 1).to(device, dtype))))
-    return out
-
-
-def window_sq_error(model: Model, data: Trajectories, length: int) -> torch.Tensor:
-    """[B, K, N, D] squared normalised errors of every window step (K = the predicted steps of all windows)."""
-    std = model.state_std.detach()
-    parts = []
-    for s, pred in window_predictions(model, data, length):
-        true = data.x[:, s : s + pred.shape[1]].to(pred)
-        parts.append(((pred[:, 1:] - true[:, 1:]) / std).pow(2))
-    return torch.cat(parts, dim=1)
+def window_sq_error(model: Model, data: Trajectories, length: int, latent: LatentStarts | None = None) -> torch.Tensor:
+    """[B, K, N, D_obs] squared normalised errors of every window step (K = the predicted steps of all windows) on
+    the measured states; windows start from the data's states, their latent part from `latent` when given."""
+    res, mask = window_residuals(model, data, length, None if latent is None else latent.states(model, data))
+    return res[:, mask].pow(2)
 
 
 @torch.no_grad()
 def window_error(model: Model, data: Trajectories, length: int) -> torch.Tensor:
-    """[B] mean squared normalised multi-step error per trajectory (inf for a trajectory whose rollout failed)."""
+    """[B] mean squared normalised multi-step error per trajectory on the measured states (inf for a trajectory
+    whose rollout failed); unmeasured states start each window where they fit its measured samples best, the
+    model fixed (state estimation, `diagnose.latent`)."""
     model.eval()
     try:
-        err = window_sq_error(model, data, length).double().mean(dim=(1, 2, 3)).cpu()
+        latent = fitted_latent(model, data, length)
+        err = window_sq_error(model, data, length, latent).double().mean(dim=(1, 2, 3)).cpu()
     except DivergenceError:
         return torch.full((len(data),), math.inf, dtype=torch.float64)
     return torch.where(torch.isfinite(err), err, torch.full_like(err, math.inf))
@@ -83,11 +81,13 @@ def horizon_from_data(model: Model, data: Trajectories, threshold: float) -> int
     whole records otherwise."""
     with torch.no_grad():
         try:
-            ((_, pred),) = window_predictions(model, data, data.n_times - 1)
+            latent = fitted_latent(model, data, data.n_times - 1)  # unmeasured states: their best start
+            res, _ = window_residuals(
+                model, data, data.n_times - 1, None if latent is None else latent.states(model, data)
+            )
         except DivergenceError:
             return 2
-        std = model.state_std.detach()
-        err = ((pred - data.x.to(pred)) / std).pow(2).mean(dim=(0, 2, 3)).sqrt().cpu()  # [T]
+        err = torch.cat([res.new_zeros(1), res[:, 0].pow(2).mean(dim=(0, 2, 3)).sqrt()]).cpu()  # [T]
     over = torch.nonzero(~(err <= threshold)).flatten()
     return data.n_times - 1 if over.numel() == 0 else max(int(over[0]), 2)
 
@@ -97,16 +97,19 @@ class ShootingFit:
     """Result of a multiple-shooting fit.
 
     Attributes:
-        loss: final mean squared normalised window error on the fitting data.
+        loss: final mean squared normalised window error on the fitting data (measured states).
         values: the fitted values of the free parameters (flattened, in the order given).
         stderr: cluster-robust (by trajectory) standard errors of `values` (Gauss–Newton sandwich).
         converged: whether the fit ended with a finite loss.
+        latent: [B, K, N, L] the fitted latent start of every window (raw units), None when every state is
+            measured.
     """
 
     loss: float
     values: list[float]
     stderr: list[float]
     converged: bool
+    latent: torch.Tensor | None = None
 
 
 def shooting_fit(
@@ -117,12 +120,19 @@ def shooting_fit(
     iters: int = 25,
 ) -> ShootingFit:
     """Fit the `free` parameters of `model` (in place) by L-BFGS on the window error of `data`; every other
-    parameter stays fixed. Returns the fit with standard errors from the Jacobian of the window residuals."""
+    parameter stays fixed. Returns the fit with standard errors from the Jacobian of the window residuals.
+
+    With unmeasured states the latent part of every window's start is free too, fitted jointly by variable
+    projection (`diagnose.latent`): started from the data's estimate, refreshed for the current parameters at
+    every evaluation of the objective."""
     free = list(free)
+    latent = initial_latent(model, data, length)
+    if latent is not None:
+        latent = fit_latent(model, data, latent)
     if not free:
         with torch.no_grad():
-            loss = float(window_error(model, data, length).mean())
-        return ShootingFit(loss, [], [], math.isfinite(loss))
+            loss = float(window_sq_error(model, data, length, latent).double().mean())
+        return ShootingFit(loss, [], [], math.isfinite(loss), None if latent is None else latent.raw(model))
     keep = {id(p): p.requires_grad for p in model.parameters()}
     for p in model.parameters():
         p.requires_grad_(False)
@@ -130,11 +140,14 @@ def shooting_fit(
         p.requires_grad_(True)
     opt = torch.optim.LBFGS(free, lr=1.0, max_iter=iters, history_size=20, line_search_fn="strong_wolfe")
     start = [p.detach().clone() for p in free]
+    held = [latent]  # the latent starts of the last evaluation (warm start of the next)
 
     def closure() -> torch.Tensor:
         opt.zero_grad(set_to_none=True)
         try:
-            loss = window_sq_error(model, data, length).mean()
+            if held[0] is not None:
+                held[0] = fit_latent(model, data, held[0], REFRESH_ITERS)
+            loss = window_sq_error(model, data, length, held[0]).mean()
         except DivergenceError:
             loss = None
         if loss is None or not torch.isfinite(loss):  # a trial step too far: a bad point the line search leaves
@@ -157,29 +170,41 @@ def shooting_fit(
         for p in model.parameters():
             p.requires_grad_(keep.get(id(p), True))
     model.eval()
+    return _finish(model, data, length, free, start, ok)
+
+
+def _finish(
+    model: Model, data: Trajectories, length: int, free: list[nn.Parameter], start: list[torch.Tensor], ok: bool
+) -> ShootingFit:
+    """The fit's final loss (back to where it started if it ended on a diverging point), values and intervals."""
     with torch.no_grad():
-        loss = float(window_error(model, data, length).mean())
+        latent = fitted_latent(model, data, length)
+        loss = float(window_sq_error(model, data, length, latent).double().mean())
         if not math.isfinite(loss):  # ended on a diverging point: back to where the fit started
             ok = False
             for p, v in zip(free, start, strict=True):
                 p.copy_(v)
     values = torch.cat([p.detach().reshape(-1).double().cpu() for p in free])
-    stderr = sandwich_stderr(model, data, length, free) if ok and math.isfinite(loss) else [math.nan] * len(values)
-    return ShootingFit(loss, values.tolist(), stderr, ok and math.isfinite(loss))
+    good = ok and math.isfinite(loss)
+    stderr = sandwich_stderr(model, data, length, free, latent) if good else [math.nan] * len(values)
+    return ShootingFit(loss, values.tolist(), stderr, good, None if latent is None else latent.raw(model))
 
 
 @torch.no_grad()
-def sandwich_stderr(model: Model, data: Trajectories, length: int, free: list[nn.Parameter]) -> list[float]:
+def sandwich_stderr(
+    model: Model, data: Trajectories, length: int, free: list[nn.Parameter], latent: LatentStarts | None = None
+) -> list[float]:
     """Standard errors of the free parameters: Gauss–Newton with a sandwich over trajectories (window residuals
-    within a trajectory are correlated), the Jacobian by central differences (a handful of parameters)."""
+    within a trajectory are correlated), the Jacobian by central differences (a handful of parameters). With
+    unmeasured states each window's latent start is fitted (`latent`, or here) and its directions are projected
+    out of the Jacobian (`diagnose.latent.profile_out`)."""
+    if latent is None:
+        latent = fitted_latent(model, data, length)
+    starts = None if latent is None else latent.states(model, data)
 
-    def residuals() -> torch.Tensor:  # [B, M] normalised residuals per trajectory
-        std = model.state_std.detach()
-        parts = []
-        for s, pred in window_predictions(model, data, length):
-            true = data.x[:, s : s + pred.shape[1]].to(pred)
-            parts.append(((pred[:, 1:] - true[:, 1:]) / std).reshape(len(data), -1))
-        return torch.cat(parts, dim=1).double().cpu()
+    def residuals() -> torch.Tensor:  # [B, K, M] normalised residuals per trajectory and window
+        res, _ = window_residuals(model, data, length, starts)
+        return res.flatten(2).double().cpu()
 
     r0 = residuals()
     flat = [(p, i) for p in free for i in range(p.numel())]
@@ -194,7 +219,10 @@ def sandwich_stderr(model: Model, data: Trajectories, length: int, free: list[nn
         minus = residuals()
         view[i] = old
         cols.append((plus - minus) / (2 * h))
-    jac = torch.stack(cols, dim=-1)  # [B, M, P]
+    jac = torch.stack(cols, dim=-1)  # [B, K, M, P]
+    if latent is not None:
+        jac = profile_out(jac, latent_jacobian(model, data, latent).double().cpu())
+    jac, r0 = jac.flatten(1, 2), r0.flatten(1)  # [B, K·M, P], [B, K·M]
     if not torch.isfinite(jac).all():
         return [math.nan] * len(flat)
     bread = torch.linalg.pinv(jac.reshape(-1, len(flat)).T @ jac.reshape(-1, len(flat)))

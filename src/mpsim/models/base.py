@@ -17,6 +17,7 @@ from torch import nn
 
 from mpsim.effects import Effect, min_delay
 from mpsim.errors import IncompatibleError
+from mpsim.metrics import select_features
 from mpsim.solvers.dde import rk4_delay
 
 if TYPE_CHECKING:
@@ -165,10 +166,24 @@ class Model(nn.Module):
         delta: float = 1.0,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """(loss, [B, T, N, D] prediction) for one batch. Default: MPNODE.jl's single shooting — a free
-        rollout of the whole trajectory from its first state, loss on the normalised states. Models trained
-        differently (one-step targets, windows) override this."""
+        rollout of the whole trajectory from its first state, loss on the normalised measured states
+        (`Trajectories.observed_index`: a latent state, estimated rather than measured, starts the rollout but is
+        no target). Models trained differently (one-step targets, windows) override this."""
         pred = self.rollout(self.initial(batch.x), t, batch.inputs())
-        return loss_fn(self.normalise(pred), self.normalise(batch.x), delta), pred
+        return self.observed_loss(loss_fn, pred, batch.x, batch.observed_index, delta), pred
+
+    def observed_loss(
+        self,
+        loss_fn: Callable[..., torch.Tensor],
+        pred: torch.Tensor,  # [B, T, N, D] predicted states (raw units)
+        target: torch.Tensor,  # [B, T, N, D] data (raw units; latent columns estimated)
+        observed: Sequence[int],  # the measured feature columns (`Trajectories.observed_index`)
+        delta: float = 1.0,
+    ) -> torch.Tensor:
+        """`loss_fn` on the normalised states, the measured feature columns only."""
+        return loss_fn(
+            select_features(self.normalise(pred), observed), select_features(self.normalise(target), observed), delta
+        )
 
     def initial(self, x: torch.Tensor) -> torch.Tensor:  # x: [B, T, N, D] observed trajectories
         """What a rollout starts from: [B, N, D] first states, or [B, K, N, D] with `context_steps` = K > 1."""

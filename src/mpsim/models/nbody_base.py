@@ -31,6 +31,7 @@ from mpsim.errors import ConfigError, IncompatibleError
 from mpsim.graphs.hierarchy import build_hierarchy, hierarchy_depth
 from mpsim.graphs.knn import full_graph, knn_graph
 from mpsim.graphs.order import spatial_order
+from mpsim.metrics import select_features
 from mpsim.models.base import Model
 from mpsim.models.gn_blocks import ParticleEdges, take_rows
 from mpsim.periodic import state_difference, wrap_positions
@@ -296,7 +297,7 @@ class ParticleModel(Model):
         self.before_training_step(x_in, x_out, box)
         pred = self.step(x_in.reshape(b * p, n, 4), nf, box, dt).reshape(b, p, n, 4)
         err = state_difference(pred, x_out, [box, box, None, None])  # positions by minimum image
-        return err.pow(2).mean(), pred
+        return select_features(err, batch.observed_index).pow(2).mean(), pred
 
     def before_training_step(
         self,

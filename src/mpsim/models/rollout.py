@@ -76,10 +76,15 @@ def rollout_error(
     pred: torch.Tensor | None = None,  # [B, T, N, D] predictions of `data` (None: `rollout` them)
 ) -> float:
     """Normalised rollout RMSE of `model` on `data` over the steps after its context (1..T−1 for one initial
-    state), NaN if every trajectory diverged; `pred` gives predictions made elsewhere (gathered from several
-    processes) instead of rolling out here."""
+    state) and the measured states (`Trajectories.observed_index`: a latent state is no target), NaN if every
+    trajectory diverged; `pred` gives predictions made elsewhere (gathered from several processes) instead of
+    rolling out here."""
     if pred is None:
         pred, _ = rollout(model, data, batch_size=batch_size)
     std = model.state_std.cpu().to(pred.dtype)
     periods = data.meta.get("periods")
-    return rollout_metrics(pred, data.x.to(pred.dtype), std, data.t, periods=periods, first=model.context_steps)["rmse"]
+    metrics = rollout_metrics(
+        pred, data.x.to(pred.dtype), std, data.t, periods=periods, first=model.context_steps,
+        features=data.observed_index,
+    )  # fmt: skip
+    return metrics["rmse"]

@@ -309,9 +309,10 @@ class SMNNDiscovery(Model):
         edges = batch.edge_index if batch.edge_index.dim() == 2 else batch.edge_index[0]
         history = window_history(batch.x, t, traj, length) if min_delay(self.effects) > 0 else None
         pred, var = self.integrate_windows(win, steps, times, edges, history)
-        loss = loss_fn(self.normalise(pred), self.normalise(win), delta)
+        observed = batch.observed_index  # a latent state is no target
+        loss = self.observed_loss(loss_fn, pred, win, observed, delta)
         if self.denoiser is not None:
-            loss = loss + loss_fn(self.normalise(var), self.normalise(win), delta)
+            loss = loss + self.observed_loss(loss_fn, var, win, observed, delta)
         if bool(torch.isfinite(loss)):
             return loss, batch.x
         marked = batch.x.detach().clone()

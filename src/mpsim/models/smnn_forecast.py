@@ -236,7 +236,7 @@ class SMNNForecaster(Model):
             sub_u = None if sub_u is None else sub_u[:, :length]
         pred = self.rollout(x[:, :k], t[:length], Inputs(batch.edge_index, sub_u))
         # the first K − 1 steps are given; loss over the last context state and everything predicted
-        return loss_fn(self.normalise(pred[:, k - 1 :]), self.normalise(x[:, k - 1 :]), delta), pred
+        return self.observed_loss(loss_fn, pred[:, k - 1 :], x[:, k - 1 :], batch.observed_index, delta), pred
 
     @torch.no_grad()
     def after_step(self) -> None:
