@@ -808,6 +808,8 @@ def _declaring(ws: Path, d: Path, **sizes: int) -> Path:
 
 @pytest.mark.parametrize("name", list(CASES))
 def test_bad_input_ends_with_one_message(name, ws, tmp_path):
+    if name.startswith("optuna_sweeper"):  # hydra/sweeper=optuna needs the `search` extra, as in test_sweeps.py
+        pytest.importorskip("hydra_plugins.hydra_optuna_sweeper")
     case = CASES[name]
     args = case.args(ws, tmp_path)
     before = snapshot(tmp_path, ws)

@@ -8,7 +8,9 @@
 - no function is over 80 lines and no source file over 500;
 - the public API imports, and each of its names has a docstring with an example.
 
-Run as a script to print the figures: `python tests/test_structure.py`.
+Run as a script to print the figures: `python tests/test_structure.py` (who reads a config, the longest function,
+the largest file, the public names with their docstring examples, and each docs/ page's size against
+tests/test_docs.py's limit and allow-list).
 """
 
 from __future__ import annotations
@@ -57,19 +59,26 @@ def config_readers() -> list[str]:
     return found
 
 
-def long_functions() -> list[tuple[int, str]]:
-    out = []
+def function_sizes() -> list[tuple[int, str]]:
+    """(lines, `file:function`) of every function, longest first."""
+    sizes = []
     for path in _sources():
         for fn in _functions(path):
-            lines = (fn.end_lineno or fn.lineno) - fn.lineno + 1
-            if lines > MAX_FUNCTION_LINES:
-                out.append((lines, f"{path.relative_to(SRC)}:{fn.name}"))
-    return sorted(out, reverse=True)
+            sizes.append(((fn.end_lineno or fn.lineno) - fn.lineno + 1, f"{path.relative_to(SRC)}:{fn.name}"))
+    return sorted(sizes, reverse=True)
+
+
+def file_sizes() -> list[tuple[int, str]]:
+    """(lines, file) of every source file, largest first."""
+    return sorted(((len(p.read_text().splitlines()), str(p.relative_to(SRC))) for p in _sources()), reverse=True)
+
+
+def long_functions() -> list[tuple[int, str]]:
+    return [s for s in function_sizes() if s[0] > MAX_FUNCTION_LINES]
 
 
 def long_files() -> list[tuple[int, str]]:
-    sizes = [(len(p.read_text().splitlines()), str(p.relative_to(SRC))) for p in _sources()]
-    return sorted((n, p) for n, p in sizes if n > MAX_FILE_LINES)
+    return [s for s in file_sizes() if s[0] > MAX_FILE_LINES]
 
 
 def test_only_prepare_and_the_run_wrappers_read_the_config():
@@ -100,20 +109,55 @@ def test_public_api_imports_with_an_example(name):
     assert name in mpsim.__all__
 
 
+def test_the_script_prints_its_figures(capsys):
+    assert main() == 0
+    out = capsys.readouterr().out
+    assert "longest function:" in out and "largest file:" in out and "docs pages:" in out
+
+
+def _print_public_api() -> None:
+    import mpsim
+
+    print(f"public API (mpsim.__all__): {len(PUBLIC)} names")
+    for name in PUBLIC:
+        obj = getattr(mpsim, name)
+        examples = sum(line.strip().startswith(">>>") for line in (obj.__doc__ or "").splitlines())
+        print(f"  {name:13s} imports from {obj.__module__:26s} docstring example lines: {examples}")
+
+
+def _print_docs_pages() -> None:
+    from test_docs import MAX_PAGE_BYTES, OVERSIZED_PAGES  # the page rules live with their test
+
+    pages = sorted((SRC.parents[1] / "docs").glob("*.md"))
+    over = [p.name for p in pages if p.stat().st_size > MAX_PAGE_BYTES]
+    print(
+        f"docs pages: {len(pages)}, over {MAX_PAGE_BYTES // 1024} KB: {len(over)} (allow-listed in test_docs.py: "
+        f"{', '.join(sorted(OVERSIZED_PAGES))})"
+    )
+    for page in pages:
+        kb = page.stat().st_size / 1024
+        note = "" if page.name not in over else "  OVER (allow-listed)" if page.name in OVERSIZED_PAGES else "  OVER"
+        print(f"  {kb:5.1f} KB  {page.name}{note}")
+
+
 def main() -> int:
     readers = config_readers()
     print(f"functions that take a config object: {len(readers)}")
     for r in readers:
         print(f"  {r}")
-    print(f"functions over {MAX_FUNCTION_LINES} lines: {len(long_functions())}")
-    for n, name in long_functions():
-        print(f"  {n:4d} {name}")
-    print(f"source files over {MAX_FILE_LINES} lines: {len(long_files())}")
-    for n, name in long_files():
-        print(f"  {n:4d} {name}")
-    n_files = len(_sources())
-    n_funcs = sum(len(_functions(p)) for p in _sources())
-    print(f"(checked {n_files} files, {n_funcs} functions under {SRC.relative_to(SRC.parents[1])})")
+    functions, files = function_sizes(), file_sizes()
+    print(
+        f"longest function: {functions[0][1]}, {functions[0][0]} lines (limit {MAX_FUNCTION_LINES}; "
+        f"over it: {len(long_functions())} of {len(functions)})"
+    )
+    print(
+        f"largest file: {files[0][1]}, {files[0][0]} lines (limit {MAX_FILE_LINES}; "
+        f"over it: {len(long_files())} of {len(files)})"
+    )
+    for n, name in long_functions() + long_files():
+        print(f"  over: {n:4d} {name}")
+    _print_public_api()
+    _print_docs_pages()
     return 0
 
 
