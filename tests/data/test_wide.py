@@ -1,6 +1,5 @@
 """Wide CSV files as labs write them (`mpsim.data.wide.read_wide_csv`)."""
 
-
 import numpy as np
 import pytest
 

@@ -46,8 +46,9 @@ def estimate_latent(
             `derivative_of`); each must be measured or a key of `derivative_of`.
 
     Returns:
-        [B, T, N, len(states)] states, with ``meta['observed']`` (the measured names) and ``meta['estimated']``
-        ({s: "Savitzky–Golay derivative of o, window W samples (… s), polyorder 2"}).
+        [B, T, N, len(states)] states, with ``meta['observed']`` (the measured names), ``meta['estimated']``
+        ({s: "Savitzky–Golay derivative of o, window W samples (… s), polyorder 2"}) and ``meta['derived_from']``
+        ({s: o}: how the residual loop's null data estimate s again, `mpsim.data.measurement`).
 
     Raises:
         DataError: a latent state with no measured state to differentiate, or a grid that is not uniform.
@@ -74,7 +75,8 @@ def estimate_latent(
             f"polyorder {POLYORDER}"
         )
     new_x = torch.stack([filled[s] for s in order], dim=-1).to(data.x.dtype)
-    meta = {**data.meta, "state_names": order, "observed": observed, "estimated": estimated}
+    derived = {s: derivative_of[s] for s in latent}
+    meta = {**data.meta, "state_names": order, "observed": observed, "estimated": estimated, "derived_from": derived}
     return replace(data, x=new_x, meta=meta)
 
 

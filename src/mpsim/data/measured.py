@@ -2,7 +2,8 @@
 the batch a model trains on, in small steps that each do one thing:
 
 read (`mpsim.data.wide.read_wide_csv`, `mpsim.data.matfile.read_mat`) → map columns to the model's states and
-inputs (`mpsim.data.recording.to_recording`, `data.columns`) → one uniform grid per recording (`data.resample`, or
+inputs (`mpsim.data.recording.to_recording`, `data.columns`) → noise level and quantisation step of each signal
+as recorded (``meta["noise"]``, `mpsim.data.noise.noise_summary`) → one uniform grid per recording (`data.resample`, or
 the file's own clock if it runs steadily) → every k-th sample (`data.stride`) → latent states estimated
 (`data.observed`, `mpsim.data.latent.estimate_latent`) → segments (`data.segment`) or whole recordings → the batch.
 Splitting (contiguous blocks in time order) is the caller's (`mpsim.data.pipeline.load_splits`).
@@ -19,6 +20,7 @@ from pathlib import Path
 from mpsim.data.grid import HOLDS, resample, stride, uniform_or_refuse
 from mpsim.data.latent import estimate_latent
 from mpsim.data.matfile import read_mat
+from mpsim.data.noise import noise_summary
 from mpsim.data.recording import to_recording
 from mpsim.data.segments import segment, stack_recordings
 from mpsim.data.table import Table
@@ -125,7 +127,7 @@ def one_recording(path: Path, how: Recordings) -> Trajectories:
     its latent states estimated."""
     table = read_table(path, how)
     rec = to_recording(table, how.columns, _states_in_file(table, how), list(how.controls))
-    rec = replace(rec, meta={**rec.meta, "input_hold": how.input_hold})
+    rec = replace(rec, meta={**rec.meta, "input_hold": how.input_hold, "noise": noise_summary(rec)})
     rec = resample(rec, how.resample, how.input_hold) if how.resample else uniform_or_refuse(rec)
     if how.stride != 1:
         rec = stride(rec, how.stride)

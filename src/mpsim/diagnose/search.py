@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import torch
 
+from mpsim.data.measurement import as_measured
 from mpsim.data.trajectories import Trajectories
 from mpsim.diagnose.findings import Diagnosis, Finding
 from mpsim.diagnose.library import (
@@ -304,7 +305,8 @@ def _refit_named(
 
 
 def _null_check(model, data, omegas, delays, kinds, represented, sigma, seed, phased=None, segment=None):
-    """Run the pipeline on data simulated from the model itself plus the estimated measurement noise.
+    """Run the pipeline on data simulated from the model itself, measured as the data were (their noise level,
+    quantisation step, and unmeasured states estimated again: `mpsim.data.measurement.as_measured`).
 
     With `segment` shorter than the records (a chaotic system) the simulation restarts from the observed state
     every `segment` steps, so that it stays on the data's attractor (a whole-record simulation of a chaotic
@@ -316,10 +318,9 @@ def _null_check(model, data, omegas, delays, kinds, represented, sigma, seed, ph
     """
     pred, jumps = _null_simulation(model, data, segment)
     gen = torch.Generator().manual_seed(seed + 1)
-    noise = torch.randn(pred.shape, generator=gen, dtype=torch.float64) * sigma
     null = Trajectories(
         t=data.t,
-        x=(pred.double() + noise).nan_to_num(),
+        x=as_measured(pred, data.t, data, torch.as_tensor(sigma, dtype=torch.float64).reshape(-1), gen),
         edge_index=data.edge_index,
         u=data.u,
         node_features=data.node_features,

@@ -23,6 +23,7 @@ from typing import Any, cast
 import torch
 from torch import nn
 
+from mpsim.data.measurement import as_measured
 from mpsim.data.trajectories import Trajectories
 from mpsim.diagnose.latent import (
     REFRESH_ITERS,
@@ -249,8 +250,8 @@ def null_data(
     model: Model, data: Trajectories, noise: torch.Tensor, seed: int, segment: int | None = None
 ) -> Trajectories:
     """Data the model's equations would produce — the exact solution of its vector field (`precise`) from
-    observed states, on the observed times — plus Gaussian measurement noise of the given level per state
-    variable ([D]). The model's own integration error is then part of the null level, as it is part of its
+    observed states, on the observed times — measured as the data were: their noise level per state variable
+    ([D]) and quantisation step, unmeasured states estimated again (`mpsim.data.measurement.as_measured`). The model's own integration error is then part of the null level, as it is part of its
     error on real data.
 
     With `segment` shorter than the records (a chaotic system, whose errors are judged over short windows),
@@ -267,8 +268,7 @@ def null_data(
         except DivergenceError:
             pred = data.x.clone().to(model.state_mean)
     gen = torch.Generator().manual_seed(int(seed))
-    eps = torch.randn(pred.shape, generator=gen, dtype=torch.float64) * noise.double()
-    x = (pred.double().cpu() + eps).nan_to_num()
+    x = as_measured(pred, data.t, data, noise, gen)
     return Trajectories(
         t=data.t, x=x, edge_index=data.edge_index, u=data.u, node_features=data.node_features, meta=data.meta
     )
@@ -284,7 +284,7 @@ def _segment_null(model: Model, data: Trajectories, noise: torch.Tensor, seed: i
     k = len(windows)
     pred = torch.cat([p.double().cpu() for _, p in windows], dim=0)  # [K·B, L+1, N, D], window-major
     gen = torch.Generator().manual_seed(int(seed))
-    x = (pred + torch.randn(pred.shape, generator=gen, dtype=torch.float64) * noise.double()).nan_to_num()
+    x = as_measured(pred, data.t[: segment + 1], data, noise, gen)
     u = None if data.u is None else torch.cat([data.u[:, s : s + segment + 1] for s, _ in windows], dim=0)
     feats = data.node_features
     if feats is not None and feats.dim() == 3:
