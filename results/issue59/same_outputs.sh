@@ -4,11 +4,12 @@
 # Each tree runs with its own .venv if it has one (else the python on PATH), with PYTHONPATH=TREE/src, in its own
 # folder WORK/before or WORK/after (so the two never share a data cache); the imported mpsim is checked to be the
 # tree's. SUITE=0 leaves out the default test suite and cli/smoke.sh (the slow part); CASE1=0 leaves out the
-# second diagnose case. Prints one table row per comparison; exit 1 if anything differs or fails.
+# second diagnose case; RUN=0 runs nothing and compares what an earlier run left in WORK. The comparer runs with
+# AFTER_TREE's .venv if it has one. Prints one table row per comparison; exit 1 if anything differs or fails.
 set -uo pipefail
 BEFORE=$(cd "$1" && pwd) AFTER=$(cd "$2" && pwd)
 WORK=${3:-$(mktemp -d -t mpsim-same-XXXXXX)}
-SUITE=${SUITE:-1} CASE1=${CASE1:-1}
+SUITE=${SUITE:-1} CASE1=${CASE1:-1} RUN=${RUN:-1}
 HERE=$(cd "$(dirname "$0")" && pwd)
 mkdir -p "$WORK" && WORK=$(cd "$WORK" && pwd)
 rows=() failed=0
@@ -65,13 +66,16 @@ run() {
 }
 
 echo "work folder: $WORK"
-run before "$BEFORE"
-run after "$AFTER"
+if [[ $RUN == 1 ]]; then
+  run before "$BEFORE"
+  run after "$AFTER"
+fi
+PY=python && [[ -x $AFTER/.venv/bin/python ]] && PY=$AFTER/.venv/bin/python
 cat "$WORK/before/imported.txt" "$WORK/after/imported.txt"
 
 compare() { # compare ITEM KIND FILE
   local note
-  note=$(python "$HERE/compare.py" "$2" "$WORK/before/$3" "$WORK/after/$3" 2>&1 | tail -1)
+  note=$("$PY" "$HERE/compare.py" "$2" "$WORK/before/$3" "$WORK/after/$3" 2>&1 | tail -1)
   row "$1" "$3" "$note"
 }
 for label in before after; do
@@ -101,7 +105,7 @@ tally() {
 if [[ $SUITE == 1 ]]; then
   for part in suite smoke; do
     for label in before after; do
-      read -r _ secs rc < <(grep "^$part " "$WORK/$label/times")
+      read -r _ secs rc < <(grep "^$part " "$WORK/$label/times" || echo "$part ? rc=missing")
       if [[ $part == suite ]]; then
         what=$(tally "$WORK/$label/suite.log")
       else
