@@ -52,7 +52,7 @@ def test_the_mpsim_column_is_read_and_judged_as_the_scorecard_does(tmp_path):
     (run / "diagnose" / "diagnosis.json").write_text(json.dumps(diagnosis))
     mine = mpsim_side(run)
     assert mine is not None and mine["seconds"] == 134
-    assert judge(CASES["a_damped"], mine["named"], mine["verdict"], mine["worse"]) == (True, "1.5%")
+    assert judge(CASES["a_damped"], mine["named"], mine["verdict"], mine["worse"]) == (True, "1.50%")
     assert judge(CASES["a_damped"], mine["named"] * 2)[0] is False  # a second name is a false claim
     assert judge(CASES["a_undamped"], mine["named"])[0] is False
     assert judge(CASES["e_pendulum_sin2"], [], "unexplained structured residual") == (True, "")
@@ -71,3 +71,5 @@ def test_bad_settings_are_refused():
         PeersBench(cases=["nope"], specs=str(SPECS))
     with pytest.raises(ConfigError, match="bench.specs"):
         PeersBench(specs="/nonexistent")
+    with pytest.raises(ConfigError, match="bench.params"):
+        PeersBench(specs=str(SPECS), params="guess")

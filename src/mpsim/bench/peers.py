@@ -9,7 +9,8 @@ recordings, data seed 0) and keeps the recipe's held-in split (70 %, `split_traj
   one-sided at the ends) minus the nominal model's right-hand side at the observed states, on the dynamic rows
   only (the spec's kinematic rows, x' = v, are not searched, as in the loop). The nominal parameters are the
   fitted ones of the recipe's run (`<runs>/<case>/checkpoints/<case>.ckpt`, the same fit mpsim diagnoses) when
-  that checkpoint exists, else the model spec's values; the `params` column says which.
+  that checkpoint exists, else the model spec's values (`params=spec`: always the spec's); the `params` column
+  says which.
 - **Library.** The loop's kinds (`mpsim.diagnose.params.KIND_COMPLEXITY`) less DelayedFeedback, per node with one
   coefficient shared by all nodes, each evaluated by the effect's own `features` (the same signs and units as
   mpsim reports): Bias 1; LinearDamping −s, QuadraticDrag −s|s|, CubicStiffness −s³ and DryFriction −tanh(s/ε)
@@ -329,7 +330,7 @@ def judge(case: PeerCase, named: list[dict], verdict: str | None = None, worse: 
     if not hits:
         return False, ""
     rel = abs(hits[0]["values"][key] - value) / abs(value)
-    return rel <= bound and len(named) == 1 and not worse, f"{rel:.1%}"
+    return rel <= bound and len(named) == 1 and not worse, f"{rel:.2%}"
 
 
 def describe(named: list[dict]) -> str:
@@ -350,6 +351,8 @@ class PeersBench(Suite):
         specs: the folder of the cases' data and model specs.
         n, seed: recordings simulated per case and their data seed (the recipe's `n=64`, `data.seed=0`).
         threshold: STLSQ's threshold as a share of the RMS of the row's derivative estimate (on unit-RMS columns).
+        params: the nominal parameters PySINDy's target subtracts: `fitted` (the recipe's fit, from `runs`, where
+            a run exists; else the spec's) or `spec` (always the model spec's values).
     """
 
     name = "peers"
@@ -363,6 +366,7 @@ class PeersBench(Suite):
         n: int = 64,
         seed: int = 0,
         threshold: float = 0.05,
+        params: str = "fitted",
     ) -> None:
         chosen = list(cases) if cases is not None else list(RECIPE_CASES)
         unknown = [c for c in chosen if c not in CASES]
@@ -370,6 +374,9 @@ class PeersBench(Suite):
             raise ConfigError(f"bench.cases: unknown case(s) {unknown}; choose from {list(CASES)}.")
         if not 0 < threshold < 1:
             raise ConfigError(f"bench.threshold must be a share in (0, 1); got {threshold}.")
+        if params not in ("fitted", "spec"):
+            raise ConfigError(f"bench.params must be fitted or spec; got {params!r}.")
+        self.params = params
         self.cases = chosen + ([c for c in EXTRA_TWINS if c not in chosen] if twins else [])
         self.runs, self.specs = Path(runs), Path(specs)
         self.n, self.seed, self.threshold = int(n), int(seed), float(threshold)
@@ -386,7 +393,8 @@ class PeersBench(Suite):
     def _row(self, name: str) -> dict[str, Any]:
         case = CASES[name]
         data = simulate_case(case, self.specs, self.n, self.seed)
-        ckpt = self.runs / name / "checkpoints" / f"{name}.ckpt" if case.recipe else None
+        fitted = case.recipe and self.params == "fitted"
+        ckpt = self.runs / name / "checkpoints" / f"{name}.ckpt" if fitted else None
         model, params = nominal_model(case, self.specs, ckpt, data.state_dim)
         named, seconds = pysindy_side(data, model, self.threshold)
         right, err = judge(case, named)
