@@ -748,7 +748,47 @@ CASES: dict[str, Case] = {
         2,
         "model.spec.inputs ['u'] are 1 per node but the data have 0 control(s). Map the file's columns",
     ),
+    # -- issue 60, recordings as they come: wide CSV / .mat files, a glob, data.columns, data.observed, data.segment
+    "recordings_glob_matches_nothing": Case(
+        lambda w, d: _recording(d, f"data.path={d / 'rec' / '*.csv'}"), 2, "the pattern matches no file"
+    ),
+    "recording_column_missing": Case(lambda w, d: _recording(d, "data.columns={q: position}"), 2, "position"),
+    "recording_columns_not_a_mapping": Case(lambda w, d: _recording(d, "data.columns=[q]"), 2, "data.columns must map"),
+    "recording_not_uniform": Case(lambda w, d: _recording(d, jitter=0.3), 2, "the sampling is not uniform"),
+    "recording_segment_too_long": Case(
+        lambda w, d: _recording(d, "data.segment=100"), 2, "longer than every recording"
+    ),
+    "recording_latent_state_without_a_rate": Case(
+        lambda w, d: _recording(d, "data.observed=[v]", "data.columns={v: q}"), 2, "cannot be estimated"
+    ),
+    "recording_bad_input_hold": Case(
+        lambda w, d: _recording(d, "data.input_hold=cubic"), 2, "data.input_hold must be one of"
+    ),
+    "recording_keys_on_a_batch_file": Case(
+        lambda w, d: (
+            (d / "long.csv").write_text("traj,t,node,x\n0,0,0,1\n0,1,0,2\n1,0,0,1\n1,1,0,2\n2,0,0,1\n2,1,0,2\n"),
+            ["train", f"data.path={d / 'long.csv'}", "data.stride=2", *TINY_TRAIN[:2]],
+        )[1],
+        2,
+        "data.stride apply to recordings",
+    ),
 }
+
+RECORDING_SPEC = "states: [q, v]\ninputs: [u]\nequations: {q: v, v: -k*q + u}\nparams: {k: 4.0}\n"
+
+
+def _recording(d: Path, *extra: str, jitter: float = 0.0) -> list[str]:
+    """A wide CSV of one recording (t, q, u; 30 s at 10 Hz, times moved by `jitter` of a step on every third
+    sample) and the `mpsim train` of a driven spec on it, positions only, in 1 s segments."""
+    t = [0.1 * k + (0.1 * jitter if k % 3 == 1 else 0.0) for k in range(301)]
+    rows = "\n".join(f"{tk:.4f},{0.01 * k},{(k % 7) / 7}" for k, tk in enumerate(t))
+    (d / "rec.csv").write_text("t,q,u\n" + rows + "\n")
+    (d / "rec.yaml").write_text(RECORDING_SPEC)
+    keys = [f"data.path={d / 'rec.csv'}", "data.control_columns=[u]", "data.observed=[q]", "data.segment=1.0"]
+    given = {e.split("=", 1)[0] for e in extra}
+    keys = [k for k in keys if k.split("=", 1)[0] not in given]
+    return ["train", "model=equations", f"model.spec={d / 'rec.yaml'}", "trainer=whitebox", *keys, *extra]
+
 
 DRIVEN_SPEC = (
     "states: [x, v]\ninputs: [u]\nequations: {x: v, v: -k*x + u}\nparams: {k: 4.0}\nnodes: 1\ndt: 0.1\nhorizon: 10\n"

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import torch
@@ -91,16 +91,20 @@ def build_model(
 
 @dataclass(frozen=True)
 class Shape:
-    """What a model must fit: per-node state and control sizes, node count, state names."""
+    """What a model must fit: per-node state and control sizes, node count, state and control names."""
 
     state_dim: int
     control_dim: int
     n_nodes: int
     state_names: list[str]
+    control_names: list[str] = field(default_factory=list)
 
     @staticmethod
     def of(source: System | Trajectories) -> Shape:
-        return Shape(source.state_dim, source.control_dim, source.n_nodes, list(source.state_names))
+        names = list(
+            (source.meta.get("control_names") if isinstance(source, Trajectories) else source.control_names) or []
+        )
+        return Shape(source.state_dim, source.control_dim, source.n_nodes, list(source.state_names), names)
 
 
 def build_model_for(
@@ -136,6 +140,8 @@ def _assemble(
     """The model of `model_cfg`, its effects bound to the data's state names, checked to run on data of `shape`."""
     model = build_model(model_cfg, shape.state_dim, shape.control_dim, solver, rt)
     model.bind_effects(shape.state_names)
+    if shape.control_names:
+        model.bind_inputs(shape.control_names)
     model.check_compatible(shape.state_dim, shape.control_dim, shape.n_nodes, trained_nodes)
     return model
 

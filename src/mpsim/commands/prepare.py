@@ -8,6 +8,7 @@ value or an object built from one.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -23,9 +24,11 @@ from mpsim.config import check_targets, file_stem, plain_dict, validate_values
 from mpsim.data.dataset import SPLITS, Splits, fit_normalisation
 from mpsim.data.pipeline import DataOptions, load_splits
 from mpsim.errors import ConfigError
+from mpsim.files import file_sha256
 from mpsim.models.base import Model
 from mpsim.solvers.odeint import ODESolver
 from mpsim.spec import load_spec_file
+from mpsim.spec.parse import MODEL_KEYS, SYSTEM_KEYS, merge_spec, parse_spec
 from mpsim.systems.base import System
 from mpsim.training import distributed
 from mpsim.training.distributed import SINGLE, DistContext
@@ -81,6 +84,25 @@ class Job:
         return build_model_for(self.model_config, self.solver, self.runtime, shape, ckpt, training)
 
 
+def _input_files(system: Any) -> list[Any]:
+    """The `system.input` nodes that read a file (config or plain data): the input itself, or per input
+    (`{u: {file: ...}}`)."""
+    node = system.get("input") if isinstance(system, Mapping) else None
+    if not isinstance(node, Mapping):
+        return []
+    if "file" in node:
+        return [node]
+    return [v for v in node.values() if isinstance(v, Mapping) and "file" in v]
+
+
+def _with_input_hashes(system_config: dict[str, Any]) -> dict[str, Any]:
+    """The system's config as the cache key: with the SHA-256 of each input file, so an edited file is simulated
+    anew."""
+    files = [Path(str(n["file"])) for n in _input_files(system_config)]
+    hashes = [file_sha256(f) for f in files if f.is_file()]
+    return {**system_config, "input_sha256": hashes} if hashes else system_config
+
+
 def resolve_mode(name: str, init: str | None) -> str:
     """scratch (default) becomes finetune when `init=` is given; finetune and zeroshot need `init=`."""
     if name not in MODES:
@@ -119,6 +141,10 @@ def prepare(
                 node.spec = load_spec_file(path)
                 if key == "system" and "name" in node and node.name is None and not node.spec.get("name"):
                     node.name = file_stem(path) or "equations"
+    for node in _input_files(cfg.get("system")):  # an input file, relative to where mpsim was started
+        if isinstance(node.file, str) and node.file.strip():
+            with open_dict(node):
+                node.file = str(resolve_path(node.file, start_directory()))
     validate_values(cfg)
     check_targets(cfg)
     rt = make_runtime(
@@ -149,7 +175,7 @@ def prepare(
         data=data,
         horizons=[int(h) for h in cfg.eval.horizons],
         cache_dir=resolve_path(cfg.paths.cache_dir, rt.start_dir) if data.cache else None,
-        system_config=plain_dict(cfg.system),
+        system_config=_with_input_hashes(plain_dict(cfg.system)),
     )
     if not with_data:
         return job
@@ -160,6 +186,16 @@ def prepare(
     except BaseException:
         distributed.teardown(ctx, together=False)
         raise
+
+
+def spec_states(model_cfg: dict[str, Any]) -> tuple[list[str] | None, dict[str, str]]:
+    """The states a model states by name, in its order, and {s: o} for each equation o' = s (how a state the
+    data lack is estimated): a spec's (`model=equations`); (None, {}) for a model that takes the data's."""
+    if not any(model_cfg.get(k) for k in ("spec", "states", "equations")):
+        return None, {}
+    inline = {k: model_cfg.get(k) for k in MODEL_KEYS if k != "spec"}
+    spec = parse_spec(merge_spec(model_cfg.get("spec"), inline, "model"), "model.spec", extra_keys=SYSTEM_KEYS)
+    return list(spec.states), spec.rates()
 
 
 def with_model_and_data(job: Job, ctx: DistContext, explicit_horizons: bool, training: bool, refit: bool) -> Job:
@@ -173,7 +209,10 @@ def with_model_and_data(job: Job, ctx: DistContext, explicit_horizons: bool, tra
         ctx.barrier()
     dtype_name = str(rt.dtype).split(".")[-1]
     graph = None if system is None else system.edge_index
-    splits = load_splits(data, rt.start_dir, dtype_name, need, system_graph=graph) if data.from_file else None
+    splits = None
+    if data.from_file:
+        states, rates = spec_states(job.model_config)
+        splits = load_splits(data, rt.start_dir, dtype_name, need, system_graph=graph, states=states, rates=rates)
     horizons = job.horizons
     if splits is not None:
         steps = next(s for s in (splits.train, splits.test, splits.val) if len(s)).n_times - 1

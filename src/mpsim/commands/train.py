@@ -111,7 +111,8 @@ def train(job: Job, trainer: Trainer, loggers: LoggerGroup, outputs: Outputs, st
     assert model is not None and splits is not None  # prepared with data
     if job.dist.is_main and job.resumed is None and job.data.from_file:  # `resume=` accepts the file moved along
         data_file = resolve_path(str(job.data.path), rt.start_dir)
-        write_json(rt.output_dir / "data.json", {"path": str(data_file), "sha256": file_sha256(data_file)})
+        if data_file.is_file():  # one file (a pattern's files are read afresh)
+            write_json(rt.output_dir / "data.json", {"path": str(data_file), "sha256": file_sha256(data_file)})
     if job.data.noise_std > 0:
         std = model.state_std.detach().cpu().double()
         splits = noisy_train(splits, std, job.data.noise_std, job.data.seed, rt.dtype)

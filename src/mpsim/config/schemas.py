@@ -16,15 +16,22 @@ from mpsim.diagnose.params import DiagnoseParams
 
 @dataclass
 class DataConf:
-    path: str | None = None  # .npz or long .csv of measured trajectories (replaces simulation)
+    path: str | None = None  # measured data: .npz, long or wide .csv, .mat; a glob ('rec/*.csv') reads several
     edges: str | None = None  # edge-list CSV (src,dst) for CSV data; default <stem>_edges.csv
     graph: str | None = None  # "system": use system=<name>'s graph for a file without one
-    control_columns: list[str] = field(default_factory=list)  # CSV columns that are controls
+    control_columns: list[str] = field(default_factory=list)  # columns that are controls (the model's inputs)
+    time_column: str | None = "t"  # wide CSV / .mat: the time column; null: none, samples data.dt apart
+    columns: Any = None  # wide CSV / .mat: {model name: file column}
+    observed: list[str] = field(default_factory=list)  # the states the file holds; others are estimated
+    resample: float | None = None  # put every recording on one grid of this step (s)
+    stride: int = 1  # keep every k-th sample
+    segment: float | None = None  # cut recordings into segments of this many seconds
+    input_hold: str = "linear"  # controls between samples: linear | zoh
     n_train: int = 200
     n_val: int = 50
     n_test: int = 50
     split: list[float] = field(default_factory=lambda: [0.7, 0.15, 0.15])  # file data: train/val/test shares
-    dt: float | None = None  # sampling step; null = the system's default
+    dt: float | None = None  # sampling step; null = the system's default (a file without a time column: its step)
     horizon: int | None = None  # steps per trajectory; null = the system's default
     burn_in: int = 0  # steps simulated and discarded before each record (e.g. to start on an attractor)
     seed: int = 0  # dataset seed (initial states), separate from the training seed

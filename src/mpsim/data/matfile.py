@@ -1,7 +1,7 @@
 """MATLAB `.mat` files: one measured recording per file, one variable per signal.
 
 Versions 4, 5 and 7 are read with `scipy.io.loadmat`; version 7.3 (an HDF5 file) with h5py, if it is installed
-(``pip install h5py``). How variables become columns:
+(``pip install h5py``, or the extra ``pip install 'mpsim[hdf5]'``). How variables become columns:
 
 - a vector (N×1 or 1×N, any numeric or logical class) is the column of its name;
 - a matrix of several signals is split along its shorter axis (the longer one is time; a square matrix is read

@@ -2,13 +2,16 @@
 
 Measured data: read (by the file's extension: `.npz`, long `.csv`) → map columns (controls apart from states) →
 check that the model's precision holds them → split by trajectory → (the caller) normalise with the training
-split's statistics. Simulated data: simulate the three splits from their own seed streams (cached). Each step is a
+split's statistics. Recordings (wide `.csv` or `.mat` files, one per recording, several by a glob) take the
+steps of `mpsim.data.measured` (map columns, one grid, stride, latent states, segments) and are split into
+contiguous blocks in time order. Simulated data: simulate the three splits from their own seed streams (cached). Each step is a
 function with one job; a new reader or step slots in here without touching the others.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -17,7 +20,9 @@ import torch
 
 from mpsim.data.dataset import SPLITS, DatasetSpec, Simulator, Splits, simulate_splits, split_trajectories
 from mpsim.data.io import load_trajectories
+from mpsim.data.measured import Recordings, is_recording, paths_of, read_recordings
 from mpsim.data.precision import check_representable
+from mpsim.data.segments import contiguous_split
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError
 
@@ -33,6 +38,13 @@ class DataOptions:
     edges: str | None = None
     graph: str | None = None
     control_columns: list[str] = field(default_factory=list)
+    time_column: str | None = "t"
+    columns: Mapping[str, str] | None = None
+    observed: list[str] = field(default_factory=list)
+    resample: float | None = None
+    stride: int = 1
+    segment: float | None = None
+    input_hold: str = "linear"
     n_train: int = 200
     n_val: int = 50
     n_test: int = 50
@@ -49,6 +61,29 @@ class DataOptions:
     @property
     def from_file(self) -> bool:
         return bool(self.path)
+
+    def recordings(self, states: Sequence[str] | None, rates: Mapping[str, str]) -> Recordings:
+        """How recordings become a batch, for a model with `states` (None: the file's) and `rates` ({s: o} for
+        each equation o' = s: how a latent state is estimated)."""
+        columns = self.columns or {}
+        if not isinstance(columns, Mapping) or not all(isinstance(v, str) for v in columns.values()):
+            raise ConfigError(
+                f"data.columns must map model names to file columns, e.g. data.columns='{{q: position, u: torque}}'; "
+                f"got {columns!r}."
+            )
+        return Recordings(
+            time_column=self.time_column,
+            dt=self.dt,
+            columns={str(k): str(v) for k, v in columns.items()},
+            controls=list(self.control_columns),
+            observed=list(self.observed),
+            states=None if states is None else list(states),
+            rates=dict(rates),
+            resample=self.resample,
+            stride=self.stride,
+            segment=self.segment,
+            input_hold=self.input_hold,
+        )
 
     def dataset_spec(self, system_config: dict[str, Any]) -> DatasetSpec:
         """What a simulated dataset is (its cache key): the system's config and the sizes, seed and sampling."""
@@ -83,19 +118,54 @@ def file_graph(options: DataOptions, system_graph: torch.Tensor | None) -> torch
     return None
 
 
-def read(options: DataOptions, start_dir: Path, system_graph: torch.Tensor | None = None) -> Trajectories:
-    """Read step: `data.path` by its extension, with its graph (an edge list, or the system's) and the columns
-    that are controls (`data.control_columns`)."""
+def is_recordings(options: DataOptions, start_dir: Path) -> bool:
+    """Whether `data.path` names recordings (wide CSV or `.mat` files, or a glob of them)."""
     assert options.path is not None
+    files = paths_of(resolve(options.path, start_dir))
+    return len(files) > 1 or is_recording(files[0])
+
+
+def read(
+    options: DataOptions,
+    start_dir: Path,
+    system_graph: torch.Tensor | None = None,
+    states: Sequence[str] | None = None,
+    rates: Mapping[str, str] | None = None,
+) -> Trajectories:
+    """Read step: `data.path` by its extension, with its graph (an edge list, or the system's) and the columns
+    that are controls (`data.control_columns`); recordings (`is_recordings`) through `mpsim.data.measured`, as
+    the model's `states` (None: the file's), latent ones estimated by `rates`."""
+    assert options.path is not None
+    if is_recordings(options, start_dir):
+        return read_recordings(resolve(options.path, start_dir), options.recordings(states, rates or {}))
+    _refuse_recording_keys(options)
     edges = resolve(options.edges, start_dir) if options.edges else None
     loaded = load_trajectories(
         resolve(options.path, start_dir), edges, file_graph(options, system_graph), list(options.control_columns)
     )
+    loaded.meta.setdefault("input_hold", options.input_hold)
     log.info(
         f"loaded {len(loaded)} trajectories from {options.path}: T={loaded.n_times}, N={loaded.n_nodes}, "
         f"D={loaded.state_dim}"
     )
     return loaded
+
+
+def _refuse_recording_keys(options: DataOptions) -> None:
+    """The keys that concern recordings only are refused for a batch file (npz, long CSV), not ignored."""
+    given = {
+        "data.columns": bool(options.columns),
+        "data.observed": bool(options.observed),
+        "data.resample": options.resample is not None,
+        "data.stride": options.stride != 1,
+        "data.segment": options.segment is not None,
+    }
+    used = [key for key, on in given.items() if on]
+    if used:
+        raise ConfigError(
+            f"{', '.join(used)} apply to recordings (a wide CSV or .mat file per recording); data.path={options.path} "
+            "is a batch of trajectories (npz or long CSV with traj, t, node columns). Drop them, or give recordings."
+        )
 
 
 def load_splits(
@@ -107,6 +177,8 @@ def load_splits(
     system_graph: torch.Tensor | None = None,
     system_config: dict[str, Any] | None = None,
     cache_dir: Path | None = None,
+    states: Sequence[str] | None = None,
+    rates: Mapping[str, str] | None = None,
 ) -> Splits:
     """The data of a command, train/val/test: a file read and split by trajectory (the splits in `need` get a
     share > 0), or the system's three splits simulated (cached in `cache_dir`; None: no cache).
@@ -115,10 +187,16 @@ def load_splits(
         dtype_name: the model's precision (`float32`/`float64`): a file's values must fit it.
         system, system_graph, system_config: the ground truth when simulating (its graph also serves a file
             given with `data.graph=system`); its config is part of the cache key.
+        states, rates: the model's states and how its latent ones are estimated (`read`).
+
+    Recordings are split into contiguous blocks in time order (`contiguous_split`); a batch file at random by
+    trajectory (`data.seed`).
     """
     if options.from_file:
-        data = read(options, start_dir, system_graph)
+        data = read(options, start_dir, system_graph, states, rates)
         check_representable(data, dtype_name, str(options.path))
+        if "segments" in data.meta:
+            return contiguous_split(data, tuple(options.split), need)
         return split_trajectories(data, tuple(options.split), options.seed, need)
     if system is None:
         raise ConfigError("no data: pass system=<name> or data.path=<file>.")

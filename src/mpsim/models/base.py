@@ -88,6 +88,9 @@ class Model(nn.Module):
         for effect in self.effects:
             effect.bind(state_names)
 
+    def bind_inputs(self, control_names: Sequence[str]) -> None:
+        """Check the data's control names against the model's inputs; default: any (matched by position)."""
+
     def integrate(
         self,
         field: nn.Module,  # forward(t, y, history=None) -> dy/dt

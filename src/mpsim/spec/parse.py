@@ -66,6 +66,15 @@ class Spec:
     def input_dim(self) -> int:
         return len(self.inputs)
 
+    def rates(self) -> dict[str, str]:
+        """{s: o} for every equation ``o' = s`` that is another state (a velocity is the rate of a position):
+        how a state that is not measured is estimated from one that is."""
+        return {
+            str(rhs): o
+            for o, rhs in zip(self.states, self.rhs, strict=True)
+            if rhs.is_Symbol and str(rhs) in self.states
+        }
+
     def equation_text(self) -> dict[str, str]:
         return {s: str(e) for s, e in zip(self.states, self.rhs, strict=True)}
 

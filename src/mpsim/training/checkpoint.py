@@ -304,7 +304,17 @@ def check_config_targets(node: Any, where: str, allowed: Iterable[str] = ()) -> 
 # the data metadata a checkpoint keeps ("system"): first the keys that name the system and its shape, which mpsim
 # reads back (`system` and `state_names` in messages, `n_nodes` for models tied to one graph size), then the rest
 # within the budget
-META_READ_BACK = ("system", "system_class", "state_names", "control_names", "n_nodes", "dt")
+META_READ_BACK = (
+    "system",
+    "system_class",
+    "state_names",
+    "control_names",
+    "n_nodes",
+    "dt",
+    "input_hold",
+    "observed",
+    "estimated",
+)
 META_BUDGET = 64_000  # bytes of JSON; best.ckpt, last.ckpt (rewritten every epoch) and the export each hold it
 
 

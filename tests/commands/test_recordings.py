@@ -1,0 +1,80 @@
+"""`mpsim train` on a measured recording as it comes: a wide CSV holding positions and a measured input, from an
+integrator that is not mpsim's (fixed-step RK4 at a twentieth of the sample step, input held between samples)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from tests.helpers import run_mpsim, run_mpsim_ok
+
+M, C, K = 1.0, 0.4, 4.0  # mass, viscous damping, stiffness of the truth
+
+
+def _record(path: Path, seconds: float = 12.0, dt: float = 0.01, seed: int = 0) -> None:
+    """A driven damped oscillator, q' = v, v' = (u − C v − K q)/M, u a random-phase multisine held per sample;
+    the file holds time, position and input only (no velocity)."""
+    rng = np.random.default_rng(seed)
+    n = int(round(seconds / dt))
+    t = dt * np.arange(n + 1)
+    freqs = np.array([0.2, 0.45, 0.8, 1.3])
+    phases = rng.uniform(0, 2 * np.pi, freqs.size)
+    u = np.sin(2 * np.pi * freqs[None, :] * t[:, None] + phases).sum(1)
+
+    def f(y: np.ndarray, uk: float) -> np.ndarray:
+        return np.array([y[1], (uk - C * y[1] - K * y[0]) / M])
+
+    y, h, q = np.array([0.3, 0.0]), dt / 20, [0.3]
+    for k in range(n):  # a loop over time steps of the test's own reference integrator
+        for _ in range(20):
+            k1 = f(y, u[k])
+            k2 = f(y + h / 2 * k1, u[k])
+            k3 = f(y + h / 2 * k2, u[k])
+            k4 = f(y + h * k3, u[k])
+            y = y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        q.append(y[0])
+    rows = "\n".join(f"{a:.6f}, {b:.9f}, {c:.9f}" for a, b, c in zip(t, q, u, strict=True))
+    path.write_text('"time", "enc", "drive",\n' + rows.replace("\n", ",\n") + ",\n")  # quoted, trailing delimiter
+
+
+SPEC = """states: [q, v]
+inputs: [u]
+equations:
+  q: v
+  v: (u - c*v - k*q)/m
+params: {m: 1.0, c: 0.3, k: 3.5}
+learnable: [c, k]
+"""
+
+
+def test_train_on_a_wide_csv_with_positions_only(tmp_path):
+    _record(tmp_path / "rec.csv")
+    (tmp_path / "osc.yaml").write_text(SPEC)
+    keys = [
+        "model=equations",
+        "model.spec=osc.yaml",
+        "trainer=whitebox",
+        "trainer.max_epochs=8",
+        "data.path=rec.csv",
+        "data.time_column=time",
+        "data.columns={q: enc, u: drive}",
+        "data.control_columns=[u]",
+        "data.observed=[q]",
+        "data.input_hold=zoh",
+        "data.segment=2.0",
+        "eval.plots=false",
+        "hydra.run.dir=run",
+    ]
+    run_mpsim_ok(["train", *keys], tmp_path)
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    fitted = summary["model"]["physical_parameters"]
+    assert abs(fitted["k"] - K) / K < 0.02 and abs(fitted["c"] - C) / C < 0.05, fitted  # from 3.5 and 0.3
+
+
+def test_recording_keys_on_a_batch_file_are_one_message(tmp_path):
+    (tmp_path / "long.csv").write_text("traj,t,node,x\n0,0,0,1\n0,1,0,2\n0,2,0,3\n1,0,0,1\n1,1,0,2\n1,2,0,3\n")
+    res = run_mpsim(["train", "data.path=long.csv", "data.segment=1.0", "hydra.run.dir=run"], tmp_path)
+    assert res.code == 2 and "data.segment apply to recordings" in res.err
+    assert not (tmp_path / "run").exists()
