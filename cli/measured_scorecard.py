@@ -40,6 +40,12 @@ def _named(r: dict[str, Any]) -> str:
     )
 
 
+def _tested(r: dict[str, Any]) -> str:
+    """The candidates judged on held-out data, with the share of the error they left ("dv/dt: X(v)" shortened)."""
+    trials = r["judgement"]["trials"]
+    return ", ".join(t["label"].split(": ", 1)[-1] for t in trials) or "none"
+
+
 def _errors(r: dict[str, Any]) -> tuple[str, bool]:
     """("before → after" held-out rollout RMSE, whether the returned model is worse)."""
     b, a = r["before"]["rollout_rmse"], (r["after"] or {}).get("rollout_rmse")
@@ -67,10 +73,11 @@ def score(out: Path, case: str) -> tuple[list[str], bool]:
     clean, why_clean = _load(out / case / "clean")
     ok = True
     if rec is None or "error" in rec:
-        verdict, named, coef_err, errors = why or f"ERROR: {rec['error'][:80]}", "", "", ""  # type: ignore[index]
+        verdict, named, coef_err, errors, tested = why or f"ERROR: {rec['error'][:80]}", "", "", "", ""  # type: ignore[index]
         ok = False
     else:
         verdict, named, (errors, worse) = rec["verdict"], _named(rec) or "—", _errors(rec)
+        tested = _tested(rec)
         ok = not worse
         coef_err = ""
         if kind:
@@ -91,7 +98,8 @@ def score(out: Path, case: str) -> tuple[list[str], bool]:
         clean_text = f"{clean['verdict']}; {_named(clean) or 'nothing named'}; {clean_errors}"
         ok = ok and not clean["effects_named"] and not clean_worse
     wall = f"{_wall(out / case / 'recording')} + {_wall(out / case / 'clean')}"
-    return [case, truth_text, verdict, named, coef_err, errors, clean_text, wall, "yes" if ok else "NO"], ok
+    row = [case, truth_text, verdict, named, coef_err, tested, errors, clean_text, wall, "yes" if ok else "NO"]
+    return row, ok
 
 
 def main(argv: list[str]) -> int:
@@ -103,6 +111,7 @@ def main(argv: list[str]) -> int:
         "verdict",
         "effect named (fitted)",
         "coefficient vs truth",
+        "tested on held-out data",
         "held-out rollout RMSE before → after",
         "clean twin: verdict; named; before → after",
         "wall s (recording + twin)",

@@ -50,6 +50,7 @@ def _diagnosis(run: Path, verdict: str, named: list[tuple[str, str, float]], bef
     (run / "diagnose").mkdir(parents=True)
     effects = [{"kind": k, "label": f"d{row}/dt: {k}(v)", "values": {"coef": c}} for k, row, c in named]
     r = {"verdict": verdict, "effects_named": effects, "before": {"rollout_rmse": before}}
+    r["judgement"] = {"trials": [{"label": e["label"]} for e in effects]}
     r["after"] = None if after is None else {"rollout_rmse": after}
     (run / "diagnose" / "diagnosis.json").write_text(json.dumps(r))
     (run / "wall_s").write_text("12\n")
@@ -66,7 +67,7 @@ def test_the_pass_rule(tmp_path):
     _diagnosis(tmp_path / "fric/recording", "effects named", [("DryFriction", "v", 0.21)], 0.1, 0.01)
     _diagnosis(tmp_path / "fric/clean", "nothing missing", [])
     row, ok = sc.score(tmp_path, "fric")
-    assert ok and "0.21 vs 0.2 (5.0%)" in row and row[-2] == "12 + 12"
+    assert ok and "0.21 vs 0.2 (5.0%)" in row and row[-2] == "12 + 12" and row[5] == "DryFriction(v)"
     _truth(tmp_path, "far", "DryFriction", 0.2)  # 15 % off
     _diagnosis(tmp_path / "far/recording", "effects named", [("DryFriction", "v", 0.23)], 0.1, 0.01)
     _diagnosis(tmp_path / "far/clean", "nothing missing", [])
