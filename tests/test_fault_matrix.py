@@ -718,6 +718,9 @@ CASES: dict[str, Case] = {
         2,
         "one direction per objective",
     ),
+    "sweeper_params_key_on_the_command_line": Case(  # was Hydra's AssertionError traceback, exit 1
+        lambda w, d: ["train", "hydra.sweeper.params.x=1"], 2, "a search space is given on the key itself"
+    ),
     "log_every_negative": Case(lambda w, d: ["train", "trainer.log_every=-1"], 2, "trainer.log_every=-1: must be >= 0"),
     # -- issue 60, driven specs: `inputs:` in model=equations / system=equations, the twin's `system.input`
     "driven_twin_without_a_signal": Case(

@@ -202,6 +202,14 @@ def _compose_one(firsts: list[str], _compose: Any, config_dir: str) -> DictConfi
         raise ConfigError(f"{one_line(err)}{cause}") from None
     except HydraException as err:
         raise ConfigError(one_line(err)) from None
+    except AssertionError as err:  # Hydra asserts on some overrides it cannot place (hydra.sweeper.params.<x>=...)
+        keys = [override_key(a) for a in firsts]
+        key = next((k for k in keys if k.startswith("hydra.sweeper.params.")), None)
+        if key is not None:
+            raise ConfigError(unknown_key_message(key, [], _compose, config_dir)) from None
+        raise ConfigError(
+            f"Hydra could not compose the command line ({one_line(err) or 'an internal check failed'})."
+        ) from None
 
 
 def one_line(err: BaseException) -> str:
