@@ -137,6 +137,32 @@ def simulate_splits(system: Simulator, spec: DatasetSpec, cache_dir: str | Path 
 SPLITS = ("train", "val", "test")
 
 
+def split_sizes(b: int, fractions: Sequence[float], need: tuple[str, ...], what: str) -> list[int] | None:
+    """How many of `b` trajectories (or segments: `what`) each of train/val/test gets for the shares `fractions`
+    (normalised by their sum): every split with a share gets at least one (3 trajectories split 0.7/0.15/0.15 as
+    1/1/1) and the first with a share takes the rounding remainder. None when `b` is too few for that.
+
+    Raises:
+        ConfigError: shares that are not three non-negative numbers, or a zero share for a split in `need`.
+    """
+    if len(fractions) != 3 or any(f < 0 for f in fractions) or sum(fractions) <= 0:
+        raise ConfigError(f"data.split must be three non-negative fractions (train, val, test); got {list(fractions)}.")
+    empty = [name for name, f in zip(SPLITS, fractions, strict=True) if f == 0 and name in need]
+    if empty:  # training stops early on val and reports on test; diagnose fits on train and tests on test
+        raise ConfigError(
+            f"data.split={list(fractions)} gives the {' and '.join(empty)} split{'s' if len(empty) > 1 else ''} no "
+            f"{what}; this command needs {', '.join(need)} with a share > 0 each, e.g. data.split=[0.7,0.15,0.15] "
+            f"(shares of the file's {what}, normalised by their sum)."
+        )
+    total = sum(fractions)
+    n = [max(1, int(round(b * f / total))) if f > 0 else 0 for f in fractions]
+    first = next(i for i, f in enumerate(fractions) if f > 0)
+    n[first] += b - sum(n)
+    if any(k < 1 for k, f in zip(n, fractions, strict=True) if f > 0):
+        return None
+    return n
+
+
 def split_trajectories(
     data: Trajectories, fractions: Sequence[float], seed: int = 0, need: tuple[str, ...] = SPLITS
 ) -> Splits:
@@ -145,28 +171,14 @@ def split_trajectories(
     The splits in `need` must get a share > 0 and then get at least one trajectory each; the others may have a
     zero share and stay empty (`mpsim eval` needs only test: data.split=[0,0,1] evaluates every trajectory).
     """
-    if len(fractions) != 3 or any(f < 0 for f in fractions) or sum(fractions) <= 0:
-        raise ConfigError(f"data.split must be three non-negative fractions (train, val, test); got {list(fractions)}.")
-    empty = [name for name, f in zip(SPLITS, fractions, strict=True) if f == 0 and name in need]
-    if empty:  # training stops early on val and reports on test; diagnose fits on train and tests on test
-        raise ConfigError(
-            f"data.split={list(fractions)} gives the {' and '.join(empty)} split{'s' if len(empty) > 1 else ''} no "
-            f"trajectories; this command needs {', '.join(need)} with a share > 0 each, e.g. data.split=[0.7,0.15,0.15] "
-            "(shares of the file's trajectories, normalised by their sum)."
-        )
-    b = len(data)
-    total = sum(fractions)
-    # every split with a share gets at least one trajectory (3 trajectories split 0.7/0.15/0.15 as 1/1/1); the
-    # first split with a share takes the rounding remainder
-    n = [max(1, int(round(b * f / total))) if f > 0 else 0 for f in fractions]
-    first = next(i for i, f in enumerate(fractions) if f > 0)
-    n[first] += b - sum(n)
-    if any(k < 1 for k, f in zip(n, fractions, strict=True) if f > 0):
+    n = split_sizes(len(data), fractions, need, "trajectories")
+    if n is None:
         raise DataError(
-            f"{data.meta.get('source', 'data')}: {b} trajectories cannot be split into train/val/test "
+            f"{data.meta.get('source', 'data')}: {len(data)} trajectories cannot be split into train/val/test "
             f"{list(fractions)} with at least one each; provide at least {sum(f > 0 for f in fractions)} "
             "trajectories or change data.split."
         )
+    b = len(data)
     n_train, n_val, _ = n
     order = torch.randperm(b, generator=torch.Generator().manual_seed(int(seed)))
     return Splits(

@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from mpsim.data.dataset import SPLITS, Splits
+from mpsim.data.dataset import SPLITS, Splits, split_sizes
 from mpsim.data.trajectories import Trajectories, grid_step
 from mpsim.errors import ConfigError, DataError
 
@@ -156,19 +156,9 @@ def contiguous_split(data: Trajectories, fractions: Sequence[float], need: tuple
     at least one segment). Each split's ``meta['covers']`` says which recordings and times it holds
     ("ddp_500Hz.csv 0–4 s, direct_collocation_333Hz.csv 0–2 s"), ``meta['segments']`` its own entries.
     """
-    if len(fractions) != 3 or any(f < 0 for f in fractions) or sum(fractions) <= 0:
-        raise ConfigError(f"data.split must be three non-negative fractions (train, val, test); got {list(fractions)}.")
-    empty = [name for name, f in zip(SPLITS, fractions, strict=True) if f == 0 and name in need]
-    if empty:
-        raise ConfigError(
-            f"data.split={list(fractions)} gives the {' and '.join(empty)} split no segments; this command needs "
-            f"{', '.join(need)} with a share > 0 each, e.g. data.split=[0.7,0.15,0.15]."
-        )
-    b, total = len(data), sum(fractions)
-    sizes = [max(1, round(b * f / total)) if f > 0 else 0 for f in fractions]
-    first = next(i for i, f in enumerate(fractions) if f > 0)
-    sizes[first] += b - sum(sizes)
-    if any(k < 1 for k, f in zip(sizes, fractions, strict=True) if f > 0):
+    b = len(data)
+    sizes = split_sizes(b, fractions, need, "segments")
+    if sizes is None:
         raise DataError(
             f"{data.meta.get('source', 'data')}: {b} segments cannot be split into train/val/test {list(fractions)} "
             f"with at least one each; use a shorter data.segment or more recordings."
