@@ -83,6 +83,8 @@ class Effect(nn.Module):
     """
 
     basis: tuple[str, ...] = ("phi",)
+    #: the term reads absolute time (a drive) or the record's place in the batch; most read states only
+    uses_time: bool = False
 
     def __init__(
         self,
@@ -315,6 +317,7 @@ class PeriodicForcing(Effect):
     """
 
     basis = ("sin(wt)", "cos(wt)")
+    uses_time = True
 
     def __init__(
         self,

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from mpsim.diagnose.shooting import horizon_from_data, null_data, shooting_fit, window_error, with_effect
-from mpsim.effects import LinearDamping
+from mpsim.effects import CubicStiffness, LinearDamping
 from mpsim.models.equations import EquationsModel
 from mpsim.solvers.odeint import ODESolver
 from mpsim.systems.equations import EquationsSystem
@@ -83,3 +83,34 @@ def test_segmented_null_data_restart_every_window_from_an_observed_state():
     far = float((whole.x[:, -1] - data.x[:, -1].double()).abs().max())
     near = float((windows.x[-3:, -1] - data.x[:, 250].double()).abs().max())
     assert far > 10.0 * near, (far, near)
+
+
+def test_raw_unit_coefficient_of_1e5_moves_from_a_third_of_its_value():
+    """A cubic stiffness in SI units (coef 1.6e5 /(m² s²) on positions of 1e-2 m) beside log-parametrised
+    constants: the fit steps in curvature-scaled units, so the coefficient moves to its value (in float32, as
+    `trainer=whitebox` stores a model). Data from a fixed-step RK4 written here, not mpsim's simulator."""
+    k, c3, dt, steps = 200.0, 1.6e5, 0.002, 150
+
+    def field(x: torch.Tensor) -> torch.Tensor:  # [B, 2]
+        return torch.stack([x[:, 1], -k * x[:, 0] - c3 * x[:, 0] ** 3], dim=-1)
+
+    gen = torch.Generator().manual_seed(0)
+    x = torch.cat([torch.rand(6, 1, generator=gen, dtype=torch.float64) * 0.04 - 0.02, torch.zeros(6, 1)], dim=1)
+    xs = [x]
+    for _ in range(steps * 4):  # 4 RK4 substeps per sample
+        h = dt / 4
+        k1 = field(x)
+        k2 = field(x + h / 2 * k1)
+        k3 = field(x + h / 2 * k2)
+        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + field(x + h * k3))
+        xs.append(x)
+    traj = torch.stack(xs[::4], dim=1)[:, :, None, :]  # [B, T, 1, 2]
+    data = EquationsSystem(OSC).generate(6, seed=0, dt=dt, horizon=steps)
+    data = type(data)(t=data.t, x=traj, edge_index=data.edge_index, meta=data.meta)
+    model = EquationsModel(2, spec={**OSC, "params": {"k": 190.0}}, solver=ODESolver("rk4", step_size=dt / 2))
+    model.set_normalisation(torch.zeros(2), traj.reshape(-1, 2).std(0).float())
+    trial = with_effect(model, CubicStiffness(c3 / 3, target="v", source="x").bind(["x", "v"]))
+    fit = shooting_fit(trial, data, 50, [trial.effects[-1].coef, trial.raw["k"]], iters=30)
+    assert fit.converged
+    assert fit.values[0] == pytest.approx(c3, rel=0.02)
+    assert float(trial.parameters_now()["k"].detach()) == pytest.approx(k, rel=0.01)

@@ -112,6 +112,7 @@ class PhasedDrive(fx.Effect):
     """
 
     basis = ("sin(wt+phi_b)",)
+    uses_time = True
 
     def __init__(
         self,

@@ -139,29 +139,44 @@ def shooting_fit(
         p.requires_grad_(False)
     for p in free:
         p.requires_grad_(True)
-    opt = torch.optim.LBFGS(free, lr=1.0, max_iter=iters, history_size=20, line_search_fn="strong_wolfe")
     start = [p.detach().clone() for p in free]
     held = [latent]  # the latent starts of the last evaluation (warm start of the next)
-
-    def closure() -> torch.Tensor:
-        opt.zero_grad(set_to_none=True)
-        try:
-            if held[0] is not None:
-                held[0] = fit_latent(model, data, held[0], REFRESH_ITERS)
-            loss = window_sq_error(model, data, length, held[0]).mean()
-        except DivergenceError:
-            loss = None
-        if loss is None or not torch.isfinite(loss):  # a trial step too far: a bad point the line search leaves
-            for p in free:
-                p.grad = torch.zeros_like(p)
-            return torch.tensor(1e30, dtype=torch.float64)
-        loss.backward()
-        return loss
-
     model.train()
     ok = True
     try:
+        scales = curvature_scales(model, data, length, free, latent)
+        # L-BFGS moves z, p = start + scale·z: unit curvature along every parameter, whatever its units (a cubic
+        # stiffness of 1e5 in raw units beside a log-mass of 0.7 would otherwise never move)
+        zs = [torch.zeros(p.shape, dtype=torch.float64, device=p.device, requires_grad=True) for p in free]
+        opt = torch.optim.LBFGS(zs, lr=1.0, max_iter=iters, history_size=20, line_search_fn="strong_wolfe")
+
+        def place() -> None:
+            with torch.no_grad():
+                for p, p0, s, z in zip(free, start, scales, zs, strict=True):
+                    p.copy_((p0.double() + s * z.detach()).to(p.dtype))
+
+        def closure() -> torch.Tensor:
+            opt.zero_grad(set_to_none=True)
+            for p in free:
+                p.grad = None
+            place()
+            try:
+                if held[0] is not None:
+                    held[0] = fit_latent(model, data, held[0], REFRESH_ITERS)
+                loss = window_sq_error(model, data, length, held[0]).mean()
+            except DivergenceError:
+                loss = None
+            if loss is None or not torch.isfinite(loss):  # a trial step too far: a bad point the line search leaves
+                for z in zs:
+                    z.grad = torch.zeros_like(z)
+                return torch.tensor(1e30, dtype=torch.float64)
+            loss.backward()
+            for p, s, z in zip(free, scales, zs, strict=True):
+                z.grad = torch.zeros_like(z) if p.grad is None else p.grad.double() * s
+            return loss.detach().double()
+
         opt.step(closure)
+        place()  # where the line search left z
     except DivergenceError:
         ok = False
         with torch.no_grad():  # back to where the fit started
@@ -172,6 +187,36 @@ def shooting_fit(
             p.requires_grad_(keep.get(id(p), True))
     model.eval()
     return _finish(model, data, length, free, start, ok)
+
+
+def curvature_scales(
+    model: Model,
+    data: Trajectories,
+    length: int,
+    free: list[nn.Parameter],
+    latent: LatentStarts | None,
+    probes: int = 8,
+) -> list[torch.Tensor]:
+    """Per entry of every free parameter (float64, its shape): 1/√ of the Gauss–Newton curvature of the mean
+    squared window error along it, so that a unit step changes the normalised residuals by about one RMS. The
+    diagonal of JᵀJ is estimated from `probes` random ±1 projections of the residuals (Hutchinson: E[(Jᵀv)²] =
+    diag JᵀJ), one rollout and `probes` backward passes; an entry the residuals do not feel keeps the scale 1."""
+    res, mask = window_residuals(model, data, length, None if latent is None else latent.states(model, data))
+    r = res[:, mask]
+    gen = torch.Generator().manual_seed(0)
+    acc = [torch.zeros(p.shape, dtype=torch.float64, device=p.device) for p in free]
+    for k in range(probes):  # a handful of random projections
+        v = (torch.randint(0, 2, r.shape, generator=gen) * 2 - 1).to(r)
+        grads = torch.autograd.grad((r * v).sum(), free, retain_graph=k < probes - 1, allow_unused=True)
+        for a, g in zip(acc, grads, strict=True):
+            if g is not None:
+                a += g.detach().double().pow(2) / probes
+    out = []
+    for a in acc:
+        curv = 2.0 * a / max(r.numel(), 1)
+        good = torch.isfinite(curv) & (curv > 0)
+        out.append(torch.where(good, curv.clamp_min(1e-300).rsqrt(), torch.ones_like(curv)))
+    return out
 
 
 def _finish(

@@ -70,6 +70,13 @@ class Model(nn.Module):
     #: (forecasters that read a window); errors are then measured from step K on
     context_steps: int = 1
 
+    @property
+    def time_invariant(self) -> bool:
+        """Whether a rollout depends on time only through the spacing of `t` and the inputs it is given (no drive
+        by absolute time, no per-record phase): windows of a record may then be shifted to one time grid and
+        rolled out as one batch (`mpsim.diagnose.windows`). False unless a model says so."""
+        return False
+
     # buffers (nn.Module.__getattr__ would type them as Tensor | Module)
     state_mean: torch.Tensor
     state_std: torch.Tensor

@@ -179,6 +179,11 @@ class EquationsModel(Model):
             raise IncompatibleError(str(err)) from None
         super().check_compatible(state_dim, control_dim, n_nodes, None)
 
+    @property
+    def time_invariant(self) -> bool:
+        """The spec reads no `t` and no effect a drive: a window's rollout does not depend on where it starts."""
+        return not self.spec.uses_time and not any(e.uses_time for e in self.effects)
+
     # ---- rollout ------------------------------------------------------------------------------------------
     def rollout(
         self,

@@ -11,7 +11,7 @@ import sympy
 import torch
 
 from mpsim.errors import ConfigError, did_you_mean
-from mpsim.spec.grammar import NEIGHBOUR_SUFFIX, RESERVED, Parser
+from mpsim.spec.grammar import NEIGHBOUR_SUFFIX, RESERVED, Parser, T
 
 #: spec keys every spec may have; systems add their own (initial ranges, graph, ...)
 MODEL_KEYS = ("states", "inputs", "equations", "params", "learnable", "kinematic", "nodes", "description")
@@ -65,6 +65,11 @@ class Spec:
     @property
     def input_dim(self) -> int:
         return len(self.inputs)
+
+    @property
+    def uses_time(self) -> bool:
+        """Whether an equation reads the time `t` (a drive written into the spec)."""
+        return any(T in rhs.free_symbols for rhs in self.rhs)
 
     def rates(self) -> dict[str, str]:
         """{s: o} for every equation ``o' = s`` that is another state (a velocity is the rate of a position):
