@@ -37,8 +37,10 @@ from mpsim.models.base import Model
 LATENT_ITERS, REFRESH_ITERS = 6, 1
 #: difference step of the latent starts (normalised units): far above an adaptive solver's tolerance
 FD_STEP = 1e-3
-#: a state estimation stops when no window's start moves more than this (normalised units)
-STEP_TOL = 1e-6
+#: a state estimation stops when no window's start moves more than this (normalised units), or when no window's
+#: next step is predicted to lower its squared error by more than this share (the starts enter nearly linearly:
+#: one Gauss–Newton step usually lands, and the rest would cost a rollout each for nothing)
+STEP_TOL, COST_TOL = 1e-6, 1e-4
 
 
 @dataclass(frozen=True)
@@ -152,8 +154,11 @@ def fit_latent(model: Model, data: Trajectories, latent: LatentStarts, iters: in
         a = jac.mT @ jac  # [B, K, P, P]
         g = (jac.mT @ r[..., None])[..., 0]  # [B, K, P]
         scale = torch.diag_embed(a.diagonal(dim1=-2, dim2=-1).clamp_min(1e-12))
-        step = -torch.linalg.solve(a + damping[..., None, None] * scale, g[..., None])[..., 0].reshape(z.shape)
-        if float(step.abs().max()) < STEP_TOL:
+        step = -torch.linalg.solve(a + damping[..., None, None] * scale, g[..., None])[..., 0]  # [B, K, P]
+        # the decrease the linearisation predicts: −(2 gᵀs + sᵀ A s)
+        predicted = -(2 * (g * step).sum(-1) + (step[..., None, :] @ a @ step[..., None])[..., 0, 0])
+        step = step.reshape(z.shape)
+        if float(step.abs().max()) < STEP_TOL or bool((predicted <= COST_TOL * cost + 1e-30).all()):
             break
         r_new, jac_new, cost_new = _linearise(model, data, latent, z + step)
         better = cost_new < cost  # [B, K]

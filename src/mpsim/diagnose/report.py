@@ -85,6 +85,11 @@ def _verdict_section(s: dict[str, Any]) -> list[str]:
     return lines + [f"- {n}" for n in j["notes"]]
 
 
+def _null_text(gain: Any) -> str:
+    """A trial's null gain; none when the candidate failed on the data and was not fitted to null data."""
+    return f"{gain:.3g}" if isinstance(gain, int | float) and math.isfinite(gain) else "not fitted (failed on the data)"
+
+
 def _heldout_section(j: dict[str, Any]) -> list[str]:
     """The candidates the held-out judgement `j` tested, one table row each."""
     lines = [
@@ -97,7 +102,7 @@ def _heldout_section(j: dict[str, Any]) -> list[str]:
     for t in j["trials"]:
         lines.append(
             f"| {t['label']} | {values_text(t['values'], t['interval'])} | {t['error_before']:.4g} → "
-            f"{t['error_after']:.4g} | {t['gain']:.3g} ± {t['gain_se']:.2g} | {t['null_gain']:.3g} | "
+            f"{t['error_after']:.4g} | {t['gain']:.3g} ± {t['gain_se']:.2g} | {_null_text(t.get('null_gain'))} | "
             f"{t.get('test') or '—'} | {'yes' if t['accepted'] else 'no'} | {t['reason']} |"
         )
     if not j["trials"]:

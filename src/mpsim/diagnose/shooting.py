@@ -195,7 +195,7 @@ def curvature_scales(
     length: int,
     free: list[nn.Parameter],
     latent: LatentStarts | None,
-    probes: int = 8,
+    probes: int = 4,
 ) -> list[torch.Tensor]:
     """Per entry of every free parameter (float64, its shape): 1/√ of the Gauss–Newton curvature of the mean
     squared window error along it, so that a unit step changes the normalised residuals by about one RMS. The

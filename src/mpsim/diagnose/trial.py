@@ -40,7 +40,7 @@ class Trial:
     error_after: float
     gain: float  # mean paired held-out MSE reduction
     gain_se: float
-    null_gain: float  # the same fit's gain on null data
+    null_gain: float  # the same fit's gain on null data (nan: not fitted there, it failed on the data already)
     accepted: bool
     reason: str
     derived: str = ""  # how derived values (a coupling's phase lag α and strength K) were obtained
@@ -59,10 +59,11 @@ class Trial:
         """How far the log error ratio cleared the null fit's, in standard errors, against the bar ("" untested)."""
         if not (self.n_heldout and math.isfinite(self.log_ratio) and self.log_ratio_se > 0):
             return ""
-        above = (self.log_ratio - max(self.null_log_ratio, 0.0)) / self.log_ratio_se
+        null = self.null_log_ratio if math.isfinite(self.null_log_ratio) else 0.0  # nan: not fitted to null data
+        above = (self.log_ratio - max(null, 0.0)) / self.log_ratio_se
         return (
             f"log error ratio {self.log_ratio:.3g} ± {self.log_ratio_se:.2g} over {self.n_heldout} held-out "
-            f"recordings: {above:.3g} standard errors above {max(self.null_log_ratio, 0.0):.3g} (bar {self.bar_se:.3g})"
+            f"recordings: {above:.3g} standard errors above {max(null, 0.0):.3g} (bar {self.bar_se:.3g})"
         )
 
 
@@ -108,9 +109,12 @@ def try_candidate(
     # recordings, a multiplicative improvement does not
     floor = max(float(s.e_null.mean()), 1e-14)
     p = paired(e_current, e_after, floor, s.params.margin)
-    null_gain, null_log = _null_gain(s, current, cand, finding, coef, floor)
+    # the null fit only raises the bar: a candidate that fails with it at zero is not fitted to null data too
+    failed = _failed_checks(fit, p, 0.0, excess, s.params)
+    null_gain, null_log = (math.nan, math.nan) if failed else _null_gain(s, current, cand, finding, coef, floor)
     values, interval, derived = _reported_values(cand, trial, fit, s.train, finding.target)
-    failed = _failed_checks(fit, p, null_log, excess, s.params)
+    if not failed:
+        failed = _failed_checks(fit, p, null_log, excess, s.params)
     reason = (
         "; ".join(failed)
         if failed
