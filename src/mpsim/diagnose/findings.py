@@ -13,14 +13,17 @@ from mpsim.diagnose.residual import Residual
 
 @dataclass
 class Finding:
-    """One candidate selected for one state variable, with the evidence for and against it."""
+    """One candidate for one state variable, with the evidence for and against it: one the screen's joint BIC fit
+    selected, or (`selected` False) the best candidate of a kind the fit did not select on that row — the one of
+    its kind that explains most of the row alone, with its coefficients fitted alone; never accepted by the screen,
+    it is there for the held-out judgement (`heldout._ranked`), which decides between kinds."""
 
     target: int
     label: str
     kind: str
     coef: list[float]
     interval: list[tuple[float, float]]
-    gain: float  # share of the residual sum of squares it removed on entry
+    gain: float  # share of the residual sum of squares it removed on entry (not selected: its share alone)
     explained_rms: float  # the part of the residual it accounts for, in the residual's units (RMS)
     alone: float  # share it explains on its own
     inclusion: float  # bootstrap inclusion frequency
@@ -28,6 +31,7 @@ class Finding:
     accepted: bool
     reason: str
     effect: dict[str, Any]  # Hydra config of the effect with the fitted coefficients
+    selected: bool = True  # chosen by the joint BIC fit (False: the best of its kind on the row, fitted alone)
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)

@@ -98,7 +98,7 @@ def judge(
     seed: int = 0,
     test_candidates: bool = True,
 ) -> Judgement:
-    """Test the screened candidates (strongest share of their row first) on held-out prediction; name the
+    """Test the screen's candidates (the best of each kind on each row: `_ranked`) on held-out prediction; name the
     ones that pass, greedily, and return the verdict with the model that carries them. With
     `test_candidates=False` only the levels are measured (given, refit, null) and the verdict is *nothing
     missing* or *unexplained*: the caller tests the candidates another way (by finetuning a network). With
@@ -135,7 +135,7 @@ def _judge(
     given = float(window_error(model, test, horizon).mean())
     s = _levels(model, diag, train, test, horizon, given, params, seed)
     e_base, e_null = float(s.e_base.mean()), float(s.e_null.mean())
-    floor = max(params.structured_factor * e_null, params.tolerance**2)
+    floor = null_floor(s)
     if e_base <= floor:  # at the null level: nothing to test
         return Judgement(NOTHING_MISSING, horizon, given, e_base, e_null, e_base, 0.0, [], s.base, [])
     if not test_candidates:
@@ -174,26 +174,35 @@ Ranked = tuple[list[tuple[Finding, Candidate]], list[tuple[Finding, Candidate]]]
 
 
 def _ranked(diag: Diagnosis, library: list[Candidate], params: DiagnoseParams) -> Ranked:
-    """The screen ranks (BIC-selected, screened ones first, then by share of their row); held-out data decide.
-    A delayed copy of a state imitates many terms within a step and needs the slow delay integrator: delayed
-    candidates are tried only when none of the others passes."""
+    """The best candidate of each effect kind on each searched row; held-out data decide between them.
+
+    The one-step screen picks which term of a kind stands for it (its BIC-selected one, screened ones first;
+    for a kind the joint fit did not select, the one that explains most of the row alone, if that is at least
+    `min_gain`), not which kind: on data stepped by another integrator a delayed copy of the velocity can
+    explain more of the one-step residual than the damping it imitates, and only the held-out trial tells them
+    apart. So every kind gets a trial, at most one per (kind, row) — the number of trials is bounded by kinds
+    × searched rows. A delayed copy of a state imitates many terms within a step and needs the slow delay
+    integrator: delayed candidates are tried only when none of the others passes."""
     labels = {c.label(diag.state_names): c for c in library}
-    ranked = [
-        f for f in sorted(diag.findings, key=lambda f: (not f.accepted, -f.gain)) if f.label.split(": ", 1)[1] in labels
-    ]
-    plain = [f for f in ranked if f.kind != "DelayedFeedback"][: params.max_candidates]
-    delayed = [f for f in ranked if f.kind == "DelayedFeedback"][: params.max_candidates]
+    best: dict[tuple[str, int], Finding] = {}
+    for f in sorted(diag.findings, key=lambda f: (not f.accepted, not f.selected, -f.gain)):
+        if f.label.split(": ", 1)[1] in labels and (f.selected or f.alone >= params.min_gain):
+            best.setdefault((f.kind, f.target), f)
+    plain = [f for f in best.values() if f.kind != "DelayedFeedback"]
+    delayed = [f for f in best.values() if f.kind == "DelayedFeedback"]
     pending = [(f, labels[f.label.split(": ", 1)[1]]) for f in plain]
     later = [(f, labels[f.label.split(": ", 1)[1]]) for f in delayed]
     return (later, []) if not pending else (pending, later)
 
 
 def _add_greedily(s: TrialSetting, ranked: Ranked) -> tuple[Model, torch.Tensor, list[Trial]]:
-    """Each candidate is first tried alone on the refit model; the best passing one (the simplest kind among
-    those as good within their standard errors) is added, and the rest are tried again on top of it:
-    (the model with the added candidates, [B] its held-out MSE, every trial)."""
+    """Each candidate is first tried alone on the refit model; the best passing one is added — the simplest kind
+    among those within `SIMPLER_WITHIN` of the best held-out error or at the null level (`null_floor`: below it
+    the difference between them is noise) — and the rest are tried again on top of it, unless it brought the
+    error to the null level: (the model with the added candidates, [B] its held-out MSE, every trial)."""
     pending, later = ranked
     current, e_current, trials = s.base, s.e_base, []
+    floor = null_floor(s)
     while pending:
         tried = [(f, c, *try_candidate(s, current, e_current, c, f)) for f, c in pending]
         passing = [t for t in tried if t[2].accepted]
@@ -204,16 +213,33 @@ def _add_greedily(s: TrialSetting, ranked: Ranked) -> tuple[Model, torch.Tensor,
         if not passing:
             break
         best_err = min(t[2].error_after for t in passing)
-        close = [t for t in passing if t[2].error_after <= SIMPLER_WITHIN * best_err]
+        close = [t for t in passing if t[2].error_after <= max(SIMPLER_WITHIN * best_err, floor)]
         chosen = min(close, key=lambda t: (KIND_COMPLEXITY.get(t[2].kind, 1), t[2].error_after))
         trials.append(chosen[2])
         current, e_current = chosen[3], chosen[4]
         if chosen[2].kind == "PeriodicForcing" and "phases" in chosen[2].effect:
             e_current = torch.full_like(s.e_base, chosen[2].error_after)  # measured after the warm-up window
             break  # its phases belong to the held-in recordings: nothing more is added on top of it
+        if float(e_current.mean()) <= floor:  # at the null level: nothing is left for another effect to explain
+            for t in passing:
+                if t is not chosen:
+                    t[2].accepted = False
+                    t[2].reason = (
+                        f"passes alone, but {chosen[2].label} (the simplest kind at the null level or the best) "
+                        f"already brings the held-out MSE to {float(e_current.mean()):.3g}, at the null level "
+                        f"(≤ {floor:.3g}): " + t[2].reason
+                    )
+                    trials.append(t[2])
+            break
         # the others that passed alone are tried again on top of the chosen one
         pending = [(t[0], t[1]) for t in passing if t is not chosen]
     return current, e_current, trials
+
+
+def null_floor(s: TrialSetting) -> float:
+    """The held-out MSE at or below which a model is at the null level: `structured_factor` × the refit model's
+    error on null data, or `tolerance` RMSE."""
+    return max(s.params.structured_factor * float(s.e_null.mean()), s.params.tolerance**2)
 
 
 def _verdict(

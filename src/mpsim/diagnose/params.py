@@ -42,7 +42,12 @@ class DiagnoseParams:
             few, and the bootstrap's cost grows with them — as their cube for a drive with a phase per recording,
             whose two columns per recording enter every fit (200 recordings: minutes; 64: seconds).
     Acceptance (held-out prediction):
-        max_candidates: screened candidates tested on held-out data, strongest share of their row first.
+        max_candidates: a network's screened candidates finetuned with it (fix=true), strongest share of their row
+            first. The held-out trials of a model judged with its network (or equations) frozen are not capped by
+            it: they take the best candidate of each effect kind on each searched row — the screen's BIC-selected
+            one, else the one of that kind that explains most of the row alone if that is ≥ min_gain — at most one
+            per kind and row (delayed feedback only when no other kind passes), so the one-step fit never decides
+            which kind the held-out test sees.
         margin: a candidate is named only if its held-out multi-step error gain exceeds the gain the same fit
             achieves on null data plus `margin` standard errors (paired over held-out trajectories; Student's t at
             the level `margin` has for a Gaussian, as the standard error comes from those few trajectories), and

@@ -158,10 +158,19 @@ def _screen_section(screen: dict[str, Any]) -> list[str]:
         "|---|---|---|---|---|---|",
     ]
     for f in screen["candidates_considered"]:
+        chosen = f.get("selected", True)  # False: the best of a kind the joint fit did not select, fitted alone
         lines.append(
-            f"| {f['label']} | {', '.join(f'{c:.4g}' for c in f['coef'])} | {f['gain']:.1%} | "
+            f"| {f['label']}{'' if chosen else ' (best of its kind)'} | {', '.join(f'{c:.4g}' for c in f['coef'])}"
+            f"{'' if chosen else ' (alone)'} | {f['gain']:.1%}{'' if chosen else ' alone'} | "
             f"{f['inclusion']:.0%} | {'yes' if f['accepted'] else 'no'} | {f['reason']} |"
         )
+    if any(not f.get("selected", True) for f in screen["candidates_considered"]):
+        lines += [
+            "",
+            "Rows marked *best of its kind* were not selected by the joint fit: each is the candidate of its kind "
+            "that explains most of its row on its own (share and coefficients fitted alone), listed so that the "
+            "held-out judgement can test every kind, not only the one the one-step fit preferred.",
+        ]
     return lines
 
 

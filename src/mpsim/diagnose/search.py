@@ -30,7 +30,7 @@ from mpsim.diagnose.noise import noise_level
 from mpsim.diagnose.nuisance import nuisance_columns, project, target_rows
 from mpsim.diagnose.refit import confirm_by_integration, joint_refit
 from mpsim.diagnose.residual import Residual, one_step_residual
-from mpsim.diagnose.select import Selection, bootstrap, explained_alone, stepwise_bic
+from mpsim.diagnose.select import Selection, bootstrap, explained_alone, fit_alone, stepwise_bic
 from mpsim.diagnose.shooting import window_predictions
 from mpsim.errors import DivergenceError
 from mpsim.models.base import Model
@@ -82,8 +82,9 @@ def _fit_target(
     seed: int,
     same: list[int] | None = None,
 ):
-    """Selection, explained shares and bootstrap on the residual left after the nuisance fit (the bootstrap
-    resamples trajectories of the projected data: the nuisance fit itself is not redone per resample)."""
+    """Selection, explained shares (with each group's coefficients fitted alone) and bootstrap on the residual
+    left after the nuisance fit (the bootstrap resamples trajectories of the projected data: the nuisance fit
+    itself is not redone per resample)."""
     y, groups = project(y, groups, base)
     b = y.shape[0]
     flat_y = y.reshape(-1)
@@ -91,7 +92,7 @@ def _fit_target(
     sel = stepwise_bic(flat_y, flat_g)
     if base is not None:  # the nuisance columns count as parameters of every model in the BIC
         sel.bic_path = [v + base.shape[-1] * math.log(flat_y.numel()) for v in sel.bic_path]
-    alone = explained_alone(flat_y, flat_g)
+    alone, alone_coef = fit_alone(flat_y, flat_g)
     # the bootstrap reruns the selection among the selected groups and the strongest others (a group that
     # explains little alone and was not selected is not selected in resamples either)
     keep = sorted(set(sel.groups) | set(sorted(range(len(groups)), key=lambda g: -alone[g])[:BOOT_GROUPS]))
@@ -105,7 +106,7 @@ def _fit_target(
     )
     freq = {g: 0.0 for g in range(len(groups))} | {keep[i]: v for i, v in sub_freq.items()}
     intervals = {keep[i]: v for i, v in sub_int.items()}
-    return sel, alone, freq, intervals
+    return sel, alone, alone_coef, freq, intervals
 
 
 def find_effects(
@@ -225,7 +226,7 @@ def _search_rows(
             flat = project(y, groups, base_d)[0].reshape(-1)
             out.residual_rms.append(math.sqrt(float(flat.pow(2).sum()) / max(flat.numel(), 1)))
             continue
-        sel, alone, freq, intervals = _fit_target(y, groups, base_d, n_boot, seed, twins)
+        sel, alone, alone_coef, freq, intervals = _fit_target(y, groups, base_d, n_boot, seed, twins)
         out.residual_rms.append(math.sqrt(sel.total / max(y.numel(), 1)))
         for g, c in enumerate(library):
             out.explained[c.label(names)][d] = alone[g]
@@ -236,7 +237,64 @@ def _search_rows(
             )
             for g in sel.groups
         ]
+        # the joint fit picks one term among near-collinear ones of different kinds (on data stepped by another
+        # integrator a delayed copy of the velocity can beat the damping it imitates): the best of every other
+        # kind goes to the held-out judgement too, which decides between kinds
+        row = out.residual_rms[d]
+        out.findings += [
+            _best_of_kind(library[g], d, names, alone[g], alone_coef[g], freq[g], row, threshold, bars.min_gain)
+            for g in _best_of_kinds(library, alone, sel.groups)
+        ]
     return out
+
+
+def _best_of_kinds(library: list[Candidate], alone: list[float], selected: list[int]) -> list[int]:
+    """Per effect kind without a selected candidate, the candidate of that kind that explains most alone (none
+    for a kind whose candidates explain nothing)."""
+    taken = {library[g].kind for g in selected}
+    best: dict[str, int] = {}
+    for g, c in enumerate(library):
+        if c.kind not in taken and alone[g] > 0 and (c.kind not in best or alone[g] > alone[best[c.kind]]):
+            best[c.kind] = g
+    return sorted(best.values(), key=lambda g: -alone[g])
+
+
+def _best_of_kind(
+    c: Candidate,
+    d: int,
+    names: list[str],
+    alone: float,
+    coef: list[float],
+    inclusion: float,
+    residual_rms: float,
+    threshold: float,
+    min_gain: float,
+) -> Finding:
+    """The finding of `c`, the best candidate of its kind on row `d` that the joint fit did not select: its
+    coefficients fitted alone, never accepted by the screen; handed to the held-out judgement if it explains at
+    least `min_gain` of the row alone (a delayed feedback only if no other kind passes there)."""
+    if alone < min_gain:
+        why = f"explains {alone:.1%} of the residual alone, below {min_gain:.0%}: not tested on held-out data"
+    elif c.kind == "DelayedFeedback":
+        why = "tested on held-out data if no other kind passes there"
+    else:
+        why = "tested on held-out data"
+    return Finding(
+        target=d,
+        label=c.label(names, d),
+        kind=c.kind,
+        coef=coef,
+        interval=[],
+        gain=alone,
+        explained_rms=residual_rms * math.sqrt(max(alone, 0.0)),
+        alone=alone,
+        inclusion=inclusion,
+        threshold=threshold,
+        accepted=False,
+        reason=f"best of its kind on this row, not selected by the joint BIC fit (coefficients fitted alone): {why}",
+        effect=c.effect_config(coef, d, names),
+        selected=False,
+    )
 
 
 def _finding(

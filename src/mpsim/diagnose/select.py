@@ -152,9 +152,24 @@ def stepwise_bic(
 
 def explained_alone(y: torch.Tensor, groups: list[torch.Tensor], base: torch.Tensor | None = None) -> list[float]:
     """Share of the residual sum of squares (after the base fit) each group explains on its own."""
+    return fit_alone(y, groups, base)[0]
+
+
+def fit_alone(
+    y: torch.Tensor,  # [n] residual samples
+    groups: list[torch.Tensor],  # each [n, k_g] basis columns of one candidate
+    base: torch.Tensor | None = None,  # [n, q] columns always in the fit
+) -> tuple[list[float], list[list[float]]]:
+    """Each group fitted on its own (with the base columns): (the share of the residual sum of squares after the
+    base fit it explains, its coefficients)."""
     base = _base_cols(base, y)
     _, total = lstsq(base, y)
-    return [1 - lstsq(torch.cat([base, x], dim=1), y)[1] / total if total > 0 else 0.0 for x in groups]
+    shares, coefs = [], []
+    for x in groups:  # one small least-squares fit per candidate group, not per data element
+        sol, rss = lstsq(torch.cat([base, x], dim=1), y)
+        shares.append(1 - rss / total if total > 0 else 0.0)
+        coefs.append([float(v) for v in sol[base.shape[1] :]])
+    return shares, coefs
 
 
 #: a column is estimated by a bootstrap resample only if the drawn trajectories hold more than this share of its
