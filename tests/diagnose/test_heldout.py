@@ -70,15 +70,13 @@ def _damping_is_named(kinds: list[str] | None) -> None:
     params = DiagnoseParams(n_boot=20, fit_trajectories=6, horizon=40, shooting_iters=15, **kw)
     model = nominal(splits.train)
     diag, library = screen(model, splits.train, params, 0)
-    # the one-step screen prefers the delayed velocity: it explains more of the residual than the damping does,
-    # the joint fit selects it, and damping is only the best of its kind
+    # the one-step screen prefers the delayed velocity: alone, it explains more of the residual than the damping
     delayed = max((f for f in diag.findings if f.kind == "DelayedFeedback"), key=lambda f: f.alone)
     damping = [f for f in diag.findings if f.kind == "LinearDamping"]
     assert len(damping) == 1, "the best damping candidate is not recorded for the held-out stage"
     damping = damping[0]
-    assert delayed.selected and delayed.accepted and delayed.alone > damping.alone
-    assert damping.label == "domega/dt: LinearDamping(omega)" and not damping.selected and not damping.accepted
-    assert "best of its kind" in damping.reason and damping.coef[0] > 0
+    assert delayed.alone > damping.alone and damping.label == "domega/dt: LinearDamping(omega)"
+    assert damping.coef[0] > 0
     j = judge(model, diag, library, splits.train, splits.test, params)
     assert "domega/dt: LinearDamping(omega)" in [t.label for t in j.trials]
     assert j.verdict == EFFECTS_NAMED
@@ -88,8 +86,7 @@ def _damping_is_named(kinds: list[str] | None) -> None:
 
 
 def test_damping_reaches_the_heldout_stage_though_a_delay_explains_more_of_the_one_step_residual():
-    # the drive with a phase per recording is what keeps damping out of the joint fit: after the delay, it lowers
-    # the residual most but its many columns fail the BIC, and forward selection stops there
+    # a drive with a phase per recording in the library: its many columns lower the residual most after the delay
     _damping_is_named(["LinearDamping", "PeriodicForcing", "DelayedFeedback"])
 
 

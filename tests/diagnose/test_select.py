@@ -1,3 +1,4 @@
+import pytest
 import torch
 
 from mpsim.diagnose.select import bootstrap, explained_alone, project_out, stepwise_bic
@@ -87,3 +88,17 @@ def test_one_effect_written_two_ways_counts_once_in_the_inclusion_frequency():
     together, _ = bootstrap(y, [term, twin], [0], n_boot=60, same=[0, 0])
     assert min(apart.values()) < 0.8  # each alone looks unstable
     assert together == {0: 1.0, 1: 1.0}
+
+
+def test_a_wide_group_that_lowers_the_residual_most_does_not_stop_the_selection():
+    """Each step adds the group that lowers the BIC most: a 40-column group (a drive with a phase per recording)
+    fits a little more of the residual than the one-column truth but pays 40·log(n); the truth is chosen, not
+    the selection stopped."""
+    gen = torch.Generator().manual_seed(0)
+    n = 400
+    truth = torch.randn(n, 1, generator=gen, dtype=torch.float64)
+    y = 0.5 * truth[:, 0] + 0.1 * torch.randn(n, generator=gen, dtype=torch.float64)
+    wide = torch.cat([truth, torch.randn(n, 39, generator=gen, dtype=torch.float64)], dim=1)  # holds the truth too
+    sel = stepwise_bic(y, [wide, truth])
+    assert sel.groups == [1]
+    assert sel.coef[1][0] == pytest.approx(0.5, abs=0.03)

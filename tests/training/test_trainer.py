@@ -178,3 +178,24 @@ def test_without_a_terminal_there_is_no_bar_but_a_line_every_log_every_epochs(tm
     assert "\r" not in stderr.getvalue() and "epoch/s" not in stderr.getvalue()
     beats = [r.getMessage() for r in caplog.records if " s/epoch, about " in r.getMessage()]
     assert [b.split(":")[0] for b in beats] == ["epoch 2/4", "epoch 4/4"]
+
+
+def test_lbfgs_stops_when_an_epoch_moves_no_parameter(tmp_path):
+    """A white-box model that cannot fit (its spec lacks the data's damping) converges within an epoch or two;
+    full-batch L-BFGS would then repeat the same epoch until early stopping ran out of patience."""
+    from mpsim.effects import LinearDamping
+    from mpsim.models.equations import EquationsModel
+    from mpsim.systems.equations import EquationsSystem
+
+    osc = {"states": ["x", "v"], "equations": {"x": "v", "v": "-k*x"}, "params": {"k": 4.0}, "learnable": ["k"]}
+    osc |= {"nodes": 1, "init": {"x": [-1, 1], "v": [-1, 1]}}
+    system = EquationsSystem(osc, effects=[LinearDamping(0.4, target="v")])
+    train, val = system.generate(6, seed=0, dt=0.1, horizon=40), system.generate(2, seed=1, dt=0.1, horizon=40)
+    model = EquationsModel(2, spec={**osc, "params": {"k": 3.0}}, solver=ODESolver("rk4", step_size=0.05)).double()
+    model.set_normalisation(*fit_normalisation(train))
+    trainer = Trainer(optimizer="lbfgs", lr=1.0, batch_size=64, max_epochs=30, early_stop_patience=20, progress=False)
+    trainer.fit(model, train, val, run_dir=tmp_path, checkpoint_base={"model": {}})
+    assert trainer.status_ == "early_stopped"
+    epochs = [row["epoch"] for row in trainer.history_]
+    assert epochs[-1] < 10  # not 20 epochs of patience
+    assert trainer.history_[-1]["val_error"] == trainer.history_[-2]["val_error"]  # the last epoch moved nothing

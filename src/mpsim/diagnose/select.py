@@ -96,18 +96,17 @@ def _stepwise_gram(
     path, gains = [bic], {}
     while len(chosen) < max_terms:
         best = None
-        for g in range(len(spans)):
+        for g in range(len(spans)):  # the group that lowers the BIC most (a wide group pays for its columns)
             if g in chosen:
                 continue
             cols = base + [c for i in [*chosen, g] for c in spans[i]]
             _, r = _gram_fit(gram, xty, yty, cols)
-            if best is None or r < best[1]:
-                best = (g, r)
+            b = n * math.log(max(r, 1e-300) / n) + len(cols) * math.log(n)
+            if best is None or b < best[2]:
+                best = (g, r, b)
         if best is None:
             break
-        g, r = best
-        p = len(base) + sum(len(spans[i]) for i in [*chosen, g])
-        new_bic = n * math.log(max(r, 1e-300) / n) + p * math.log(n)
+        g, r, new_bic = best
         if new_bic >= bic:
             break
         gains[g] = (rss - r) / total
@@ -142,8 +141,8 @@ def stepwise_bic(
     max_terms: int = 6,
     base: torch.Tensor | None = None,  # [n, q] columns always in the fit (never selected or named)
 ) -> Selection:
-    """Forward stepwise selection: add the group that lowers the residual sum of squares most while the
-    BIC = n·log(RSS/n) + p·log(n) keeps decreasing. The fits run on the normal equations (one pass over the
+    """Forward stepwise selection: add the group that lowers the BIC = n·log(RSS/n) + p·log(n) most, while it
+    decreases (a group of many columns, a drive with a phase per recording, must pay for them). The fits run on the normal equations (one pass over the
     rows), so the cost does not grow with the number of samples per step."""
     x, spans, base_cols = _design(groups, base)
     gram, xty, yty = x.T @ x, x.T @ y, float(y @ y)

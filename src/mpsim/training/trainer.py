@@ -274,8 +274,13 @@ class Trainer:
             self.log_every if quiet else 0, self.log_every_s if quiet else 0.0, run.start_epoch, self.max_epochs, log
         )
         for epoch in bar:
+            before = [p.detach().clone() for p in run.model.parameters()] if self.optimizer == "lbfgs" else None
             row = self._epoch(run, train, val, test, epoch, t_start)
             if row is None:
+                break
+            if before is not None and all(map(torch.equal, before, run.model.parameters())):
+                self.status_ = "early_stopped"  # L-BFGS converged: every further epoch would repeat this one
+                log.info(f"early stop: L-BFGS converged (no parameter moved in epoch {epoch})")
                 break
             loss, val_err, test_err = (f"{row[k]:.3g}" for k in ("train_loss", "val_error", "test_error"))
             bar.set_postfix(loss=loss, val=val_err, test=test_err, lr=f"{row['lr']:.1g}")
