@@ -38,7 +38,7 @@ def test_the_recipe_fits_and_diagnoses_each_recording_and_twin_with_its_data_key
     assert {"data.time_column=null", "data.dt=0.002"} <= set(gain)
     d = next(c for c in diagnoses if _arg(c, "data.path").endswith("c_duffing.csv"))
     assert "fix=true" in d and _arg(d, "init") == str(out / "c_duffing/recording/train/checkpoints/best.ckpt")
-    assert "0 of 4 cases hold." in proc.stdout  # the stub trains nothing
+    assert "0 of 4 simulated cases hold." in proc.stdout  # the stub trains nothing
 
 
 def test_the_recipe_refuses_an_unknown_case(tmp_path):
@@ -91,4 +91,22 @@ def test_the_pass_rule(tmp_path):
     _truth(tmp_path, "missing", "DryFriction", 0.2)  # never ran
     row, ok = sc.score(tmp_path, "missing")
     assert not ok and row[2] == "not run"
-    assert sc.main([str(tmp_path)]) == 0 and "2 of 7 cases hold." in (tmp_path / "scorecard.md").read_text()
+    assert sc.main([str(tmp_path)]) == 0 and "2 of 7 simulated cases hold." in (tmp_path / "scorecard.md").read_text()
+
+
+def test_the_real_row_reports_what_was_measured(tmp_path):
+    assert sc.real_row(tmp_path / "a_dfki") is None  # the recipe did not run there: no row
+    _diagnosis(tmp_path / "a_dfki", "unexplained structured residual", [], 0.05)
+    diag = tmp_path / "a_dfki" / "diagnose" / "diagnosis.json"
+    r = json.loads(diag.read_text())
+    r["judgement"].update(error_given=1.46e-4, error_null=1.6e-8)
+    diag.write_text(json.dumps(r))
+    row, ok = sc.real_row(tmp_path / "a_dfki")
+    assert ok and row[2] == "unexplained structured residual" and row[4] == "(no truth)" and row[-1] == "reported"
+    assert "null level 1.6e-08" in row[6]
+    _truth(tmp_path, "fric", "DryFriction", 0.2)
+    _diagnosis(tmp_path / "fric/recording", "effects named", [("DryFriction", "v", 0.21)], 0.1, 0.01)
+    _diagnosis(tmp_path / "fric/clean", "nothing missing", [])
+    assert sc.main([str(tmp_path)]) == 0
+    text = (tmp_path / "scorecard.md").read_text()
+    assert "| a_dfki |" in text and "1 of 1 simulated cases hold." in text and "no truth to hold to" in text
