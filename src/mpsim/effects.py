@@ -85,6 +85,8 @@ class Effect(nn.Module):
     basis: tuple[str, ...] = ("phi",)
     #: the term reads absolute time (a drive) or the record's place in the batch; most read states only
     uses_time: bool = False
+    #: the term reads the record's place in the batch (a phase per recording): records may not be tiled or reordered
+    per_record: bool = False
 
     def __init__(
         self,
@@ -341,6 +343,10 @@ class PeriodicForcing(Effect):
         self.log_omega = nn.Parameter(torch.tensor(math.log(omega), dtype=torch.float64), requires_grad=learnable)
         self.random_phase, self.phase_seed = random_phase, int(phase_seed)
         self._phases: dict[int, torch.Tensor] = {}
+
+    @property
+    def per_record(self) -> bool:  # type: ignore[override]
+        return self.random_phase  # φ_b follows the record's place in the batch
 
     @property
     def omega(self) -> float:

@@ -79,3 +79,18 @@ def test_the_latent_directions_are_projected_out_of_the_parameters_jacobian(clea
     jac = torch.randn(*jac_z.shape[:3], 2, dtype=jac_z.dtype)
     projected = profile_out(jac, jac_z)
     assert float((jac_z.mT @ projected).abs().max()) < 1e-8 * float(jac.abs().max() * jac_z.abs().max())
+
+
+def test_a_drive_with_a_phase_per_recording_keeps_its_records_in_order(clean):
+    """A term that reads the record's place in the batch (a drive with one phase per recording) cannot be rolled
+    out with the records tiled for the difference steps: each set is rolled out in the records' order."""
+    from mpsim.diagnose.library import PhasedDrive
+    from mpsim.diagnose.shooting import with_effect
+
+    data, v = clean
+    phases = torch.linspace(0.0, 3.0, len(data)).tolist()
+    drive = PhasedDrive(0.05, omega=2.0, phases=phases, target="v").bind(["q", "v"])
+    model = with_effect(nominal_model(data), drive)
+    fitted = fitted_latent(model, data, 40)
+    assert fitted is not None and torch.isfinite(fitted.z).all()
+    assert float(window_error(model, data, 40).max()) < math.inf

@@ -95,13 +95,20 @@ def _residuals(
     zs: torch.Tensor,  # [S, B, K, N, L] S sets of normalised latent starts
 ) -> torch.Tensor:
     """[S, B, K, M] flattened window residuals at S sets of latent starts `zs` [S, B, K, N, L], all in one batched
-    rollout (the records repeated S times: an adaptive solver's steps cost the same for a batch of S·B); inf
-    everywhere when that rollout failed."""
+    rollout (the records repeated S times: an adaptive solver's steps cost the same for a batch of S·B), or one
+    rollout per set when an effect reads the records' place in the batch (`Effect.per_record`); inf everywhere when
+    a rollout failed."""
     n_sets, b = zs.shape[:2]
-    tiled = data.subset(torch.arange(b).repeat(n_sets))
     try:
-        starts = replace(latent, z=zs.flatten(0, 1)).states(model, tiled)
-        res, _ = window_residuals(model, tiled, latent.length, starts)
+        if any(getattr(e, "per_record", False) for e in getattr(model, "effects", ())):  # read the batch order
+            parts = [
+                window_residuals(model, data, latent.length, replace(latent, z=z).states(model, data))[0] for z in zs
+            ]
+            res = torch.cat(parts)  # the few sets one after another, each batch in the records' own order
+        else:
+            tiled = data.subset(torch.arange(b).repeat(n_sets))
+            starts = replace(latent, z=zs.flatten(0, 1)).states(model, tiled)
+            res, _ = window_residuals(model, tiled, latent.length, starts)
     except DivergenceError:
         return torch.full((*zs.shape[:3], 1), torch.inf, dtype=zs.dtype)
     r = res.flatten(2).to(zs).reshape(n_sets, b, *res.shape[1:2], -1)

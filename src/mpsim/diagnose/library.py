@@ -112,7 +112,7 @@ class PhasedDrive(fx.Effect):
     """
 
     basis = ("sin(wt+phi_b)",)
-    uses_time = True
+    uses_time = per_record = True
 
     def __init__(
         self,
