@@ -164,3 +164,33 @@ def test_the_simplest_kind_at_the_null_level_wins(monkeypatch, simple_error, exp
     current, _, trials = _add_greedily(s, (pending, []))
     assert current == expected and [t.kind for t in trials if t.accepted] == [expected]
     assert sorted(t.kind for t in trials) == ["CubicStiffness", "LinearDamping"]  # the other one is reported too
+
+
+@pytest.mark.parametrize(
+    ("simple_error", "complex_error", "within"),
+    [(5e-7, 1e-9, "both at the null level"), (1.1e-5, 1e-5, "within 1.25× of the best")],  # floor 1e-6
+)
+def test_a_more_complex_kind_that_predicts_as_well_is_reported_as_indistinguishable(
+    monkeypatch, simple_error, complex_error, within
+):
+    # issue 61, item 2: when two kinds predict held-out data equally, the simpler is named and the report says the
+    # other was set aside as indistinguishable on these data (at the null level, or above it within SIMPLER_WITHIN)
+    base, e = object(), torch.full((4,), 1e-2, dtype=torch.float64)
+    s = TrialSetting(base, e, torch.full((4,), 1e-9), None, None, None, None, 10, DiagnoseParams(), ["x", "v"])  # type: ignore[arg-type]
+    errors = {"LinearDamping": simple_error, "DryFriction": complex_error}
+
+    def fake(s_, current, e_current, cand, finding):
+        if current is not base:  # tried again on top of the chosen one: nothing more to gain
+            t = _trial(cand.kind, float(e_current.mean()), False)
+            t.reason = "does not lower it further"
+            return t, current, e_current
+        after = errors[cand.kind]
+        return _trial(cand.kind, after, True), cand.kind, torch.full_like(e, after)
+
+    monkeypatch.setattr(heldout, "try_candidate", fake)
+    pending = [(_finding("", k, 1, 0.9, False, False), Candidate(k, 1)) for k in ("DryFriction", "LinearDamping")]
+    current, _, trials = _add_greedily(s, (pending, []))
+    assert current == "LinearDamping" and [t.kind for t in trials if t.accepted] == ["LinearDamping"]
+    (aside,) = [t for t in trials if t.kind == "DryFriction"]
+    assert "the two kinds are indistinguishable on these data" in aside.reason
+    assert "simpler dv/dt: LinearDamping(v)" in aside.reason and within in aside.reason

@@ -94,3 +94,42 @@ def test_phase_lag_alpha_and_k_from_cos_coefficient_and_the_models_sin_coupling(
     # a coupling the model does not hold as one parameter: no α claimed
     spec_w = {**spec, "equations": {"theta": "w"}, "params": {"w": [0.9, 1.1, 1.3, 0.7]}, "learnable": ["w"]}
     assert phase_lag(EquationsModel(1, spec=spec_w).double(), data, 0, -0.1, 0.001) is None
+
+
+def _two_states(z: torch.Tensor, v: torch.Tensor) -> Trajectories:  # z, v: [B, T] each
+    return Trajectories(
+        t=torch.arange(z.shape[1], dtype=torch.float64) * 0.05,
+        x=torch.stack([z, v], dim=-1)[:, :, None, :],
+        edge_index=torch.zeros(2, 0, dtype=torch.long),
+        meta={"state_names": ["z", "v"]},
+    )
+
+
+def test_dry_friction_of_a_state_that_never_changes_sign_is_left_to_bias():
+    """Issue 61, item 2: on z > 0, −c·tanh(z/ε) is a constant: not offered as friction, and the note says why."""
+    t = torch.arange(101, dtype=torch.float64) * 0.05
+    phase = torch.linspace(0.0, 3.0, 4, dtype=torch.float64)[:, None]  # [B, 1]
+    z = 2.5 + torch.cos(2.0 * t + phase)  # [B, T]: 1.5 … 3.5, always positive
+    v = -2.0 * torch.sin(2.0 * t + phase)  # [B, T]: both signs
+    notes: list[str] = []
+    lib = build_library(_two_states(z, v), kinds=("Bias", "DryFriction"), notes=notes)
+    assert [(c.kind, c.source) for c in lib] == [("Bias", None), ("DryFriction", 1)]
+    (note,) = notes
+    assert note.startswith("DryFriction(z) not considered: z never changes sign on these data")
+    assert "min 1.5" in note and "max 3.5" in note and "Bias" in note and "indistinguishable" in note
+    # a state with both signs keeps its candidate, and so does one that is positive only where tanh still varies
+    # when the caller projects what a model expresses (`one_signed_friction`)
+    both = build_library(_two_states(z - 2.5, v), kinds=("DryFriction",), notes=notes)
+    assert [c.source for c in both] == [0, 1] and len(notes) == 1
+    kept = build_library(_two_states(z, v), kinds=("DryFriction",), one_signed_friction=True)
+    assert [c.source for c in kept] == [0, 1]
+
+
+def test_a_state_positive_but_resolved_near_zero_is_not_friction_either():
+    t = torch.arange(201, dtype=torch.float64) * 0.05
+    z = 1.0 + torch.cos(t)[None, :].expand(3, -1)  # [B, T]: 0 … 2, touches zero, never below
+    v = -torch.sin(t)[None, :].expand(3, -1)
+    notes: list[str] = []
+    lib = build_library(_two_states(z, v), kinds=("DryFriction",), notes=notes)
+    assert [c.source for c in lib] == [1]
+    assert "one-sided saturation" in notes[0]  # not a constant here: said so, not "Bias covers it"

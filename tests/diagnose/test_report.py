@@ -73,3 +73,11 @@ def test_values_and_truth_text():
     assert values_text({"coef": 0.2}, {"coef": (0.19, 0.21)}) == "coef 0.2 [0.19, 0.21]"
     truth = {"true": {"coef": 0.2}, "relative_error": {"coef": 0.01}}
     assert truth_text(truth) == "true coef 0.2, off by 1.0%"
+
+
+def test_markdown_says_which_candidates_a_simpler_kind_stood_for():
+    s = _summary("effects named", 0)
+    note = "DryFriction(z) not considered: z never changes sign on these data (…): Bias covers it"
+    s["screen"]["equivalent_forms"] = [note]
+    assert f"not searched unless `diagnose.targets` names them).\n\n- {note}\n\n| state |" in markdown(s)
+    assert "- DryFriction" not in markdown(_summary("effects named", 0))  # none: nothing said

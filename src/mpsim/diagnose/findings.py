@@ -56,6 +56,7 @@ class Diagnosis:
     not_considered: list[str] = field(default_factory=list)  # kinds that cannot be told apart from model error
     searched: list[str] = field(default_factory=list)  # state rows searched (the dynamic rows by default)
     phased_omegas: dict[int, float] = field(default_factory=dict)  # drive frequencies with a phase per recording
+    equivalent_forms: list[str] = field(default_factory=list)  # candidates left out: a simpler kind equals them here
 
     @property
     def accepted(self) -> list[Finding]:
@@ -76,4 +77,5 @@ class Diagnosis:
             "represented_by_model": self.represented,
             "not_considered": self.not_considered,
             "searched_rows": self.searched,
+            "equivalent_forms": self.equivalent_forms,
         }

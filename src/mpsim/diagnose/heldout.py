@@ -199,13 +199,18 @@ def _add_greedily(s: TrialSetting, ranked: Ranked) -> tuple[Model, torch.Tensor,
     """Each candidate is first tried alone on the refit model; the best passing one is added — the simplest kind
     among those within `SIMPLER_WITHIN` of the best held-out error or at the null level (`null_floor`: below it
     the difference between them is noise) — and the rest are tried again on top of it, unless it brought the
-    error to the null level: (the model with the added candidates, [B] its held-out MSE, every trial)."""
+    error to the null level: (the model with the added candidates, [B] its held-out MSE, every trial). A more
+    complex kind set aside so is reported as indistinguishable from the simpler one on these data."""
     pending, later = ranked
     current, e_current, trials = s.base, s.e_base, []
     floor = null_floor(s)
+    aside: dict[int, str] = {}  # id of a finding -> why its kind was set aside for a simpler, equivalent one
     while pending:
         tried = [(f, c, *try_candidate(s, current, e_current, c, f)) for f, c in pending]
         passing = [t for t in tried if t[2].accepted]
+        for t in tried:  # tried again on top of the simpler kind it was indistinguishable from, and failed
+            if not t[2].accepted and id(t[0]) in aside:
+                t[2].reason = aside[id(t[0])] + "; on top of it: " + t[2].reason
         trials += [t[2] for t in tried if not t[2].accepted]
         if not passing and later and current is s.base:
             pending, later = later, []
@@ -216,6 +221,9 @@ def _add_greedily(s: TrialSetting, ranked: Ranked) -> tuple[Model, torch.Tensor,
         close = [t for t in passing if t[2].error_after <= max(SIMPLER_WITHIN * best_err, floor)]
         chosen = min(close, key=lambda t: (KIND_COMPLEXITY.get(t[2].kind, 1), t[2].error_after))
         trials.append(chosen[2])
+        for t in close:  # a more complex kind that predicts as well: the two are indistinguishable on these data
+            if KIND_COMPLEXITY.get(t[2].kind, 1) > KIND_COMPLEXITY.get(chosen[2].kind, 1):
+                aside[id(t[0])] = _indistinguishable_text(t[2], chosen[2], best_err, floor)
         current, e_current = chosen[3], chosen[4]
         if chosen[2].kind == "PeriodicForcing" and "phases" in chosen[2].effect:
             e_current = torch.full_like(s.e_base, chosen[2].error_after)  # measured after the warm-up window
@@ -225,15 +233,33 @@ def _add_greedily(s: TrialSetting, ranked: Ranked) -> tuple[Model, torch.Tensor,
                 if t is not chosen:
                     t[2].accepted = False
                     t[2].reason = (
-                        f"passes alone, but {chosen[2].label} (the simplest kind at the null level or the best) "
-                        f"already brings the held-out MSE to {float(e_current.mean()):.3g}, at the null level "
-                        f"(≤ {floor:.3g}): " + t[2].reason
+                        aside[id(t[0])]
+                        if id(t[0]) in aside
+                        else (
+                            f"passes alone, but {chosen[2].label} (the simplest kind at the null level or the best) "
+                            f"already brings the held-out MSE to {float(e_current.mean()):.3g}, at the null level "
+                            f"(≤ {floor:.3g}): " + t[2].reason
+                        )
                     )
                     trials.append(t[2])
             break
         # the others that passed alone are tried again on top of the chosen one
         pending = [(t[0], t[1]) for t in passing if t is not chosen]
     return current, e_current, trials
+
+
+def _indistinguishable_text(other: Trial, chosen: Trial, best: float, floor: float) -> str:
+    """Why `other`, a more complex kind that passed alone, was set aside for the simpler `chosen` one."""
+    within = (
+        f"both at the null level (≤ {floor:.3g})"
+        if max(other.error_after, chosen.error_after) <= floor
+        else f"within {SIMPLER_WITHIN:g}× of the best, {best:.3g}"
+    )
+    return (
+        f"passes alone, but predicts held-out data as well as the simpler {chosen.label} (held-out MSE "
+        f"{other.error_after:.3g} against {chosen.error_after:.3g}, {within}): the two kinds are indistinguishable "
+        f"on these data, and the simpler one ({chosen.kind}) is named"
+    )
 
 
 def null_floor(s: TrialSetting) -> float:

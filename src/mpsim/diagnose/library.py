@@ -28,6 +28,13 @@ NEEDS_GRAPH = ("DiffusiveCoupling", "SineCoupling", "CosineCoupling")
 #: model's adaptive integrator stiff and the multiple-shooting fit rough (measured on scorecard case d, clean data:
 #: ε = 0.12 % of the spread gave μ 6.5 % low, ε = 1 % gave 0.1 %)
 DRY_MIN_SCALE = 0.01
+#: dry friction reverses with the sign of its source: a source with fewer than this share of its samples beyond −ε
+#: (or beyond +ε, whichever side is the smaller) never shows the reversal, and −c·tanh(s/ε) is a constant (or a
+#: one-sided saturation) there, not friction (issue 61: a constant term on an always-positive position was named
+#: "dry friction" of that position)
+DRY_MIN_SIGN_SHARE = 0.01
+#: below this spread (standard deviation) of tanh(s/ε) over the samples, −c·tanh(s/ε) is a constant on the data
+DRY_CONSTANT_SPREAD = 0.01
 
 
 @dataclass
@@ -228,8 +235,14 @@ def build_library(
     delays: list[float] | None = None,
     kinds: tuple[str, ...] = DEFAULT_KINDS,
     phased: dict[int, float] | None = None,
+    notes: list[str] | None = None,
+    one_signed_friction: bool = False,
 ) -> list[Candidate]:
     """Evaluate every candidate's basis on `data`.
+
+    A dry-friction candidate whose source never changes sign on `data` beyond its smoothing scale
+    (`one_signed_sources`) is left out: there it equals a constant, which the simpler Bias is (no smoothing scale),
+    and a term of a state that never reverses is not friction. Why is appended to `notes`.
 
     Args:
         data: the observed trajectories (uniform time grid for delays).
@@ -239,6 +252,9 @@ def build_library(
             per-recording periodogram); one candidate per distinct frequency.
         delays: delays of the feedback candidates (multiples of the sampling step).
         kinds: effect class names to include.
+        notes: receives one sentence per candidate left out because a simpler kind equals it on these data.
+        one_signed_friction: keep dry friction of a one-signed source (the columns of kinds a model already
+            expresses, projected out, not named).
     """
     d = data.state_dim
     has_edges = data.edge_index.numel() > 0 and bool((data.edge_index >= 0).any())
@@ -261,8 +277,13 @@ def build_library(
             # [D] the smoothing scale: what the records resolve of each variable, never sharper than DRY_MIN_SCALE
             spread = data.x.double().reshape(-1, d).std(0)
             eps = torch.maximum(resolution(data.x), DRY_MIN_SCALE * spread)
+            one_signed = {} if one_signed_friction else one_signed_sources(data, eps)
             for s in range(d):
                 scale = float(eps[s])
+                if s in one_signed:
+                    if notes is not None:
+                        notes.append(one_signed_sources_text(data.state_names[s], scale, one_signed[s]))
+                    continue
                 effect = cls(0.0, target=0, source=s, scale=scale).bind(data.state_names)
                 out.append(Candidate(kind, s, {"scale": scale}, step_average(evaluate_effect(effect, data))))
         elif kind == "DelayedFeedback":
@@ -279,6 +300,49 @@ def build_library(
                 effect = cls(0.0, target=0, source=s).bind(data.state_names)
                 out.append(Candidate(kind, s, {}, step_average(evaluate_effect(effect, data))))
     return out
+
+
+def one_signed_sources(
+    data: Trajectories,
+    eps: torch.Tensor,  # [D] dry friction's smoothing scale per state variable
+) -> dict[int, dict[str, float]]:
+    """The state variables that do not show both signs on `data` beyond ±ε: fewer than `DRY_MIN_SIGN_SHARE` of
+    their finite samples on the smaller side. {index: min, max, that share, the spread of tanh(s/ε)}."""
+    d = data.state_dim
+    x = data.x.double().reshape(-1, d)  # [S, D] every sample
+    finite = torch.isfinite(x)  # [S, D]
+    count = finite.sum(0).clamp(min=1)  # [D]
+    above = ((x > eps) & finite).sum(0) / count  # [D] share beyond +ε
+    below = ((x < -eps) & finite).sum(0) / count  # [D] share beyond −ε
+    minority = torch.minimum(above, below)  # [D]
+    big = torch.finfo(torch.float64).max
+    lo = torch.where(finite, x, torch.full_like(x, big)).amin(0)  # [D]
+    hi = torch.where(finite, x, torch.full_like(x, -big)).amax(0)  # [D]
+    th = torch.where(finite, torch.tanh(x / eps), torch.zeros_like(x))  # [S, D]
+    mean = th.sum(0) / count  # [D]
+    th_std = ((th - mean).pow(2) * finite).sum(0).div(count).sqrt()  # [D] spread of tanh(s/ε)
+    return {
+        s: {"min": float(lo[s]), "max": float(hi[s]), "minority": float(minority[s]), "tanh_std": float(th_std[s])}
+        for s in range(d)
+        if bool(finite[:, s].any()) and float(minority[s]) < DRY_MIN_SIGN_SHARE
+    }
+
+
+def one_signed_sources_text(name: str, scale: float, stats: dict[str, float]) -> str:
+    """Why DryFriction(`name`) was left out of the library (`stats`: one entry of `one_signed_sources`)."""
+    side = "below −ε" if stats["max"] > -stats["min"] else "above +ε"
+    where = (
+        f"where −c·tanh({name}/ε) is a constant (its spread over the samples {stats['tanh_std']:.2g}) and the "
+        "two kinds are indistinguishable: Bias (a constant, fewer parameters, no smoothing scale) covers it"
+        if stats["tanh_std"] < DRY_CONSTANT_SPREAD
+        else f"where −c·tanh({name}/ε) is a one-sided saturation, not friction, which reverses with the sign of "
+        "its source"
+    )
+    return (
+        f"DryFriction({name}) not considered: {name} never changes sign on these data beyond its smoothing scale "
+        f"ε = {scale:.3g} (min {stats['min']:.4g}, max {stats['max']:.4g}; {stats['minority']:.1%} of samples "
+        f"{side}), {where}"
+    )
 
 
 def dominant_frequency(

@@ -86,7 +86,9 @@ def nuisance_columns(model: Model, data: Trajectories, represented: tuple[str, .
         parts.append(own)
     n_shared = sum(p.shape[-1] for p in parts)
     if represented:
-        cols = torch.cat([c.basis for c in build_library(data, {}, [], represented)], dim=-1)  # [B, T-1, N, K]
+        cols = torch.cat(
+            [c.basis for c in build_library(data, {}, [], represented, one_signed_friction=True)], dim=-1
+        )  # [B, T-1, N, K]
         parts.append(cols.unsqueeze(-2).expand(-1, -1, -1, data.state_dim, -1))
     if isinstance(model, ExpressesEffects) and model.represents_polynomials:
         cols = monomial_features(data.x.double(), model.represents_polynomials)  # [B, T, N, K]

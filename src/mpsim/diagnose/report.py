@@ -144,6 +144,8 @@ def _screen_section(screen: dict[str, Any]) -> list[str]:
         f"Rows searched: {', '.join(screen['searched_rows'])} (kinematic rows are "
         "not searched unless `diagnose.targets` names them).",
         "",
+        *[f"- {note}" for note in screen.get("equivalent_forms", [])],
+        *([""] if screen.get("equivalent_forms") else []),
         "| state | residual RMS | null residual RMS | null level | estimated noise |",
         "|---|---|---|---|---|",
     ]

@@ -146,7 +146,8 @@ def find_effects(
     omegas, spectra = _forcing_omegas(res, data) if "PeriodicForcing" in kinds else ({}, {})
     phased = _phased_omegas(res, data, targets) if "PeriodicForcing" in kinds else {}
     represented, undecidable, kinds = _split_kinds(model, kinds)
-    library = build_library(data, omegas, delays, kinds, phased)
+    equivalent: list[str] = []  # candidates left out: a simpler kind equals them on these data
+    library = build_library(data, omegas, delays, kinds, phased, notes=equivalent)
     base, n_shared = nuisance_columns(model, data, represented)
     noise = noise_level(data.x, res.r * res.dt[None, :, None, None])
     null_rms, null_level = _null_check(
@@ -171,6 +172,7 @@ def find_effects(
         not_considered=list(undecidable),
         searched=[names[d] for d in searched],
         phased_omegas=phased,
+        equivalent_forms=equivalent,
     )
     _refit_named(diag, library, res, keep, base, n_shared, model, data, min_gain)
     return diag
