@@ -2,7 +2,8 @@
 # Residual-loop scorecard (issue 11): every case is simulated by a generator in the repo, the nominal model is a
 # `model=equations` spec (examples/diagnose_cases/) or a built-in, and `mpsim diagnose fix=true` runs on it.
 # Prints one table: case, truth, verdict, effect named, coefficient error, held-out error before → after, wall time.
-#   CASES="a_damped a_undamped b_vdp c_kuramoto_lag d_chain_friction e_pendulum_sin2 case1 case2 case2_clean clean" (default: all)
+#   CASES="a_damped a_undamped b_vdp c_kuramoto_lag d_chain_friction e_pendulum_sin2 f_kuramoto_harm2 case1 case2 case2_clean
+#         clean" (default: all)
 #   SEEDS / NOISES: data seeds × measurement-noise levels of the clean runs (false-positive rate)
 #   JOBS: runs at once (default 1). Each run (a case, or one clean seed × noise) keeps its data, checkpoints and
 #         log in its own folder, so runs never share a file; give each a core (the runs are single-threaded).
@@ -13,10 +14,10 @@ C=examples/diagnose_cases
 SEEDS=${SEEDS:-"0 1 2 3 4"}
 NOISES=${NOISES:-"0 0.01"}
 JOBS=${JOBS:-1}
-CASES=${CASES:-"a_damped a_undamped b_vdp c_kuramoto_lag d_chain_friction e_pendulum_sin2 case1 case2 case2_clean clean"}
+CASES=${CASES:-"a_damped a_undamped b_vdp c_kuramoto_lag d_chain_friction e_pendulum_sin2 f_kuramoto_harm2 case1 case2 case2_clean clean"}
 source "$(dirname "$0")/lib.sh"
 check_choices diagnose_cases.sh CASES a_damped a_undamped b_vdp c_kuramoto_lag d_chain_friction e_pendulum_sin2 \
-  case1 case2 case2_clean clean
+  f_kuramoto_harm2 case1 case2 case2_clean clean
 check_counts diagnose_cases.sh JOBS
 SEEDS=${SEEDS//,/ }; NOISES=${NOISES//,/ }
 mkdir -p "$OUT"
@@ -103,6 +104,8 @@ has b_vdp && launch spec_case b_vdp b_vdp_data.yaml b_vdp_model.yaml \
   'system.effects=[{_target_: mpsim.effects.PeriodicForcing, amplitude: 1.5, omega: 3.1, phase: 0.0, target: v, random_phase: true, phase_seed: 0}]'
 has e_pendulum_sin2 && launch spec_case e_pendulum_sin2 e_pendulum_sin2_data.yaml e_pendulum_sin2_model.yaml
 has c_kuramoto_lag && launch spec_case c_kuramoto_lag c_kuramoto_lag_data.yaml c_kuramoto_lag_model.yaml
+has f_kuramoto_harm2 && launch spec_case f_kuramoto_harm2 f_kuramoto_harm2_data.yaml f_kuramoto_harm2_model.yaml \
+  'system.effects=[{_target_: mpsim.effects.SineCoupling, coef: 0.25, target: theta, harmonic: 2}]'
 has case1 && launch case1
 if has clean; then
   for noise in $NOISES; do
@@ -115,7 +118,8 @@ python - "$OUT" <<'PY'
 import json, sys
 from pathlib import Path
 out = Path(sys.argv[1])
-# what each case holds: (kind, target row, reported key, true value); None: nothing to name
+# what each case holds: (kind, target row, reported key, true value, bound); None: nothing to name. A coupling's
+# harmonic k > 1 is part of its kind: "SineCoupling(k=2)"
 TRUTH = {
     "a_damped": ("LinearDamping", "v", "coef", 0.3, 0.10),
     "a_undamped": None,
@@ -123,10 +127,18 @@ TRUTH = {
     "c_kuramoto_lag": ("CosineCoupling", "theta", "coef", -0.4 * __import__("math").sin(0.25), 0.10),
     "d_chain_friction": ("DryFriction", "v", "coef", 0.5, 0.10),
     "e_pendulum_sin2": "unexplained",
+    "f_kuramoto_harm2": ("SineCoupling(k=2)", "theta", "coef", 0.25, 0.10),
     "case1": ("LinearDamping", "omega", "coef", 0.2, 0.10),
     "case2": ("PeriodicForcing", "x", "omega", 20.0, 0.03),
 }
 rows, clean = [], []
+
+
+def kind_of(t):  # a named effect's kind, with its harmonic when k > 1 ("SineCoupling(k=2)")
+    k = (t.get("effect") or {}).get("harmonic", 1)
+    return t["kind"] if k == 1 else f"{t['kind']}(k={k})"
+
+
 for d in sorted(out.rglob("diagnose/diagnosis.json")):
     case = d.parent.parent.relative_to(out).as_posix()
     r = json.loads(d.read_text())
@@ -150,8 +162,9 @@ for d in sorted(out.rglob("diagnose/diagnosis.json")):
         ok = ok and r["verdict"] == "unexplained structured residual"
     else:
         kind, row, key, value, bound = truth
-        truth_text = f"{kind}({row}) {key} {value:.4g}"
-        hit = [t for t in named if t["kind"] == kind and t["label"].startswith(f"d{row}/dt")]
+        base, _, k = kind.partition("(")
+        truth_text = f"{base}({row}{', ' + k.rstrip(')') if k else ''}) {key} {value:.4g}"
+        hit = [t for t in named if kind_of(t) == kind and t["label"].startswith(f"d{row}/dt")]
         if hit:
             rel = abs(hit[0]["values"][key] - value) / abs(value)
             coef_err = f"{rel:.1%}"

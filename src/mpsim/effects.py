@@ -17,8 +17,8 @@ Coefficients are in the data's raw units per unit time.
 | `Bias(c)` | c |
 | `PeriodicForcing(A, ω, φ)` | A·sin(ω t + φ)  (`random_phase=true`: A·sin(ω t + φ + φ_b), φ_b per trajectory) |
 | `DiffusiveCoupling(c)` | c·Σ_j A_ij (s_j − s_i) |
-| `SineCoupling(c)` | c·Σ_j A_ij sin(s_j − s_i)  (phase oscillators) |
-| `CosineCoupling(c)` | c·Σ_j A_ij cos(s_j − s_i)  (with `SineCoupling`: a phase lag α) |
+| `SineCoupling(c, k)` | c·Σ_j A_ij sin(k(s_j − s_i))  (phase oscillators; `harmonic` k = 1 by default) |
+| `CosineCoupling(c, k)` | c·Σ_j A_ij cos(k(s_j − s_i))  (with `SineCoupling`: a phase lag α; k as above) |
 | `DelayedFeedback(c, τ)` | c·s(t − τ) |
 
 with s the source variable of node i and A the coupling graph. A phase lag in Kuramoto coupling is the pair
@@ -271,36 +271,90 @@ class DiffusiveCoupling(Effect):
         return f"{float(self.coef.detach()[0]):+.4g}·Σ_j({s}_j − {s}_i)"
 
 
-def _phase_sum(fn, s: torch.Tensor, ctx: EffectContext) -> torch.Tensor:  # s: [B, N] source values
-    """[B, N, 1] Σ_j A_ij fn(s_j − s_i) over each node's in-neighbours (one pass over the batched edges)."""
+def _phase_sum(fn, s: torch.Tensor, ctx: EffectContext, harmonic: int = 1) -> torch.Tensor:  # s: [B, N] sources
+    """[B, N, 1] Σ_j A_ij fn(k·(s_j − s_i)) over each node's in-neighbours (one pass over the batched edges)."""
     b, n = s.shape
     flat = s.reshape(b * n)
-    diff = fn(flat[ctx.graph.src] - flat[ctx.graph.dst])  # [E'] sender − receiver
-    return segment_sum(diff, ctx.graph.dst, b * n).reshape(b, n, 1)
+    diff = flat[ctx.graph.src] - flat[ctx.graph.dst]  # [E'] sender − receiver
+    term = fn(diff if harmonic == 1 else harmonic * diff)  # [E']
+    return segment_sum(term, ctx.graph.dst, b * n).reshape(b, n, 1)
 
 
-class SineCoupling(Effect):
-    """c·Σ_j A_ij sin(s_j − s_i): Kuramoto-type coupling of phases."""
+def _harmonic(value: Any, effect: str) -> int:
+    """k of a coupling's harmonic sin/cos(k·(s_j − s_i)): an integer ≥ 1 (an integral float from a config too)."""
+    whole = isinstance(value, int) or (isinstance(value, float) and value.is_integer())
+    if isinstance(value, bool) or not whole or value < 1:
+        raise ConfigError(
+            f"{effect}.harmonic must be an integer >= 1 (k of sin/cos(k·(s_j − s_i)); 1 is the plain coupling); "
+            f"got {value!r}."
+        )
+    return int(value)
+
+
+class _PhaseCoupling(Effect):
+    """c·Σ_j A_ij fn(k·(s_j − s_i)), the k-th harmonic of a coupling of phases (k = 1: the plain coupling).
+
+    Args:
+        harmonic: k ≥ 1 (fixed, not trained).
+    """
+
+    _symbol: str  # sin or cos
+
+    def __init__(
+        self,
+        coef: float | Sequence[float] = 0.0,
+        target: str | int = 0,
+        source: str | int | None = None,
+        learnable: bool = True,
+        harmonic: int = 1,
+    ) -> None:
+        super().__init__(coef, target, source, learnable)
+        self.harmonic = _harmonic(harmonic, type(self).__name__)
+        if self.harmonic > 1:
+            self.basis = (f"sum_j {self._symbol}({self.harmonic}(s_j - s_i))",)
+
+    @property
+    def name(self) -> str:
+        return type(self).__name__ if self.harmonic == 1 else f"{type(self).__name__}(k={self.harmonic})"
+
+    def features(self, t, x, ctx):
+        return _phase_sum(self._wave, x[..., self.source], ctx, self.harmonic)
+
+    def _wave(self, angle: torch.Tensor) -> torch.Tensor:  # angle: [E'] k·(s_j − s_i) per edge
+        raise NotImplementedError
+
+    def _formula(self, s):
+        k = "" if self.harmonic == 1 else f"{self.harmonic}·"
+        inside = f"{s}_j − {s}_i" if self.harmonic == 1 else f"({s}_j − {s}_i)"
+        return f"{float(self.coef.detach()[0]):+.4g}·Σ_j {self._symbol}({k}{inside})"
+
+    def config(self) -> dict[str, Any]:
+        cfg = super().config()
+        return cfg if self.harmonic == 1 else {**cfg, "harmonic": self.harmonic}  # k = 1: the key is left out
+
+    def extra_repr(self) -> str:
+        return super().extra_repr() + ("" if self.harmonic == 1 else f", harmonic={self.harmonic}")
+
+
+class SineCoupling(_PhaseCoupling):
+    """c·Σ_j A_ij sin(k·(s_j − s_i)): Kuramoto-type coupling of phases (`harmonic` k, default 1)."""
 
     basis = ("sum_j sin(s_j - s_i)",)
+    _symbol = "sin"
 
-    def features(self, t, x, ctx):
-        return _phase_sum(torch.sin, x[..., self.source], ctx)
-
-    def _formula(self, s):
-        return f"{float(self.coef.detach()[0]):+.4g}·Σ_j sin({s}_j − {s}_i)"
+    def _wave(self, angle):
+        return torch.sin(angle)
 
 
-class CosineCoupling(Effect):
-    """c·Σ_j A_ij cos(s_j − s_i): with `SineCoupling`, a phase lag (frustration) α in Kuramoto coupling."""
+class CosineCoupling(_PhaseCoupling):
+    """c·Σ_j A_ij cos(k·(s_j − s_i)): with `SineCoupling`, a phase lag (frustration) α in Kuramoto coupling
+    (`harmonic` k, default 1)."""
 
     basis = ("sum_j cos(s_j - s_i)",)
+    _symbol = "cos"
 
-    def features(self, t, x, ctx):
-        return _phase_sum(torch.cos, x[..., self.source], ctx)
-
-    def _formula(self, s):
-        return f"{float(self.coef.detach()[0]):+.4g}·Σ_j cos({s}_j − {s}_i)"
+    def _wave(self, angle):
+        return torch.cos(angle)
 
 
 class PeriodicForcing(Effect):

@@ -71,12 +71,14 @@ def _time_integral(f: torch.Tensor, dt: float) -> torch.Tensor:  # f: [B, T]
 
 
 def test_readme_lists_every_case_and_the_specs_fit_together():
-    assert set(COMMANDS) == {"a_damped", "a_undamped", "b_vdp", "c_kuramoto_lag", "d_chain_friction", "e_pendulum_sin2"}
-    for stem in ("a_chain", "b_vdp", "c_kuramoto_lag", "d_chain_friction", "e_pendulum_sin2"):
+    assert set(COMMANDS) == {
+        "a_damped", "a_undamped", "b_vdp", "c_kuramoto_lag", "d_chain_friction", "e_pendulum_sin2", "f_kuramoto_harm2",
+    }  # fmt: skip
+    for stem in ("a_chain", "b_vdp", "c_kuramoto_lag", "d_chain_friction", "e_pendulum_sin2", "f_kuramoto_harm2"):
         data, model = load_spec_file(CASES / f"{stem}_data.yaml"), load_spec_file(CASES / f"{stem}_model.yaml")
         assert parse_spec(model, extra_keys=SYSTEM_KEYS).states == parse_spec(data, extra_keys=SYSTEM_KEYS).states
         assert f"model.spec=$C/{stem}_model.yaml" in (CASES / "README.md").read_text()
-        if stem in ("a_chain", "b_vdp", "d_chain_friction"):  # the effect comes from system.effects only
+        if stem in ("a_chain", "b_vdp", "d_chain_friction", "f_kuramoto_harm2"):  # from system.effects only
             assert data["equations"] == model["equations"]
         else:  # the effect is written into the data's equations
             assert data["equations"] != model["equations"]
@@ -205,3 +207,20 @@ def test_e_sin2_torque_is_outside_the_library():
     basis = torch.stack(columns, dim=1)
     fit = basis @ torch.linalg.lstsq(basis, torque.reshape(-1, 1)).solution
     assert float((torque.reshape(-1, 1) - fit).norm() / torque.norm()) > 0.5
+
+
+def test_f_second_harmonic_leaves_the_nominal_model_and_keeps_slipping():
+    system, data = _data("f_kuramoto_harm2")
+    (effect,) = system.effects
+    assert type(effect).__name__ == "SineCoupling" and effect.harmonic == 2 and float(effect.coef.detach()) == 0.25
+    nominal = _nominal("f_kuramoto_harm2", "f_kuramoto_harm2").simulate(data.x[:, 0], data.t).x
+    assert float((data.x[:, -1] - nominal[:, -1]).abs().max()) > 0.5  # rad: the second harmonic shifts the rhythm
+    theta = data.x[..., 0]  # [B, T, 8] on a ring
+    slip = torch.sin(2 * (theta.roll(-1, dims=2) - theta)).std(dim=1)  # [B, 8] over time, per edge
+    assert float(slip.mean()) > 0.1  # sin 2(θ_j − θ) varies: not a per-node constant a shift of w could absorb
+    # the term the data add to the nominal equation is 0.25·Σ_j sin(2(θ_j − θ_i)) over the ring's neighbours
+    x = data.x[:, 0]  # [B, 8, 1]
+    extra = system.rhs(0.0, x) - _nominal("f_kuramoto_harm2", "f_kuramoto_harm2").rhs(0.0, x)  # [B, 8, 1]
+    th = x[..., 0]
+    pair = torch.stack([th.roll(1, dims=1), th.roll(-1, dims=1)], dim=-1) - th[..., None]  # [B, 8, 2]
+    assert torch.allclose(extra[..., 0], 0.25 * torch.sin(2 * pair).sum(-1))

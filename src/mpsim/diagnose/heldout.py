@@ -27,7 +27,7 @@ import torch
 from mpsim.data.trajectories import Trajectories
 from mpsim.diagnose.findings import Diagnosis, Finding
 from mpsim.diagnose.library import Candidate
-from mpsim.diagnose.params import KIND_COMPLEXITY, DiagnoseParams
+from mpsim.diagnose.params import DiagnoseParams
 from mpsim.diagnose.shooting import horizon_from_data, null_data, own_parameters, shooting_fit, window_error
 from mpsim.diagnose.trial import NOT_TESTED, Trial, TrialSetting, try_candidate
 from mpsim.errors import ConfigError, did_you_mean
@@ -181,13 +181,16 @@ def _ranked(diag: Diagnosis, library: list[Candidate], params: DiagnoseParams) -
     `min_gain`), not which kind: on data stepped by another integrator a delayed copy of the velocity can
     explain more of the one-step residual than the damping it imitates, and only the held-out trial tells them
     apart. So every kind gets a trial, at most one per (kind, row) — the number of trials is bounded by kinds
-    × searched rows. A delayed copy of a state imitates many terms within a step and needs the slow delay
+    × searched rows. Each harmonic k of a phase coupling counts as a kind of its own (`Candidate.family`): the
+    second harmonic of a sin coupling gets its trial even where the first explains more of the one-step
+    residual. A delayed copy of a state imitates many terms within a step and needs the slow delay
     integrator: delayed candidates are tried only when none of the others passes."""
     labels = {c.label(diag.state_names): c for c in library}
-    best: dict[tuple[str, int], Finding] = {}
+    best: dict[tuple[tuple[str, int], int], Finding] = {}  # one per (kind and harmonic, row)
     for f in sorted(diag.findings, key=lambda f: (not f.accepted, not f.selected, -f.gain)):
-        if f.label.split(": ", 1)[1] in labels and (f.selected or f.alone >= params.min_gain):
-            best.setdefault((f.kind, f.target), f)
+        cand = labels.get(f.label.split(": ", 1)[1])
+        if cand is not None and (f.selected or f.alone >= params.min_gain):
+            best.setdefault((cand.family, f.target), f)
     plain = [f for f in best.values() if f.kind != "DelayedFeedback"]
     delayed = [f for f in best.values() if f.kind == "DelayedFeedback"]
     pending = [(f, labels[f.label.split(": ", 1)[1]]) for f in plain]
@@ -219,7 +222,7 @@ def _add_greedily(s: TrialSetting, ranked: Ranked) -> tuple[Model, torch.Tensor,
             break
         best_err = min(t[2].error_after for t in passing)
         close = [t for t in passing if t[2].error_after <= max(SIMPLER_WITHIN * best_err, floor)]
-        chosen = min(close, key=lambda t: (KIND_COMPLEXITY.get(t[2].kind, 1), t[2].error_after))
+        chosen = min(close, key=lambda t: (t[1].complexity, t[2].error_after))  # k = 1 before higher harmonics
         trials.append(chosen[2])
         for t in close:  # a more complex kind that predicts as well: the two are indistinguishable on these data
             if KIND_COMPLEXITY.get(t[2].kind, 1) > KIND_COMPLEXITY.get(chosen[2].kind, 1):

@@ -18,11 +18,14 @@ from mpsim import effects as fx
 from mpsim.data.trajectories import Trajectories
 from mpsim.diagnose.noise import resolution
 from mpsim.diagnose.params import DEFAULT_KINDS as _KINDS
+from mpsim.diagnose.params import HARMONICS, complexity
 from mpsim.effects import EffectContext
 
 #: effect kinds of the default library, by class name (one list: `mpsim.diagnose.params`)
 DEFAULT_KINDS = tuple(_KINDS)
 NEEDS_GRAPH = ("DiffusiveCoupling", "SineCoupling", "CosineCoupling")
+#: couplings of phases offered at every harmonic k of `params.HARMONICS`: sin/cos(k(θ_j − θ_i))
+HARMONIC_KINDS = ("SineCoupling", "CosineCoupling")
 #: dry friction's sign(v) is smoothed over the data's velocity resolution (`noise.resolution`: noise level or
 #: quantisation step), but never over less than this share of the velocity's spread: a sharper tanh makes the
 #: model's adaptive integrator stiff and the multiple-shooting fit rough (measured on scorecard case d, clean data:
@@ -44,7 +47,8 @@ class Candidate:
     Attributes:
         kind: effect class name in `mpsim.effects`.
         source: source state index (None for terms without a source: bias, forcing).
-        params: fixed constructor arguments (omega of a forcing, delay of a feedback).
+        params: fixed constructor arguments (omega of a forcing, delay of a feedback, harmonic k > 1 of a
+            coupling: absent for k = 1).
         features: [B, T−1, N, K] step-averaged basis functions.
     """
 
@@ -52,6 +56,21 @@ class Candidate:
     source: int | None
     params: dict[str, Any] = field(default_factory=dict)
     features: torch.Tensor | None = None
+
+    @property
+    def harmonic(self) -> int:
+        """k of a coupling's harmonic sin/cos(k(θ_j − θ_i)) (1 for every other candidate)."""
+        return int(self.params.get("harmonic", 1))
+
+    @property
+    def family(self) -> tuple[str, int]:
+        """What counts as one kind where the loop keeps one candidate per kind: (kind, harmonic)."""
+        return self.kind, self.harmonic
+
+    @property
+    def complexity(self) -> float:
+        """The kind's complexity (`params.complexity`: higher harmonics are more complex)."""
+        return complexity(self.kind, self.harmonic)
 
     @property
     def basis(self) -> torch.Tensor:
@@ -67,6 +86,8 @@ class Candidate:
             extra = f"ω={self.params['omega']:.4g}" + (", a phase per recording" if self.params.get("phased") else "")
         if "delay" in self.params:
             extra = f"τ={self.params['delay']:.4g}"
+        if self.harmonic > 1:
+            extra = f"k={self.harmonic}"
         inside = ", ".join(p for p in (src, extra) if p)
         name = f"{self.kind}({inside})" if inside else self.kind
         return name if target is None else f"d{state_names[target]}/dt: {name}"
@@ -90,7 +111,7 @@ class Candidate:
         cfg["coef"] = coef[0]
         if self.source is not None:
             cfg["source"] = state_names[self.source]
-        for key in ("delay", "scale"):
+        for key in ("delay", "scale", "harmonic"):
             if key in self.params:
                 cfg[key] = self.params[key]
         return cfg
@@ -237,6 +258,7 @@ def build_library(
     phased: dict[int, float] | None = None,
     notes: list[str] | None = None,
     one_signed_friction: bool = False,
+    harmonics: tuple[int, ...] = HARMONICS,
 ) -> list[Candidate]:
     """Evaluate every candidate's basis on `data`.
 
@@ -255,6 +277,7 @@ def build_library(
         notes: receives one sentence per candidate left out because a simpler kind equals it on these data.
         one_signed_friction: keep dry friction of a one-signed source (the columns of kinds a model already
             expresses, projected out, not named).
+        harmonics: the harmonics k of the phase couplings (`HARMONIC_KINDS`), one candidate per k and source.
     """
     d = data.state_dim
     has_edges = data.edge_index.numel() > 0 and bool((data.edge_index >= 0).any())
@@ -295,6 +318,12 @@ def build_library(
                 past = delayed(data.x.double(), m)
                 for s in range(d):
                     out.append(Candidate(kind, s, {"delay": m * dt}, step_average(past[..., s : s + 1])))
+        elif kind in HARMONIC_KINDS:
+            for s in range(d):
+                for k in harmonics:  # k = 1 keeps its old form: no harmonic key, the same label and config
+                    extra = {} if k == 1 else {"harmonic": k}
+                    effect = cls(0.0, target=0, source=s, **extra).bind(data.state_names)
+                    out.append(Candidate(kind, s, extra, step_average(evaluate_effect(effect, data))))
         else:
             for s in range(d):
                 effect = cls(0.0, target=0, source=s).bind(data.state_names)

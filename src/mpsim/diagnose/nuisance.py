@@ -86,9 +86,10 @@ def nuisance_columns(model: Model, data: Trajectories, represented: tuple[str, .
         parts.append(own)
     n_shared = sum(p.shape[-1] for p in parts)
     if represented:
-        cols = torch.cat(
-            [c.basis for c in build_library(data, {}, [], represented, one_signed_friction=True)], dim=-1
-        )  # [B, T-1, N, K]
+        # a represented coupling kind projects out its first harmonic, as before the library had harmonics (its
+        # higher ones are not searched either: the kind is left out of the search whole)
+        lib = build_library(data, {}, [], represented, harmonics=(1,), one_signed_friction=True)
+        cols = torch.cat([c.basis for c in lib], dim=-1)  # [B, T-1, N, K]
         parts.append(cols.unsqueeze(-2).expand(-1, -1, -1, data.state_dim, -1))
     if isinstance(model, ExpressesEffects) and model.represents_polynomials:
         cols = monomial_features(data.x.double(), model.represents_polynomials)  # [B, T, N, K]

@@ -24,6 +24,18 @@ KIND_COMPLEXITY = {
     "DelayedFeedback": 3,
 }
 DEFAULT_KINDS = list(KIND_COMPLEXITY)
+#: harmonics k of the phase couplings in the library: sin/cos(k(θ_j − θ_i)) for each k, per source state. Each
+#: harmonic counts as a kind of its own where the loop keeps one candidate per kind (the screen's best of each kind,
+#: the held-out stage's one trial per kind and row), so a second harmonic is never crowded out by the first.
+HARMONICS = (1, 2, 3)
+#: harmonics are the simpler the lower: k adds HARMONIC_STEP × (k − 1) to its kind's complexity (k = 3 stays below
+#: a drive's 2, and every first-harmonic kind of complexity 1 is simpler than any higher harmonic)
+HARMONIC_STEP = 0.25
+
+
+def complexity(kind: str, harmonic: int = 1) -> float:
+    """A candidate's complexity: its kind's (`KIND_COMPLEXITY`, 1 if not listed), plus its harmonic's above k = 1."""
+    return KIND_COMPLEXITY.get(kind, 1) + HARMONIC_STEP * (harmonic - 1)
 
 
 @dataclass
@@ -46,8 +58,8 @@ class DiagnoseParams:
             first. The held-out trials of a model judged with its network (or equations) frozen are not capped by
             it: they take the best candidate of each effect kind on each searched row — the screen's BIC-selected
             one, else the one of that kind that explains most of the row alone if that is ≥ min_gain — at most one
-            per kind and row (delayed feedback only when no other kind passes), so the one-step fit never decides
-            which kind the held-out test sees.
+            per kind and row (each harmonic of a phase coupling a kind; delayed feedback only when no other kind
+            passes), so the one-step fit never decides which kind the held-out test sees.
         margin: a candidate is named only if its held-out multi-step error gain exceeds the gain the same fit
             achieves on null data plus `margin` standard errors (paired over held-out trajectories; Student's t at
             the level `margin` has for a Gaussian, as the standard error comes from those few trajectories), and

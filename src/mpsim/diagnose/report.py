@@ -173,6 +173,12 @@ def _screen_section(screen: dict[str, Any]) -> list[str]:
             "that explains most of its row on its own (share and coefficients fitted alone), listed so that the "
             "held-out judgement can test every kind, not only the one the one-step fit preferred.",
         ]
+    if any((f.get("effect") or {}).get("harmonic", 1) > 1 for f in screen["candidates_considered"]):
+        lines += [
+            "",
+            "k = 2, 3 in a coupling's name: its second or third harmonic, Σ_j sin(k(θ_j − θ_i)) (cos likewise); "
+            "each harmonic counts as a kind of its own.",
+        ]
     return lines
 
 

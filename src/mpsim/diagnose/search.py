@@ -252,12 +252,12 @@ def _search_rows(
 
 def _best_of_kinds(library: list[Candidate], alone: list[float], selected: list[int]) -> list[int]:
     """Per effect kind without a selected candidate, the candidate of that kind that explains most alone (none
-    for a kind whose candidates explain nothing)."""
-    taken = {library[g].kind for g in selected}
-    best: dict[str, int] = {}
+    for a kind whose candidates explain nothing). Each harmonic of a coupling counts as a kind (`family`)."""
+    taken = {library[g].family for g in selected}
+    best: dict[tuple[str, int], int] = {}
     for g, c in enumerate(library):
-        if c.kind not in taken and alone[g] > 0 and (c.kind not in best or alone[g] > alone[best[c.kind]]):
-            best[c.kind] = g
+        if c.family not in taken and alone[g] > 0 and (c.family not in best or alone[g] > alone[best[c.family]]):
+            best[c.family] = g
     return sorted(best.values(), key=lambda g: -alone[g])
 
 

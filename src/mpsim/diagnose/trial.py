@@ -187,7 +187,8 @@ def _reported_values(
     k = len(fit.values) - sum(p.numel() for p in own_parameters(trial))
     values, interval = reported(trial.effects[-1], fit.values[:k], fit.stderr[:k])
     derived = ""
-    if cand.kind == "CosineCoupling" and math.isfinite(values.get("coef", math.nan)):
+    # a phase lag pairs the first harmonics (a higher harmonic's cos term is another harmonic's lag: c alone)
+    if cand.kind == "CosineCoupling" and cand.harmonic == 1 and math.isfinite(values.get("coef", math.nan)):
         lag = phase_lag(trial, train, target, values["coef"], (interval["coef"][1] - values["coef"]) / 1.96)
         if lag is not None:
             values, interval, derived = {**values, **lag[0]}, {**interval, **lag[1]}, lag[2]
