@@ -225,7 +225,7 @@ def _add_greedily(s: TrialSetting, ranked: Ranked) -> tuple[Model, torch.Tensor,
         chosen = min(close, key=lambda t: (t[1].complexity, t[2].error_after))  # k = 1 before higher harmonics
         trials.append(chosen[2])
         for t in close:  # a more complex kind that predicts as well: the two are indistinguishable on these data
-            if KIND_COMPLEXITY.get(t[2].kind, 1) > KIND_COMPLEXITY.get(chosen[2].kind, 1):
+            if t[1].complexity > chosen[1].complexity:
                 aside[id(t[0])] = _indistinguishable_text(t[2], chosen[2], best_err, floor)
         current, e_current = chosen[3], chosen[4]
         if chosen[2].kind == "PeriodicForcing" and "phases" in chosen[2].effect:
