@@ -194,3 +194,26 @@ def test_a_more_complex_kind_that_predicts_as_well_is_reported_as_indistinguisha
     (aside,) = [t for t in trials if t.kind == "DryFriction"]
     assert "the two kinds are indistinguishable on these data" in aside.reason
     assert "simpler dv/dt: LinearDamping(v)" in aside.reason and within in aside.reason
+
+
+@pytest.mark.parametrize(
+    ("kind", "after", "verdict"),
+    [
+        ("DelayedFeedback", 2e-4, "unexplained structured residual"),  # 200× the floor: an imitation in part
+        ("DelayedFeedback", 5e-6, EFFECTS_NAMED),  # within 10× the floor
+        ("LinearDamping", 2e-4, EFFECTS_NAMED),  # other kinds: most of the excess suffices, as before
+    ],
+)
+def test_a_delayed_feedback_is_named_only_near_the_null_level(kind, after, verdict):
+    """Scorecard case d_input_gain (issue 60): an input gain the model lacks was imitated by a delayed velocity
+    feedback that removed 99 % of the excess but stayed 2400× above the null level, and was named."""
+    from mpsim.diagnose.heldout import _verdict
+
+    base, e = object(), torch.full((4,), 2e-2, dtype=torch.float64)
+    s = TrialSetting(base, e, torch.full((4,), 1e-9), None, None, None, None, 10, DiagnoseParams(), ["x", "v"])  # type: ignore[arg-type]
+    trial = _trial(kind, after, True)
+    j = _verdict(s, 2e-2, 1e-6, "with the effect", torch.full_like(e, after), [trial])  # type: ignore[arg-type]
+    assert j.verdict == verdict
+    assert (j.verdict == EFFECTS_NAMED) == trial.accepted
+    if not trial.accepted:
+        assert "delayed feedback is named only within 10×" in trial.reason

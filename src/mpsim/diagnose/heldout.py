@@ -271,17 +271,26 @@ def null_floor(s: TrialSetting) -> float:
     return max(s.params.structured_factor * float(s.e_null.mean()), s.params.tolerance**2)
 
 
+#: a named delayed feedback must bring the held-out MSE within this factor of the null floor (issue 61: a delay at
+#: half its value, and an input gain imitated by a delay, each removed most of the excess but stayed 2000× above it)
+DELAY_NEAR_NULL = 10.0
+
+
 def _verdict(
     s: TrialSetting, given: float, floor: float, current: Model, e_current: torch.Tensor, trials: list[Trial]
 ) -> Judgement:
     """The verdict on the trials: the named effects must remove `min_explained` of the error above the null
-    level (or bring it to the floor); otherwise nothing is named and the refit model is kept."""
+    level (or bring it to the floor), and a named delayed feedback must bring it within `DELAY_NEAR_NULL` × the
+    floor; otherwise nothing is named and the refit model is kept."""
     params = s.params
     refit, final, null = float(s.e_base.mean()), float(e_current.mean()), float(s.e_null.mean())
     excess = max(refit - null, 1e-300)
     explained = (refit - final) / excess if any(t.accepted for t in trials) else 0.0
     notes = []
-    if any(t.accepted for t in trials) and (final <= floor or explained >= params.min_explained):
+    # a delayed copy of a state imitates other terms in part (damping within a step, a gain, a lag): it is named only
+    # if it brings the held-out error near the null level, not for removing most of the excess
+    delay_far = final > DELAY_NEAR_NULL * floor and any(t.accepted and t.kind == "DelayedFeedback" for t in trials)
+    if any(t.accepted for t in trials) and (final <= floor or explained >= params.min_explained) and not delay_far:
         verdict = EFFECTS_NAMED
     elif refit <= floor:
         verdict = NOTHING_MISSING
@@ -295,7 +304,11 @@ def _verdict(
             if t.accepted:
                 t.accepted = False
                 t.reason = (
-                    f"helps on held-out data but leaves {1 - explained:.0%} of the error above the null level "
+                    f"helps on held-out data but leaves the held-out MSE at {final:.3g}, {final / floor:.3g}× the "
+                    f"null floor {floor:.3g}: a delayed feedback is named only within {DELAY_NEAR_NULL:g}× of it (a "
+                    "delayed copy of a state imitates other terms in part), so this is a partial fit, not a finding"
+                    if delay_far
+                    else f"helps on held-out data but leaves {1 - explained:.0%} of the error above the null level "
                     f"unexplained (needs ≥ {params.min_explained:.0%}): a partial fit, not a finding"
                 )
         notes.append(_best_text(trials, refit, null))
