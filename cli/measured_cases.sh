@@ -4,7 +4,8 @@
 # from mpsim's simulator. Each case is one long wide CSV (t, position, u) cut into 1 s segments, a nominal
 # `model=equations` spec with `inputs: [u]`, and a clean twin. For the recording and its twin: fit the nominal
 # model (trainer=whitebox), then `mpsim diagnose fix=true`; cli/measured_scorecard.py prints the table.
-#   CASES="b_axis_coulomb c_duffing d_input_gain d_deadzone" (default: all)
+# Case a, the real recordings, is cli/dfki_pendulum.sh (run here into <OUT>/a_dfki when CASES names a_dfki).
+#   CASES="a_dfki b_axis_coulomb c_duffing d_input_gain d_deadzone" (default: all)
 #   VARIANTS="recording clean" (default: both)
 #   SEED: the generator's seed (default 0); RECORD_S: every recording's length in s (default: the case's, 20 or 30)
 #   JOBS: runs at once (default 1); each run (a case's recording or twin) has its own folder and checkpoints
@@ -15,7 +16,7 @@ set -uo pipefail
 OUT=${OUT:-outputs/measured_cases}
 SEED=${SEED:-0}
 JOBS=${JOBS:-1}
-ALL="b_axis_coulomb c_duffing d_input_gain d_deadzone"
+ALL="a_dfki b_axis_coulomb c_duffing d_input_gain d_deadzone"
 CASES=${CASES:-$ALL}
 VARIANTS=${VARIANTS:-"recording clean"}
 TRAIN_ARGS=${TRAIN_ARGS:-}
@@ -67,11 +68,20 @@ run() {
   echo "$(( SECONDS - start ))" > "$run/wall_s"
 }
 
+# the real recordings: their own recipe (train on three, diagnose held-out ones), no clean twin
+real() {  # its wall_s: train + diagnose, written by the recipe
+  OUT=$OUT/a_dfki bash "$HERE/dfki_pendulum.sh" > "$OUT/a_dfki.log" 2>&1 || echo "a_dfki: failed (see $OUT/a_dfki.log)"
+}
+
 length=()
 [[ -n ${RECORD_S:-} ]] && length=(--seconds "$RECORD_S")
-cases=$(echo $CASES)  # shellcheck disable=SC2086,SC2116 # one space between names
-python "$HERE/measured_cases.py" "$DATA" --seed "$SEED" --cases "${cases// /,}" "${length[@]}" || exit 1
-for case in $CASES; do
+# shellcheck disable=SC2086,SC2116 # unquoted on purpose: one space between names
+simulated=$(echo ${CASES//a_dfki/})
+if [[ -n $simulated ]]; then
+  python "$HERE/measured_cases.py" "$DATA" --seed "$SEED" --cases "${simulated// /,}" "${length[@]}" || exit 1
+fi
+[[ " $CASES " == *" a_dfki "* ]] && launch real
+for case in $simulated; do
   for variant in $VARIANTS; do launch run "$case" "$variant"; done
 done
 wait
