@@ -20,6 +20,7 @@ Coefficients are in the data's raw units per unit time.
 | `SineCoupling(c, k)` | c·Σ_j A_ij sin(k(s_j − s_i))  (phase oscillators; `harmonic` k = 1 by default) |
 | `CosineCoupling(c, k)` | c·Σ_j A_ij cos(k(s_j − s_i))  (with `SineCoupling`: a phase lag α; k as above) |
 | `DelayedFeedback(c, τ)` | c·s(t − τ) |
+| `ParameterDrift(p, s)` | the model's parameter p becomes p·(1 + s·t)  (`model=equations` only) |
 
 with s the source variable of node i and A the coupling graph. A phase lag in Kuramoto coupling is the pair
 `SineCoupling` + `CosineCoupling`: K·sin(s_j − s_i − α) = K cos α·sin(s_j − s_i) − K sin α·cos(s_j − s_i).
@@ -472,6 +473,65 @@ class DelayedFeedback(Effect):
 
     def config(self) -> dict[str, Any]:
         return {**super().config(), "delay": self.delay}
+
+
+class ParameterDrift(Effect):
+    """p(t) = p·(1 + s·t): the nominal parameter `param` of a white-box model drifts linearly in time.
+
+    Not a term of one state variable: it changes the model's own parameter wherever the equations read it, so
+    only a model that reads its parameters applies it (`model=equations`: `EquationsModel`); every other model
+    or system refuses it. `t` is the data's own time (the recordings' time axis, starting at their t[0]): the
+    drift is relative to t = 0 of the data, where p(0) = p. The coefficient is the relative rate s (per unit
+    time); `target` is kept only as the row the residual loop found it on (the drift acts on every row).
+
+    Args:
+        param: name of the drifting parameter (a scalar of the model's spec).
+        rate: s, the relative change of p per unit time.
+    """
+
+    basis = ("t*p*df/dp",)
+    uses_time = True
+    #: applied by the model to its own parameters, not added to dx/dt (`EquationsModel`)
+    acts_on_parameters = True
+
+    def __init__(
+        self,
+        param: str = "p",
+        rate: float = 0.0,
+        target: str | int = 0,
+        source: str | int | None = None,
+        learnable: bool = True,
+    ) -> None:
+        super().__init__(rate, target, source, learnable)
+        self.param = str(param)
+
+    @property
+    def rate(self) -> float:
+        return float(self.coef.detach()[0])
+
+    def factor(self, t: torch.Tensor) -> torch.Tensor:  # t: [] or [M, 1] absolute time of the data
+        """1 + s·t, in t's shape."""
+        return 1.0 + self.coef[0].to(t) * t
+
+    def features(self, t, x, ctx):
+        raise ConfigError(
+            f"ParameterDrift({self.param}) changes a model's own parameter: only model=equations applies it "
+            "(it is no term a system or another model can add to dx/dt)."
+        )
+
+    def forward(self, t, x, ctx):
+        return self.features(t, x, ctx)
+
+    def describe(self) -> str:
+        return f"{self.param} drifts: {self.param}·(1 + s·t), s = {self.rate:.4g}"
+
+    def config(self) -> dict[str, Any]:
+        cfg = super().config()
+        del cfg["source"], cfg["coef"]
+        return {**cfg, "param": self.param, "rate": self.rate}
+
+    def extra_repr(self) -> str:
+        return f"param={self.param}, rate={self.rate:.6g}"
 
 
 def _minus(coef: torch.Tensor) -> str:  # coef: [K] the first entry is c of a term −c·φ

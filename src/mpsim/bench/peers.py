@@ -69,8 +69,9 @@ from mpsim.systems.simulation import simulate
 from mpsim.training.checkpoint import load_checkpoint
 
 INSTALL = "pip install 'mpsim[peers]'"
-#: PySINDy's library: the loop's kinds less DelayedFeedback (a regression at one time has no state history)
-KINDS = tuple(k for k in KIND_COMPLEXITY if k != "DelayedFeedback")
+#: PySINDy's library: the loop's kinds less DelayedFeedback (a regression at one time has no state history) and
+#: ParameterDrift (its column is a model's sensitivity, not a function of the data)
+KINDS = tuple(k for k in KIND_COMPLEXITY if k not in ("DelayedFeedback", "ParameterDrift"))
 NEEDS_GRAPH = ("DiffusiveCoupling", "SineCoupling", "CosineCoupling")
 SPLIT = (0.7, 0.15, 0.15)  # the recipe's data.split: train (held-in) / val / test
 UNEXPLAINED = "unexplained"

@@ -23,6 +23,8 @@ from mpsim.effects import EffectContext
 
 #: effect kinds of the default library, by class name (one list: `mpsim.diagnose.params`)
 DEFAULT_KINDS = tuple(_KINDS)
+#: kinds whose columns come from the model, not the data alone (`nuisance.drift_candidates`)
+MODEL_KINDS = ("ParameterDrift",)
 NEEDS_GRAPH = ("DiffusiveCoupling", "SineCoupling", "CosineCoupling")
 #: couplings of phases offered at every harmonic k of `params.HARMONICS`: sin/cos(k(θ_j − θ_i))
 HARMONIC_KINDS = ("SineCoupling", "CosineCoupling")
@@ -49,13 +51,15 @@ class Candidate:
         source: source state index (None for terms without a source: bias, forcing).
         params: fixed constructor arguments (omega of a forcing, delay of a feedback, harmonic k > 1 of a
             coupling: absent for k = 1).
-        features: [B, T−1, N, K] step-averaged basis functions.
+        features: [B, T−1, N, K] step-averaged basis functions ([B, T−1, N, D, K] with `per_row`).
+        per_row: the basis differs between state rows (a parameter drift's t·p·∂f_d/∂p): `row(d)` is row d's.
     """
 
     kind: str
     source: int | None
     params: dict[str, Any] = field(default_factory=dict)
     features: torch.Tensor | None = None
+    per_row: bool = False
 
     @property
     def harmonic(self) -> int:
@@ -79,9 +83,13 @@ class Candidate:
             raise ValueError(f"candidate {self.kind} has no evaluated basis: build it with build_library")
         return self.features
 
+    def row(self, d: int) -> torch.Tensor:
+        """[B, T−1, N, K] the basis on state row d (the same on every row but for a `per_row` candidate)."""
+        return self.basis[..., d, :] if self.per_row else self.basis
+
     def label(self, state_names: list[str], target: int | None = None) -> str:
         src = "" if self.source is None else state_names[self.source]
-        extra = ""
+        extra = str(self.params.get("param", ""))
         if "omega" in self.params:
             extra = f"ω={self.params['omega']:.4g}" + (", a phase per recording" if self.params.get("phased") else "")
         if "delay" in self.params:
@@ -95,6 +103,8 @@ class Candidate:
     def effect_config(self, coef: list[float], target: int, state_names: list[str]) -> dict[str, Any]:
         """The Hydra config of this effect with fitted coefficients (for `model.effects`)."""
         cfg: dict[str, Any] = {"_target_": f"mpsim.effects.{self.kind}", "target": state_names[target]}
+        if self.kind == "ParameterDrift":  # p·(1 + s·t): the rate s of the named parameter
+            return {**cfg, "param": self.params["param"], "rate": coef[0]}
         if self.params.get("phased"):  # one (a, b) pair per recording: a shared amplitude, a phase each
             pairs = torch.tensor(coef, dtype=torch.float64).reshape(-1, 2)
             return {
@@ -283,7 +293,7 @@ def build_library(
     has_edges = data.edge_index.numel() > 0 and bool((data.edge_index >= 0).any())
     out: list[Candidate] = []
     for kind in kinds:
-        if kind in NEEDS_GRAPH and not has_edges:
+        if (kind in NEEDS_GRAPH and not has_edges) or kind in MODEL_KINDS:
             continue
         cls = getattr(fx, kind)
         if kind == "Bias":

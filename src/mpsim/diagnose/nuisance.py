@@ -35,13 +35,14 @@ def target_rows(library: list[Candidate], res: Residual, d: int, keep: torch.Ten
     """Residual of state d, the candidates' columns and the model's own sensitivity columns for state d,
     per trajectory (finite trajectories only)."""
     y = res.r[keep, :, :, d]  # [B', T-1, N]
-    groups = [c.basis[keep] for c in library]  # each [B', T-1, N, K]
+    groups = [c.row(d)[keep] for c in library]  # each [B', T-1, N, K]
     return y, groups, None if base is None else base[keep][..., d, :]  # [B', T-1, N, P]
 
 
 @torch.no_grad()
-def model_sensitivities(model: Model, data: Trajectories) -> torch.Tensor | None:
-    """[B, T−1, N, D, P] step-averaged sensitivities of the model's field to its own parameters (or None).
+def model_sensitivities(model: Model, data: Trajectories, by_time: bool = False) -> torch.Tensor | None:
+    """[B, T−1, N, D, P] step-averaged sensitivities of the model's field to its own parameters (or None);
+    with `by_time` each sample's times its time t (the data's own clock), before the step average.
 
     With inputs (a driven white-box model) each sample's sensitivity is taken with its own input; under a
     zero-order hold (`meta["input_hold"] = "zoh"`) step k's input is u_k at both of its ends."""
@@ -58,13 +59,49 @@ def model_sensitivities(model: Model, data: Trajectories) -> torch.Tensor | None
         extra = {} if u is None else {"u": u.reshape(m, n, -1).to(device=device, dtype=dtype)}
         with torch.enable_grad():
             sens = model.sensitivities(times, flat, data.edge_index, **extra)
-        return None if sens is None else sens.detach().double().cpu().reshape(b, x.shape[1], n, d, -1)
+        if sens is None:
+            return None
+        sens = sens.detach().double().cpu().reshape(b, x.shape[1], n, d, -1)
+        return sens * t.double().cpu()[None, :, None, None, None] if by_time else sens
 
     if u_all is not None and input_hold(data.meta) == "zoh":
         start, end = at(data.x[:, :-1], data.t[:-1], u_all[:, :-1]), at(data.x[:, 1:], data.t[1:], u_all[:, :-1])
         return None if start is None or end is None else 0.5 * (start + end)
     sens = at(data.x, data.t, u_all)
     return None if sens is None else 0.5 * (sens[:, 1:] + sens[:, :-1])
+
+
+@torch.no_grad()
+def drift_candidates(model: Model, data: Trajectories, kinds: tuple[str, ...]) -> list[Candidate]:
+    """The `ParameterDrift` candidates of a white-box model (`model=equations`): one per learnable scalar
+    parameter p that does not drift already, its column on state row d the step average of t·p·∂f_d/∂p — the
+    first-order change of the field when p becomes p·(1 + s·t), per unit s (t: the data's own time).
+
+    Fixed parameters are not offered: the spec declares them known, and in a ratio such as k/m the drift of a
+    fixed m is the drift of a learnable k. Per-node and matrix parameters are not offered either (one rate each
+    would be one candidate per node)."""
+    drifts = getattr(model, "drifts", None)
+    if "ParameterDrift" not in kinds or drifts is None or not isinstance(model, Interpretable):
+        return []
+    names = model.sensitivity_names()
+    values = cast(Any, model).parameters_now()
+    drifting = {cast(Any, e).param for e in drifts()}
+    chosen = [i for i, n in enumerate(names) if n in values and values[n].dim() == 0 and n not in drifting]
+    if not chosen:
+        return []
+    sens = model_sensitivities(model, data, by_time=True)  # [B, T-1, N, D, P]
+    if sens is None:
+        return []
+    return [
+        Candidate(
+            "ParameterDrift",
+            None,
+            {"param": names[i]},
+            float(values[names[i]].detach()) * sens[..., i : i + 1],  # [B, T-1, N, D, 1]
+            per_row=True,
+        )
+        for i in chosen
+    ]
 
 
 def nuisance_columns(model: Model, data: Trajectories, represented: tuple[str, ...]) -> tuple[torch.Tensor | None, int]:
@@ -104,6 +141,9 @@ def effect_columns(model: Model, data: Trajectories) -> torch.Tensor | None:
     cols = []
     for effect in model.effects:
         effect = cast(Any, effect)  # an Effect (a Module list holds Modules)
+        if getattr(effect, "acts_on_parameters", False):  # a carried drift: t·p·∂f/∂p on every row, refit
+            cols.append(_carried_drift(model, data, effect.param))
+            continue
         if type(effect).__name__ == "DelayedFeedback":
             m = int(round(float(effect.delay) / float(data.t[1] - data.t[0])))
             values = delayed(data.x.double(), m)[..., effect.source : effect.source + 1]
@@ -114,3 +154,15 @@ def effect_columns(model: Model, data: Trajectories) -> torch.Tensor | None:
         full[..., effect.target, :] = feats
         cols.append(full)
     return torch.cat(cols, dim=-1) if cols else None
+
+
+def _carried_drift(model: Model, data: Trajectories, param: str) -> torch.Tensor:
+    """[B, T−1, N, D, 1] the column of a drift the model carries: t·p·∂f/∂p (zeros where p has no sensitivity)."""
+    names = model.sensitivity_names() if isinstance(model, Interpretable) else []
+    b, n_t, n, d = data.x.shape
+    if param not in names:
+        return torch.zeros(b, n_t - 1, n, d, 1, dtype=torch.float64)
+    sens = model_sensitivities(model, data, by_time=True)
+    assert sens is not None  # an Interpretable model with a named parameter has its sensitivity
+    i = names.index(param)
+    return float(cast(Any, model).parameters_now()[param].detach()) * sens[..., i : i + 1]

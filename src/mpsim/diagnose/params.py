@@ -21,6 +21,7 @@ KIND_COMPLEXITY = {
     "SineCoupling": 1,
     "CosineCoupling": 1,
     "PeriodicForcing": 2,
+    "ParameterDrift": 2,
     "DelayedFeedback": 3,
 }
 DEFAULT_KINDS = list(KIND_COMPLEXITY)

@@ -112,7 +112,11 @@ def joint_refit(
     n = y.shape[0]
     blocks = []
     for f in diag.accepted:  # each effect acts on one state variable: its columns are zero elsewhere
-        cols = library[labels[f.label.split(": ", 1)[1]]].basis[keep].reshape(n, -1)
+        cand = library[labels[f.label.split(": ", 1)[1]]]
+        if cand.per_row:  # a parameter drift: one coefficient across all state variables, as the parameter
+            blocks.append(cand.basis[keep].reshape(n, d_total, -1))
+            continue
+        cols = cand.basis[keep].reshape(n, -1)
         block = torch.zeros(n, d_total, cols.shape[1], dtype=torch.float64)
         block[:, f.target] = cols
         blocks.append(block)

@@ -225,7 +225,7 @@ def fit_with(model: Model, effect, train: Trajectories, horizon: int, iters: int
 
 def reported(effect, values: list[float], stderr: list[float]) -> tuple[dict[str, float], dict[str, tuple]]:
     """The parameters a report shows for a fitted effect, with 95 % intervals around exactly these values: the
-    coefficient(s), or for a drive its amplitude, angular frequency and phase (delta method from a, b, log ω)."""
+    coefficient(s) (a parameter drift's rate `s`), or for a drive its amplitude, angular frequency and phase (delta method from a, b, log ω)."""
     if type(effect).__name__ == "PhasedDrive":  # amplitude, log ω, then one phase per recording
         amp, omega = values[0], math.exp(values[1])
         vals = {"amplitude": amp, "omega": omega}
@@ -238,8 +238,9 @@ def reported(effect, values: list[float], stderr: list[float]) -> tuple[dict[str
         se_phase = math.hypot(b * sa, a * sb) / max(amp**2, 1e-300)
         vals = {"amplitude": amp, "omega": omega, "phase": math.atan2(b, a)}
         ses = {"amplitude": se_amp, "omega": omega * sw, "phase": se_phase}
-    else:
-        keys = ["coef"] if len(values) == 1 else [f"coef[{i}]" for i in range(len(values))]
+    else:  # a parameter drift's one coefficient is its relative rate s of p·(1 + s·t)
+        one = "s" if type(effect).__name__ == "ParameterDrift" else "coef"
+        keys = [one] if len(values) == 1 else [f"coef[{i}]" for i in range(len(values))]
         vals = dict(zip(keys, values, strict=True))
         ses = dict(zip(keys, stderr, strict=True))
     return vals, {k: (v - 1.96 * ses[k], v + 1.96 * ses[k]) for k, v in vals.items()}

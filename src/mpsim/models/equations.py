@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, cast
 
 import torch
 from torch import nn
@@ -70,10 +70,11 @@ class _Field(HeldField):
         u = None if self.signal is None else self.signal(t)  # [B, N, C] at the solver's (local) time
         if self.offset is not None:
             t = t + self.offset
-        dx = self.model.field(t, x, self.values, self.graph, u)
-        if len(self.model.effects):
+        dx = self.model.field(t, x, self.model.drifted(self.values, t), self.graph, u)
+        terms = self.model.terms()
+        if terms:
             assert self.graph is not None  # `EquationsModel._graph` builds it whenever there are effects
-            dx = dx + total(self.model.effects, t, x, EffectContext(self.graph, history))
+            dx = dx + total(terms, t, x, EffectContext(self.graph, history))
         return dx
 
 
@@ -155,11 +156,48 @@ class EquationsModel(Model):
         out.update({n: getattr(self, f"fixed_{n}") for n in self.fixed})
         return out
 
+    def drifts(self) -> list[Effect]:
+        """The carried `ParameterDrift` effects: p(t) = p·(1 + s·t) of a spec parameter (t: the data's time)."""
+        return [e for e in self.effects if getattr(e, "acts_on_parameters", False)]
+
+    def terms(self) -> list[Effect]:
+        """The carried effects that add a term to dx/dt (all but the parameter drifts)."""
+        return [e for e in self.effects if not getattr(e, "acts_on_parameters", False)]
+
+    def drifted(
+        self,
+        values: dict[str, torch.Tensor],  # name -> [] / [N] / [N·D, N·D] nominal value
+        t: torch.Tensor,  # [] time (or [M, 1] one per state)
+    ) -> dict[str, torch.Tensor]:
+        """The parameters at time t: each drifting one multiplied by 1 + s·t (a scalar parameter becomes [M, 1]
+        when t is one time per state; the field broadcasts it as it does t)."""
+        drifts = self.drifts()
+        if not drifts:
+            return values
+        out = dict(values)
+        for e in drifts:  # a handful of named drifts
+            name = cast(Any, e).param
+            out[name] = out[name] * cast(Any, e).factor(torch.as_tensor(t, dtype=out[name].dtype))
+        return out
+
     # ---- checks -------------------------------------------------------------------------------------------
     def bind_effects(self, state_names: Sequence[str]) -> None:
-        """Check the data's state names against the spec's, then resolve the effects' names."""
+        """Check the data's state names against the spec's, then resolve the effects' names (and check that
+        each parameter drift names a scalar parameter of the spec, once)."""
         check_states(self.spec, state_names, "model.spec")
         super().bind_effects(state_names)
+        seen: set[str] = set()
+        for e in self.drifts():
+            name = cast(Any, e).param
+            if name not in self.spec.params or self.spec.params[name].dim() != 0:
+                scalars = [n for n, v in self.spec.params.items() if v.dim() == 0]
+                raise ConfigError(
+                    f"model.effects: ParameterDrift(param={name!r}) must name a scalar parameter of the spec; "
+                    f"scalars: {scalars}."
+                )
+            if name in seen:
+                raise ConfigError(f"model.effects: two ParameterDrift effects of {name!r}; keep one.")
+            seen.add(name)
 
     def bind_inputs(self, control_names: Sequence[str]) -> None:
         """Check the data's control names against the spec's inputs (same names, same order).
@@ -235,6 +273,7 @@ class EquationsModel(Model):
         dts = t[1:] - t[:-1]
         uniform = n_t > 1 and bool((dts - dts[0]).abs().max() <= 1e-9 * dts[0].abs().clamp(min=1e-300))
         special = min_delay(self.effects) > 0 or any(type(e).__name__ == "PhasedDrive" for e in self.effects)
+        special = special or bool(self.drifts() and self.field.uses_graph)  # a [M, 1] parameter in a neighbour sum
         if not uniform or special:
             return one_step_by_rollouts(self, x, t, inputs)
         x0 = x[:, :-1].reshape(b * (n_t - 1), n, d)
@@ -295,8 +334,8 @@ class EquationsModel(Model):
             else:
                 tangent[index] = 1.0
 
-            def f(v: torch.Tensor, name: str = name) -> torch.Tensor:
-                return self.field(t, x, {**values, name: v}, graph, u)
+            def f(v: torch.Tensor, name: str = name) -> torch.Tensor:  # v: the nominal value (drifts applied)
+                return self.field(t, x, self.drifted({**values, name: v}, t), graph, u)
 
             columns.append(torch.func.jvp(f, (values[name],), (tangent,))[1])
         if not columns:
