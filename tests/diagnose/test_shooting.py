@@ -114,3 +114,11 @@ def test_raw_unit_coefficient_of_1e5_moves_from_a_third_of_its_value():
     assert fit.converged
     assert fit.values[0] == pytest.approx(c3, rel=0.02)
     assert float(trial.parameters_now()["k"].detach()) == pytest.approx(k, rel=0.01)
+
+
+def test_a_fit_whose_values_are_never_reported_skips_its_standard_errors():
+    data = EquationsSystem(OSC, effects=[LinearDamping(0.3, target="v")]).generate(4, seed=0, dt=0.1, horizon=30)
+    trial = with_effect(_model(), LinearDamping(0.1, target="v").bind(["x", "v"]))
+    fit = shooting_fit(trial, data, 10, [trial.effects[-1].coef], iters=10, stderr=False)
+    assert fit.converged and fit.values[0] == pytest.approx(0.3, rel=0.01)
+    assert all(math.isnan(v) for v in fit.stderr)

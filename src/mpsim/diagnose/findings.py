@@ -56,6 +56,7 @@ class Diagnosis:
     not_considered: list[str] = field(default_factory=list)  # kinds that cannot be told apart from model error
     searched: list[str] = field(default_factory=list)  # state rows searched (the dynamic rows by default)
     phased_omegas: dict[int, float] = field(default_factory=dict)  # drive frequencies with a phase per recording
+    horizon: int | None = None  # steps the model tracks the screened data (the held-out windows' length)
     equivalent_forms: list[str] = field(default_factory=list)  # candidates left out: a simpler kind equals them here
 
     @property

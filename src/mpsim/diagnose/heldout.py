@@ -131,7 +131,7 @@ def _judge(
     test_candidates: bool,
 ) -> Judgement:
     train = train.subset(slice(0, params.fit_trajectories))  # a handful of parameters: a few records suffice
-    horizon = params.horizon or horizon_from_data(model, train, params.vpt_threshold)
+    horizon = params.horizon or diag.horizon or horizon_from_data(model, train, params.vpt_threshold)
     given = float(window_error(model, test, horizon).mean())
     s = _levels(model, diag, train, test, horizon, given, params, seed)
     e_base, e_null = float(s.e_base.mean()), float(s.e_null.mean())
@@ -159,7 +159,7 @@ def _levels(
     MSE), its held-out errors, and null records simulated by it with the data's noise level."""
     noise = torch.tensor(diag.noise_std, dtype=torch.float64)
     base = copy.deepcopy(model)
-    shooting_fit(base, train, min(horizon, params.fit_window), own_parameters(base), params.shooting_iters)
+    shooting_fit(base, train, min(horizon, params.fit_window), own_parameters(base), params.shooting_iters, False)
     e_base = window_error(base, test, horizon)
     if not float(e_base.mean()) <= given:  # the refit never makes the starting point worse
         base, e_base = copy.deepcopy(model), window_error(model, test, horizon)

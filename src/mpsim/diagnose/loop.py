@@ -84,6 +84,7 @@ def screen(model: Model, data: Trajectories, params: DiagnoseParams, seed: int) 
     data = data.subset(slice(0, params.screen_trajectories))
     rows = dynamic_rows(model, data, params.targets)
     delays = list(params.delays) if params.delays else None
+    horizon = params.horizon or horizon_from_data(model, data, params.vpt_threshold)
     diag = find_effects(
         model,
         data,
@@ -95,8 +96,9 @@ def screen(model: Model, data: Trajectories, params: DiagnoseParams, seed: int) 
         params.min_inclusion,
         seed,
         rows,
-        null_segment=params.horizon or horizon_from_data(model, data, params.vpt_threshold),
+        null_segment=horizon,
     )
+    diag.horizon = horizon  # the held-out windows' length too: computed once per screen
     dt = float(data.t[1] - data.t[0])
     kinds = tuple(k for k in params.kinds if k not in diag.represented + diag.not_considered)
     library = build_library(data, diag.omegas, delays or [m * dt for m in (1, 2, 4, 8)], kinds, diag.phased_omegas)

@@ -119,13 +119,15 @@ def shooting_fit(
     length: int,
     free: Sequence[nn.Parameter],
     iters: int = 25,
+    stderr: bool = True,
 ) -> ShootingFit:
     """Fit the `free` parameters of `model` (in place) by L-BFGS on the window error of `data`; every other
     parameter stays fixed. Returns the fit with standard errors from the Jacobian of the window residuals.
 
     With unmeasured states the latent part of every window's start is free too, fitted jointly by variable
     projection (`diagnose.latent`): started from the data's estimate, refreshed for the current parameters at
-    every evaluation of the objective."""
+    every evaluation of the objective. `stderr=False`: no standard errors (nan), for a fit whose values are used
+    but never reported (a null fit, the refit of the model's own parameters)."""
     free = list(free)
     latent = initial_latent(model, data, length)
     if latent is not None:
@@ -186,7 +188,7 @@ def shooting_fit(
         for p in model.parameters():
             p.requires_grad_(keep.get(id(p), True))
     model.eval()
-    return _finish(model, data, length, free, start, ok)
+    return _finish(model, data, length, free, start, ok, stderr)
 
 
 def curvature_scales(
@@ -220,7 +222,13 @@ def curvature_scales(
 
 
 def _finish(
-    model: Model, data: Trajectories, length: int, free: list[nn.Parameter], start: list[torch.Tensor], ok: bool
+    model: Model,
+    data: Trajectories,
+    length: int,
+    free: list[nn.Parameter],
+    start: list[torch.Tensor],
+    ok: bool,
+    stderr: bool = True,
 ) -> ShootingFit:
     """The fit's final loss (back to where it started if it ended on a diverging point), values and intervals."""
     with torch.no_grad():
@@ -232,8 +240,8 @@ def _finish(
                 p.copy_(v)
     values = torch.cat([p.detach().reshape(-1).double().cpu() for p in free])
     good = ok and math.isfinite(loss)
-    stderr = sandwich_stderr(model, data, length, free, latent) if good else [math.nan] * len(values)
-    return ShootingFit(loss, values.tolist(), stderr, good, None if latent is None else latent.raw(model))
+    errors = sandwich_stderr(model, data, length, free, latent) if good and stderr else [math.nan] * len(values)
+    return ShootingFit(loss, values.tolist(), errors, good, None if latent is None else latent.raw(model))
 
 
 @torch.no_grad()

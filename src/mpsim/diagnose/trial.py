@@ -172,7 +172,7 @@ def _null_gain(
     null_coef = (coef * math.ceil(2 * len(null_train) / len(coef)))[: 2 * len(null_train)] if phased else coef
     iters = max(5, s.params.shooting_iters // 3)
     null_effect = cand.make_effect(null_coef, finding.target, s.names)
-    null_trial, _ = fit_with(current, null_effect, null_train, min(s.horizon, s.params.fit_window), iters)
+    null_trial, _ = fit_with(current, null_effect, null_train, min(s.horizon, s.params.fit_window), iters, False)
     if phased:
         before, after, _ = phased_heldout(current, null_trial, null_test, s.horizon, iters)
         return float((before - after).mean()), log_ratio(before, after, floor)[0]
@@ -216,11 +216,12 @@ def _failed_checks(fit: ShootingFit, p: Paired, null_log: float, excess: float, 
     return [why for ok, why in checks if not ok]
 
 
-def fit_with(model: Model, effect, train: Trajectories, horizon: int, iters: int):
-    """(model + effect with the effect's and the model's own parameters fitted by multiple shooting, fit)."""
+def fit_with(model: Model, effect, train: Trajectories, horizon: int, iters: int, stderr: bool = True):
+    """(model + effect with the effect's and the model's own parameters fitted by multiple shooting, fit; its
+    standard errors only with `stderr`)."""
     trial = with_effect(model, effect)
     free = [p for p in trial.effects[-1].parameters() if p.requires_grad] + own_parameters(trial)
-    return trial, shooting_fit(trial, train, horizon, free, iters)
+    return trial, shooting_fit(trial, train, horizon, free, iters, stderr)
 
 
 def reported(effect, values: list[float], stderr: list[float]) -> tuple[dict[str, float], dict[str, tuple]]:
@@ -328,5 +329,5 @@ def phased_heldout(current: Model, trial: Model, data: Trajectories, horizon: in
     test_drive = PhasedDrive(amp, w, phases, target=drive.target, learnable=True)
     test_drive.bind(getattr(drive, "state_names", None) or [str(i) for i in range(data.state_dim)])
     model = with_effect(current, test_drive)
-    shooting_fit(model, head, warm, [cast(PhasedDrive, model.effects[-1]).phases], iters)
+    shooting_fit(model, head, warm, [cast(PhasedDrive, model.effects[-1]).phases], iters, stderr=False)
     return window_error(current, tail, horizon), window_error(model, tail, horizon), model
