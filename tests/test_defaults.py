@@ -162,7 +162,7 @@ def test_every_effect_class_is_a_library_kind_and_every_list_reads_the_one_list(
         if inspect.isclass(obj)
         and issubclass(obj, fx.Effect)
         and obj is not fx.Effect
-        and obj.__module__ == fx.__name__
+        and obj.__module__.startswith(fx.__name__ + ".")
         and not name.startswith("_")  # a private base (the phase couplings' `_PhaseCoupling`) is no kind
     }
     assert classes == set(KIND_COMPLEXITY)
