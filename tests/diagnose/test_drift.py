@@ -19,7 +19,7 @@ from mpsim.diagnose.loop import screen
 from mpsim.diagnose.nuisance import drift_candidates, model_sensitivities
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.models.equations import EquationsModel
-from mpsim.solvers.odeint import ODESolver
+from tests.diagnose.white_box import nominal_model
 
 K0, C, RATE = 4.0, 0.1, 0.05  # stiffness at t = 0, damping, relative drift of k per unit time
 H, EVERY, STEPS = 0.005, 10, 200  # RK4 step, logged every 10th: dt = 0.05, 10 s records
@@ -62,12 +62,7 @@ def spring(n: int, seed: int, rate: float) -> Trajectories:
 
 def nominal(train: Trajectories, effects=()) -> EquationsModel:
     """The spring as the scientist writes it: k learnable and constant."""
-    model = EquationsModel(2, 0, spec=NOMINAL, effects=effects, solver=ODESolver("dopri5", rtol=1e-7, atol=1e-9))
-    model = model.double()
-    model.bind_effects(train.state_names)
-    flat = train.x.reshape(-1, 2)
-    model.set_normalisation(flat.mean(0), flat.std(0))
-    return model
+    return nominal_model(NOMINAL, train, effects)
 
 
 def test_the_drift_column_is_t_times_p_times_the_sensitivity():

@@ -17,7 +17,7 @@ from mpsim.diagnose.heldout import EFFECTS_NAMED, judge
 from mpsim.diagnose.loop import screen
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.models.equations import EquationsModel
-from mpsim.solvers.odeint import ODESolver
+from tests.diagnose.white_box import nominal_model
 
 K, Z0, C, B = 4.0, 1.0, 0.3, 6.0  # spring, its anchor, damping, and the constant force the model lacks
 H, EVERY, STEPS = 0.005, 10, 80  # RK4 step, logged every 10th: dt = 0.05, 4 s records
@@ -59,11 +59,7 @@ def hanging_mass(n: int, seed: int) -> Trajectories:
 
 def nominal(train: Trajectories) -> EquationsModel:
     """The spring and damping as the scientist writes them, without the constant force (k learnable)."""
-    model = EquationsModel(2, 0, spec=NOMINAL, solver=ODESolver("dopri5", rtol=1e-7, atol=1e-9)).double()
-    model.bind_effects(train.state_names)
-    flat = train.x.reshape(-1, 2)
-    model.set_normalisation(flat.mean(0), flat.std(0))
-    return model
+    return nominal_model(NOMINAL, train)
 
 
 def test_a_constant_force_on_an_always_positive_position_is_named_bias_not_dry_friction():

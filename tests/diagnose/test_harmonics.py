@@ -24,7 +24,7 @@ from mpsim.effects import CosineCoupling, EffectContext, SineCoupling
 from mpsim.errors import ConfigError
 from mpsim.graphs.topology import chain, ring
 from mpsim.models.equations import EquationsModel
-from mpsim.solvers.odeint import ODESolver
+from tests.diagnose.white_box import nominal_model
 
 W = [0.9, 1.1, 1.3, 0.7, 1.0, 1.2]  # natural frequencies, one per node of the ring
 K1, K2 = 0.4, 0.25  # first and second harmonic of the coupling; the nominal model lacks K2
@@ -68,11 +68,7 @@ def oscillators(n: int, seed: int, k2: float) -> Trajectories:
 
 def nominal(train: Trajectories) -> EquationsModel:
     """Plain Kuramoto coupling as the scientist writes it (ω_i, K learnable), float64, normalised on `train`."""
-    model = EquationsModel(1, 0, spec=NOMINAL, solver=ODESolver("dopri5", rtol=1e-7, atol=1e-9)).double()
-    model.bind_effects(train.state_names)
-    flat = train.x.reshape(-1, 1)
-    model.set_normalisation(flat.mean(0), flat.std(0))
-    return model
+    return nominal_model(NOMINAL, train)
 
 
 def _judge(k2: float):

@@ -21,7 +21,7 @@ from mpsim.diagnose.loop import screen
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.diagnose.trial import Trial, TrialSetting
 from mpsim.models.equations import EquationsModel
-from mpsim.solvers.odeint import ODESolver
+from tests.diagnose.white_box import nominal_model
 
 GL, DAMPING = 9.81, 0.3  # g/l and the viscous damping the nominal model lacks
 H, EVERY, STEPS = 0.01, 5, 100  # the generator's step, logged every 5th: dt = 0.05, 5 s records
@@ -56,11 +56,7 @@ def pendulum(n: int, seed: int) -> Trajectories:
 
 def nominal(train: Trajectories) -> EquationsModel:
     """The undamped pendulum as the scientist writes it (g learnable), float64, normalised on `train`."""
-    model = EquationsModel(2, 0, spec=NOMINAL, solver=ODESolver("dopri5", rtol=1e-7, atol=1e-9)).double()
-    model.bind_effects(train.state_names)
-    flat = train.x.reshape(-1, 2)
-    model.set_normalisation(flat.mean(0), flat.std(0))
-    return model
+    return nominal_model(NOMINAL, train)
 
 
 def _damping_is_named(kinds: list[str] | None) -> None:
