@@ -56,6 +56,8 @@ class _Field(HeldField):
         super().__init__()
         self.model, self.values, self.graph, self.offset, self.signal = model, values, graph, offset, signal
         self.u = signal.u if isinstance(signal, GridInput) and signal.hold == "zoh" else None
+        # fixed for the rollout: sorted once, not at every evaluation of the field
+        self.terms, self.drifting = model.terms(), bool(model.drifts())
 
     @property
     def held(self) -> int | None:
@@ -70,11 +72,11 @@ class _Field(HeldField):
         u = None if self.signal is None else self.signal(t)  # [B, N, C] at the solver's (local) time
         if self.offset is not None:
             t = t + self.offset
-        dx = self.model.field(t, x, self.model.drifted(self.values, t), self.graph, u)
-        terms = self.model.terms()
-        if terms:
+        values = self.model.drifted(self.values, t) if self.drifting else self.values
+        dx = self.model.field(t, x, values, self.graph, u)
+        if self.terms:
             assert self.graph is not None  # `EquationsModel._graph` builds it whenever there are effects
-            dx = dx + total(terms, t, x, EffectContext(self.graph, history))
+            dx = dx + total(self.terms, t, x, EffectContext(self.graph, history))
         return dx
 
 
