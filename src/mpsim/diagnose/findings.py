@@ -58,6 +58,9 @@ class Diagnosis:
     phased_omegas: dict[int, float] = field(default_factory=dict)  # drive frequencies with a phase per recording
     horizon: int | None = None  # steps the model tracks the screened data (the held-out windows' length)
     equivalent_forms: list[str] = field(default_factory=list)  # candidates left out: a simpler kind equals them here
+    #: per-node variants the screen added (their shared candidate's label, the nodes) and why, in words
+    per_node: list[tuple[str, tuple[int, ...]]] = field(default_factory=list)
+    per_node_notes: list[str] = field(default_factory=list)
 
     @property
     def accepted(self) -> list[Finding]:
@@ -79,4 +82,5 @@ class Diagnosis:
             "not_considered": self.not_considered,
             "searched_rows": self.searched,
             "equivalent_forms": self.equivalent_forms,
+            "per_node": self.per_node_notes,
         }

@@ -53,6 +53,8 @@ class Candidate:
             coupling: absent for k = 1).
         features: [B, T−1, N, K] step-averaged basis functions ([B, T−1, N, D, K] with `per_row`).
         per_row: the basis differs between state rows (a parameter drift's t·p·∂f_d/∂p): `row(d)` is row d's.
+        nodes: the nodes a per-node variant acts on (`per_node`: one column, one coefficient per listed node;
+            None: one coefficient shared by all nodes).
     """
 
     kind: str
@@ -60,6 +62,7 @@ class Candidate:
     params: dict[str, Any] = field(default_factory=dict)
     features: torch.Tensor | None = None
     per_row: bool = False
+    nodes: tuple[int, ...] | None = None
 
     @property
     def harmonic(self) -> int:
@@ -96,6 +99,8 @@ class Candidate:
             extra = f"τ={self.params['delay']:.4g}"
         if self.harmonic > 1:
             extra = f"k={self.harmonic}"
+        if self.nodes is not None:
+            extra = node_text(self.nodes)
         inside = ", ".join(p for p in (src, extra) if p)
         name = f"{self.kind}({inside})" if inside else self.kind
         return name if target is None else f"d{state_names[target]}/dt: {name}"
@@ -118,7 +123,9 @@ class Candidate:
             a, b = coef
             cfg.update(amplitude=math.hypot(a, b), phase=math.atan2(b, a), omega=self.params["omega"])
             return cfg
-        cfg["coef"] = coef[0]
+        cfg["coef"] = coef[0] if self.nodes is None else list(coef)
+        if self.nodes is not None:
+            cfg["nodes"] = list(self.nodes)
         if self.source is not None:
             cfg["source"] = state_names[self.source]
         for key in ("delay", "scale", "harmonic"):
@@ -133,6 +140,34 @@ class Candidate:
         effect = cls(**{k: v for k, v in cfg.items() if k != "_target_"})
         effect.bind(state_names)
         return effect
+
+
+def node_text(nodes: tuple[int, ...]) -> str:
+    """ "node 2" or "nodes 0, 2": where a per-node candidate acts."""
+    return f"node {nodes[0]}" if len(nodes) == 1 else "nodes " + ", ".join(str(n) for n in nodes)
+
+
+def per_node(c: Candidate, nodes: tuple[int, ...]) -> Candidate:
+    """The per-node variant of a shared single-column candidate on `nodes`: column j is the shared column masked
+    to node nodes[j] (zero on every other node), so each listed node gets a coefficient of its own."""
+    basis = c.basis  # [B, T−1, N, 1]
+    mask = torch.eye(basis.shape[2], dtype=basis.dtype)[:, list(nodes)]  # [N, M] node n ↦ column of nodes[j]
+    return Candidate(c.kind, c.source, dict(c.params), basis * mask, nodes=tuple(nodes))
+
+
+def with_per_node(library: list[Candidate], diag: Any) -> list[Candidate]:
+    """`library` plus the per-node variants the screen added (`Diagnosis.per_node`), rebuilt from its shared
+    candidates, so that the held-out stage finds every candidate the screen's findings name."""
+    shared = {c.label(diag.state_names): c for c in library if c.nodes is None}
+    have = {c.label(diag.state_names) for c in library}
+    out = list(library)
+    for label, nodes in diag.per_node:
+        if label in shared:
+            variant = per_node(shared[label], nodes)
+            if variant.label(diag.state_names) not in have:
+                have.add(variant.label(diag.state_names))
+                out.append(variant)
+    return out
 
 
 class PhasedDrive(fx.Effect):

@@ -22,7 +22,7 @@ from mpsim.diagnose.findings import Diagnosis
 from mpsim.diagnose.finetuned import FinetuneAll, FinetuneJudgement, judge_by_finetune, serial
 from mpsim.diagnose.heldout import EFFECTS_NAMED, EXIT_CODES, NOTHING_MISSING, Judgement, dynamic_rows, judge
 from mpsim.diagnose.latent import fitted_latent
-from mpsim.diagnose.library import Candidate, build_library
+from mpsim.diagnose.library import Candidate, build_library, with_per_node
 from mpsim.diagnose.nuisance import drift_candidates
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.diagnose.residual import one_step_residual
@@ -102,7 +102,7 @@ def screen(model: Model, data: Trajectories, params: DiagnoseParams, seed: int) 
     dt = float(data.t[1] - data.t[0])
     kinds = tuple(k for k in params.kinds if k not in diag.represented + diag.not_considered)
     library = build_library(data, diag.omegas, delays or [m * dt for m in (1, 2, 4, 8)], kinds, diag.phased_omegas)
-    return diag, library + drift_candidates(model, data, kinds)
+    return diag, with_per_node(library, diag) + drift_candidates(model, data, kinds)
 
 
 def white_box(model: Model) -> bool:

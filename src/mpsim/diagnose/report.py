@@ -146,6 +146,8 @@ def _screen_section(screen: dict[str, Any]) -> list[str]:
         "",
         *[f"- {note}" for note in screen.get("equivalent_forms", [])],
         *([""] if screen.get("equivalent_forms") else []),
+        *[f"- {note}" for note in screen.get("per_node", [])],
+        *([""] if screen.get("per_node") else []),
         "| state | residual RMS | null residual RMS | null level | estimated noise |",
         "|---|---|---|---|---|",
     ]

@@ -241,7 +241,14 @@ def reported(effect, values: list[float], stderr: list[float]) -> tuple[dict[str
         ses = {"amplitude": se_amp, "omega": omega * sw, "phase": se_phase}
     else:  # a parameter drift's one coefficient is its relative rate s of p·(1 + s·t)
         one = "s" if type(effect).__name__ == "ParameterDrift" else "coef"
-        keys = [one] if len(values) == 1 else [f"coef[{i}]" for i in range(len(values))]
+        nodes = getattr(effect, "nodes", None)  # a per-node effect: one coefficient per listed node
+        keys = (
+            [one]
+            if len(values) == 1
+            else [f"coef[node {n}]" for n in nodes]
+            if nodes is not None
+            else [f"coef[{i}]" for i in range(len(values))]
+        )
         vals = dict(zip(keys, values, strict=True))
         ses = dict(zip(keys, stderr, strict=True))
     return vals, {k: (v - 1.96 * ses[k], v + 1.96 * ses[k]) for k, v in vals.items()}

@@ -6,7 +6,9 @@ residual loop (`mpsim diagnose`), which regresses a model's residual on their ba
 
 Each effect acts on one state variable of every node (`target`) and reads one (`source`, default the
 target); both can be given by name (``omega``) and are resolved against the state names with `bind`.
-Coefficients are in the data's raw units per unit time.
+Coefficients are in the data's raw units per unit time. A single-basis state term (`PER_NODE_KINDS`) may act on
+some nodes only, with a coefficient each: `nodes=[2]` (or `[0, 2]`) and `coef` one value per listed node, e.g.
+`LinearDamping(coef=[0.3], nodes=[2], target=omega)`: damping of node 2 alone (zero on the others).
 
 | effect | term added to d(target)/dt |
 |---|---|
@@ -30,6 +32,7 @@ couplings); configs name them here, `_target_: mpsim.effects.<Name>`.
 """
 
 from mpsim.effects.base import (
+    PER_NODE_KINDS,
     Bias,
     CubicStiffness,
     DelayedFeedback,
@@ -55,6 +58,7 @@ __all__ = [
     "Effect",
     "EffectContext",
     "LinearDamping",
+    "PER_NODE_KINDS",
     "ParameterDrift",
     "PeriodicForcing",
     "QuadraticDrag",

@@ -70,11 +70,15 @@ class Effect(nn.Module):
         target: str | int = 0,
         source: str | int | None = None,
         learnable: bool = True,
+        nodes: Sequence[int] | None = None,
     ) -> None:
         super().__init__()
-        values = [float(coef)] * len(self.basis) if isinstance(coef, int | float) else [float(c) for c in coef]
-        if len(values) != len(self.basis):
-            raise ConfigError(f"{type(self).__name__} needs {len(self.basis)} coefficient(s); got {len(values)}.")
+        self.nodes = _check_nodes(nodes, type(self).__name__, len(self.basis))
+        width = len(self.basis) if self.nodes is None else len(self.nodes)
+        values = [float(coef)] * width if isinstance(coef, int | float) else [float(c) for c in coef]
+        if len(values) != width:
+            what = "basis function" if self.nodes is None else f"listed node (nodes={self.nodes})"
+            raise ConfigError(f"{type(self).__name__} needs {width} coefficient(s), one per {what}; got {len(values)}.")
         self.coef = nn.Parameter(torch.tensor(values, dtype=torch.float64), requires_grad=learnable)
         self.target_ref, self.source_ref = target, target if source is None else source
         self.target = target if isinstance(target, int) else None
@@ -112,27 +116,49 @@ class Effect(nn.Module):
     ) -> torch.Tensor:
         """[B, N, D] the term added to dx/dt (zero except in the target column)."""
         self._check_bound()
-        term = (self.features(t, x, ctx) * self.coef.to(x)).sum(-1)  # [B, N]
+        if self.nodes is None:
+            term = (self.features(t, x, ctx) * self.coef.to(x)).sum(-1)  # [B, N]
+        else:
+            term = self.features(t, x, ctx)[..., 0] * self.node_coef(x.shape[1]).to(x)  # [B, N]
         out = torch.zeros_like(x)
         out[..., self.target] = term
         return out
 
+    def node_coef(self, n: int) -> torch.Tensor:
+        """[N] the coefficient of each of n nodes: the listed nodes' own, zero on the others (or the shared one)."""
+        if self.nodes is None:
+            return self.coef[:1].expand(n)
+        if max(self.nodes) >= n:
+            raise ConfigError(f"{self.name}: nodes={list(self.nodes)} but the graph has {n} node(s) (0 to {n - 1}).")
+        idx = torch.as_tensor(self.nodes, device=self.coef.device)  # [M] listed nodes
+        return torch.zeros(n, dtype=self.coef.dtype, device=self.coef.device).index_add(0, idx, self.coef)
+
     def describe(self) -> str:
-        """A readable formula with the current coefficients."""
+        """A readable formula with the current coefficients (a per-node term: each listed node's)."""
         names = getattr(self, "state_names", None)
         s = names[self.source] if names and self.source is not None else str(self.source_ref)
         tgt = names[self.target] if names and self.target is not None else str(self.target_ref)
-        return f"d{tgt}/dt += {self._formula(s)}"
+        if self.nodes is None:
+            return f"d{tgt}/dt += {self._formula(s)}"
+        coefs = [float(c) for c in self.coef.detach()]
+        terms = "; ".join(f"node {n}: {self._term(s, c)}" for n, c in zip(self.nodes, coefs, strict=True))
+        return f"d{tgt}/dt += {terms} (other nodes: 0)"
 
     def _formula(self, s: str) -> str:
-        return f"{float(self.coef.detach()[0]):+.4g}·{self.basis[0]}({s})"
+        return self._term(s, float(self.coef.detach()[0]))
+
+    def _term(self, s: str, c: float) -> str:
+        """The formula of a single-basis term with coefficient c."""
+        return f"{c:+.4g}·{self.basis[0]}({s})"
 
     def config(self) -> dict[str, Any]:
         """The Hydra config that rebuilds this effect with its current coefficients."""
         coef = [float(c) for c in self.coef.detach()]
+        nodes = {} if self.nodes is None else {"nodes": list(self.nodes)}
         return {
             "_target_": f"{_public_module(type(self))}.{type(self).__qualname__}",
-            "coef": coef if len(coef) > 1 else coef[0],
+            "coef": coef if len(coef) > 1 or nodes else coef[0],
+            **nodes,
             "target": self.state_names[self.target]
             if self.target is not None and hasattr(self, "state_names")
             else self.target_ref,
@@ -142,7 +168,8 @@ class Effect(nn.Module):
         }
 
     def extra_repr(self) -> str:
-        return f"target={self.target_ref}, source={self.source_ref}, coef={[round(float(c), 6) for c in self.coef.detach()]}"
+        nodes = "" if self.nodes is None else f", nodes={self.nodes}"
+        return f"target={self.target_ref}, source={self.source_ref}, coef={[round(float(c), 6) for c in self.coef.detach()]}{nodes}"
 
 
 class LinearDamping(Effect):
@@ -153,8 +180,8 @@ class LinearDamping(Effect):
     def features(self, t, x, ctx):
         return -x[..., self.source : self.source + 1]
 
-    def _formula(self, s):
-        return f"{_minus(self.coef)}·{s}"
+    def _term(self, s, c):
+        return f"{_minus_c(c)}·{s}"
 
 
 class QuadraticDrag(Effect):
@@ -166,8 +193,8 @@ class QuadraticDrag(Effect):
         s = x[..., self.source : self.source + 1]
         return -s * s.abs()
 
-    def _formula(self, s):
-        return f"{_minus(self.coef)}·{s}·|{s}|"
+    def _term(self, s, c):
+        return f"{_minus_c(c)}·{s}·|{s}|"
 
 
 class DryFriction(Effect):
@@ -185,13 +212,14 @@ class DryFriction(Effect):
 
     def __init__(
         self,
-        coef: float = 0.0,
+        coef: float | Sequence[float] = 0.0,
         target: str | int = 0,
         source: str | int | None = None,
         scale: float = 0.01,
         learnable: bool = True,
+        nodes: Sequence[int] | None = None,
     ) -> None:
-        super().__init__(coef, target, source, learnable)
+        super().__init__(coef, target, source, learnable, nodes)
         if isinstance(scale, bool) or not isinstance(scale, int | float) or not scale > 0 or math.isinf(scale):
             raise ConfigError(
                 f"DryFriction.scale must be a finite number > 0 (the velocity over which sign(v) is "
@@ -202,8 +230,8 @@ class DryFriction(Effect):
     def features(self, t, x, ctx):
         return -torch.tanh(x[..., self.source : self.source + 1] / self.scale)
 
-    def _formula(self, s):
-        return f"{_minus(self.coef)}·tanh({s}/{self.scale:g})"
+    def _term(self, s, c):
+        return f"{_minus_c(c)}·tanh({s}/{self.scale:g})"
 
     def config(self) -> dict[str, Any]:
         return {**super().config(), "scale": self.scale}
@@ -217,8 +245,8 @@ class CubicStiffness(Effect):
     def features(self, t, x, ctx):
         return -x[..., self.source : self.source + 1].pow(3)
 
-    def _formula(self, s):
-        return f"{_minus(self.coef)}·{s}³"
+    def _term(self, s, c):
+        return f"{_minus_c(c)}·{s}³"
 
 
 class Bias(Effect):
@@ -229,8 +257,8 @@ class Bias(Effect):
     def features(self, t, x, ctx):
         return torch.ones_like(x[..., :1])
 
-    def _formula(self, s):
-        return f"{float(self.coef.detach()[0]):+.4g}"
+    def _term(self, s, c):
+        return f"{c:+.4g}"
 
 
 class PeriodicForcing(Effect):
@@ -415,10 +443,28 @@ def _public_module(cls: type) -> str:
     return "mpsim.effects" if module.startswith("mpsim.effects.") else module
 
 
-def _minus(coef: torch.Tensor) -> str:  # coef: [K] the first entry is c of a term −c·φ
-    """ "−c" with one clean sign: −0.3 for c = 0.3, +0.02 for c = −0.02 (never "--0.02")."""
-    c = float(coef.detach()[0])
+def _minus_c(c: float) -> str:
+    """ "−c" of the coefficient c of a term −c·φ with one clean sign: −0.3 for c = 0.3, +0.02 for c = −0.02."""
     return f"-{c:.4g}" if c >= 0 else f"+{-c:.4g}"
+
+
+#: the kinds that may act on some nodes only (`nodes=[...]`, a coefficient per listed node): one basis function
+#: of the node's own state (the screen offers a per-node variant of each, `mpsim.diagnose.library.per_node`)
+PER_NODE_KINDS = ("Bias", "LinearDamping", "QuadraticDrag", "CubicStiffness", "DryFriction")
+
+
+def _check_nodes(nodes: Sequence[int] | None, effect: str, n_basis: int) -> tuple[int, ...] | None:
+    """The listed nodes as a sorted tuple of distinct indices ≥ 0 (None: the term acts on every node, shared)."""
+    if nodes is None:
+        return None
+    if effect not in PER_NODE_KINDS or n_basis != 1:
+        raise ConfigError(f"{effect} has no per-node form (nodes=...); only {list(PER_NODE_KINDS)} do.")
+    if isinstance(nodes, int | str) or not all(isinstance(n, int) and not isinstance(n, bool) for n in nodes):
+        raise ConfigError(f"{effect}.nodes must be a list of node indices, e.g. nodes=[2]; got {nodes!r}.")
+    out = tuple(int(n) for n in nodes)
+    if not out or min(out) < 0 or len(set(out)) != len(out) or list(out) != sorted(out):
+        raise ConfigError(f"{effect}.nodes must list distinct node indices ≥ 0 in increasing order; got {list(out)}.")
+    return out
 
 
 def total(
