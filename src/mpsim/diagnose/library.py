@@ -147,29 +147,6 @@ def node_text(nodes: tuple[int, ...]) -> str:
     return f"node {nodes[0]}" if len(nodes) == 1 else "nodes " + ", ".join(str(n) for n in nodes)
 
 
-def per_node(c: Candidate, nodes: tuple[int, ...]) -> Candidate:
-    """The per-node variant of a shared single-column candidate on `nodes`: column j is the shared column masked
-    to node nodes[j] (zero on every other node), so each listed node gets a coefficient of its own."""
-    basis = c.basis  # [B, T−1, N, 1]
-    mask = torch.eye(basis.shape[2], dtype=basis.dtype)[:, list(nodes)]  # [N, M] node n ↦ column of nodes[j]
-    return Candidate(c.kind, c.source, dict(c.params), basis * mask, nodes=tuple(nodes))
-
-
-def with_per_node(library: list[Candidate], diag: Any) -> list[Candidate]:
-    """`library` plus the per-node variants the screen added (`Diagnosis.per_node`), rebuilt from its shared
-    candidates, so that the held-out stage finds every candidate the screen's findings name."""
-    shared = {c.label(diag.state_names): c for c in library if c.nodes is None}
-    have = {c.label(diag.state_names) for c in library}
-    out = list(library)
-    for label, nodes in diag.per_node:
-        if label in shared:
-            variant = per_node(shared[label], nodes)
-            if variant.label(diag.state_names) not in have:
-                have.add(variant.label(diag.state_names))
-                out.append(variant)
-    return out
-
-
 class PhasedDrive(fx.Effect):
     """A·sin(ω t + φ_b): a drive with one amplitude and frequency but its own phase in every recording b.
 

@@ -22,9 +22,10 @@ from mpsim.diagnose.findings import Diagnosis
 from mpsim.diagnose.finetuned import FinetuneAll, FinetuneJudgement, judge_by_finetune, serial
 from mpsim.diagnose.heldout import EFFECTS_NAMED, EXIT_CODES, NOTHING_MISSING, Judgement, dynamic_rows, judge
 from mpsim.diagnose.latent import fitted_latent
-from mpsim.diagnose.library import Candidate, build_library, with_per_node
+from mpsim.diagnose.library import Candidate, build_library
 from mpsim.diagnose.nuisance import drift_candidates
 from mpsim.diagnose.params import DiagnoseParams
+from mpsim.diagnose.pernode import with_per_node
 from mpsim.diagnose.residual import one_step_residual
 from mpsim.diagnose.search import find_effects
 from mpsim.diagnose.shooting import horizon_from_data, own_parameters, window_error

@@ -449,7 +449,7 @@ def _minus_c(c: float) -> str:
 
 
 #: the kinds that may act on some nodes only (`nodes=[...]`, a coefficient per listed node): one basis function
-#: of the node's own state (the screen offers a per-node variant of each, `mpsim.diagnose.library.per_node`)
+#: of the node's own state (the screen offers a per-node variant of each, `mpsim.diagnose.pernode.per_node`)
 PER_NODE_KINDS = ("Bias", "LinearDamping", "QuadraticDrag", "CubicStiffness", "DryFriction")
 
 

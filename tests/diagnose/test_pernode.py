@@ -15,9 +15,10 @@ import torch
 from mpsim.data.dataset import Splits
 from mpsim.data.trajectories import Trajectories
 from mpsim.diagnose.heldout import EFFECTS_NAMED, judge
-from mpsim.diagnose.library import Candidate, per_node, with_per_node
+from mpsim.diagnose.library import Candidate
 from mpsim.diagnose.loop import screen
 from mpsim.diagnose.params import DiagnoseParams
+from mpsim.diagnose.pernode import per_node, with_per_node
 from mpsim.effects import Bias, DiffusiveCoupling, DryFriction, EffectContext, LinearDamping
 from mpsim.errors import ConfigError
 from mpsim.graphs.topology import chain
