@@ -57,7 +57,7 @@ from typing import Any
 
 from mpsim.bench.common import Suite
 from mpsim.bench.peers_cases import CASES, EXTRA_TWINS, RECIPE_CASES, TODO, UNEXPLAINED, PeerCase
-from mpsim.bench.peers_library import INSTALL, nominal_rhs, pysindy_side, require_pysindy
+from mpsim.bench.peers_library import EXTENSIONS, INSTALL, nominal_rhs, pysindy_side, require_pysindy
 from mpsim.data.dataset import split_trajectories
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError
@@ -167,6 +167,8 @@ class PeersBench(Suite):
         threshold: STLSQ's threshold as a share of the RMS of the row's derivative estimate (on unit-RMS columns).
         params: the nominal parameters PySINDy's target subtracts: `fitted` (the recipe's fit, from `runs`, where
             a run exists; else the spec's) or `spec` (always the model spec's values).
+        extend: the families of terms added to the loop's kinds (null: all of `EXTENSIONS`: delays, time,
+            harmonics; [] the loop's kinds alone, first harmonics only).
     """
 
     name = "peers"
@@ -181,6 +183,7 @@ class PeersBench(Suite):
         seed: int = 0,
         threshold: float = 0.05,
         params: str = "fitted",
+        extend: list[str] | None = None,
     ) -> None:
         chosen = list(cases) if cases is not None else list(RECIPE_CASES)
         unknown = [c for c in chosen if c not in CASES]
@@ -190,6 +193,9 @@ class PeersBench(Suite):
             raise ConfigError(f"bench.threshold must be a share in (0, 1); got {threshold}.")
         if params not in ("fitted", "spec"):
             raise ConfigError(f"bench.params must be fitted or spec; got {params!r}.")
+        self.extend = tuple(EXTENSIONS if extend is None else extend)
+        if set(self.extend) - set(EXTENSIONS):
+            raise ConfigError(f"bench.extend: {list(self.extend)}; choose among {list(EXTENSIONS)} ([]: none).")
         self.params = params
         self.cases = chosen + ([c for c in EXTRA_TWINS if c not in chosen] if twins else [])
         self.runs, self.specs = Path(runs), Path(specs)
@@ -228,7 +234,7 @@ class PeersBench(Suite):
         fitted = case.recipe and self.params == "fitted"
         ckpt = self.runs / name / "checkpoints" / f"{name}.ckpt" if fitted else None
         model, params = nominal_model(case, self.specs, ckpt, data.state_dim)
-        named, seconds = pysindy_side(data, model, self.threshold)
+        named, seconds = pysindy_side(data, model, self.threshold, self.extend)
         right, err = judge(case, named)
         row: dict[str, Any] = {
             "case": name if case.recipe else f"{name} (twin, PySINDy only)",
@@ -261,7 +267,8 @@ class PeersBench(Suite):
         bugs = [r["case"] for r in rows if r["PySINDy right"] == "yes" and r["mpsim right"] == "NO"]
         return [
             f"Threshold rule (fixed in advance): STLSQ on unit-RMS columns, threshold {self.threshold:g} × the RMS of "
-            "the row's derivative estimate (a term must carry that share of the row's dynamics).",
+            "the row's derivative estimate (a term must carry that share of the row's dynamics). Library: the loop's "
+            f"kinds + {', '.join(self.extend) or 'nothing'}.",
             f"False claims on clean twins: PySINDy {sum(r['PySINDy right'] != 'yes' for r in clean)} of {len(clean)}; "
             f"mpsim {sum(r['mpsim right'] != 'yes' for r in ran)} of {len(ran)} (the recipe's twins with a run).",
             f"Right: PySINDy {sum(r['PySINDy right'] == 'yes' for r in judged)} of {len(judged)} rows; mpsim "

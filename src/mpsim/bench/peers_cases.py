@@ -61,7 +61,8 @@ class PeerCase:
             return "unexplained (outside the library)"
         kind, row, key, value, _ = self.truth
         base, _, k = kind.partition("(")
-        return f"{base}({row}{', ' + k.rstrip(')') if k else ''}) {key} {value:.4g}"
+        number = "TODO" if math.isnan(value) else f"{value:.4g}"
+        return f"{base}({row}{', ' + k.rstrip(')') if k else ''}) {key} {number}"
 
     @property
     def todo(self) -> bool:

@@ -33,6 +33,9 @@ COUPLINGS = ("DiffusiveCoupling", "SineCoupling", "CosineCoupling")
 HARMONICS = (1, 2, 3)
 #: delayed copies s(t − m·dt): PySINDy sees a delay only on the sampling grid (the loop's default delays too)
 DELAY_STEPS = (1, 2, 4, 8)
+#: the families the exploring user adds to the loop's kinds (`bench.extend`; [] is the loop's library less
+#: DelayedFeedback and ParameterDrift, first harmonics only)
+EXTENSIONS = ("delays", "time", "harmonics")
 #: a unit-RMS column whose part outside the span of the earlier columns has less RMS than this is left out: the
 #: earlier columns already hold it (a drifting stiffness's t·k·x is −k × t·(−x); on a linear system the delayed
 #: copies are exact linear maps of the current state, x(t − τ) = e^{−Aτ}x(t))
@@ -100,10 +103,10 @@ def _effect(data: Trajectories, effect: fx.Effect) -> np.ndarray:
     return evaluate_effect(effect.bind(data.state_names), data).detach().numpy()
 
 
-def state_columns(data: Trajectories) -> list[Column]:
+def state_columns(data: Trajectories, extend: tuple[str, ...] = EXTENSIONS) -> list[Column]:
     """The terms that do not depend on the row: Bias; −s, −s|s|, −s³, −tanh(s/ε) per state; the neighbour sums
-    Σ_j(s_j − s_i), Σ_j sin/cos(k(s_j − s_i)) (k = 1, 2, 3) on a graph; delayed copies s(t − m·dt) (constant
-    history before t0: those samples are not fitted)."""
+    Σ_j(s_j − s_i), Σ_j sin/cos(k(s_j − s_i)) (k = 1, 2, 3 with "harmonics" in `extend`, else 1) on a graph;
+    with "delays", delayed copies s(t − m·dt) (constant history before t0: those samples are not fitted)."""
     names, d = list(data.state_names), data.state_dim
     has_edges = data.edge_index.numel() > 0 and bool((data.edge_index >= 0).any())
     eps = torch.maximum(resolution(data.x), DRY_MIN_SCALE * data.x.double().reshape(-1, d).std(0))
@@ -115,13 +118,13 @@ def state_columns(data: Trajectories) -> list[Column]:
             out.append(Column(kind, f"{kind}({names[s]})", {}, _effect(data, effect)))
     for kind in COUPLINGS if has_edges else ():
         for s in range(d):
-            for k in HARMONICS if kind != "DiffusiveCoupling" else (1,):
+            for k in HARMONICS if kind != "DiffusiveCoupling" and "harmonics" in extend else (1,):
                 extra = {"harmonic": k} if k > 1 else {}
                 label, inside = (f"{kind}(k={k})", f"{names[s]}, k={k}") if k > 1 else (kind, names[s])
                 effect = getattr(fx, kind)(0.0, target=0, source=s, **extra)
                 out.append(Column(label, f"{kind}({inside})", {}, _effect(data, effect)))
     x, dt = data.x.double().numpy(), float(data.t[1] - data.t[0])
-    for m in (m for m in DELAY_STEPS if m < data.n_times - 1):
+    for m in (m for m in DELAY_STEPS if m < data.n_times - 1 and "delays" in extend):
         past = np.concatenate([np.repeat(x[:, :1], m, axis=1), x[:, :-m]], axis=1)  # [B, T, N, D]
         for s in range(d):
             name = f"DelayedFeedback({names[s]}, τ={m * dt:.4g})"
@@ -136,11 +139,20 @@ def timed_columns(data: Trajectories, columns: list[Column]) -> list[Column]:
     return [Column(f"t·{c.kind}", f"t·{c.name}", {}, t * c.values) for c in timed]
 
 
-def row_columns(model: EquationsModel, data: Trajectories, row: int, omega: float, rhs: np.ndarray) -> list[Column]:
-    """The terms of one row: the drive sin ωt, cos ωt; the drift t·p·∂f_row/∂p of each learnable scalar p of the
-    nominal model (`ParameterDrift(p)`, coefficient the rate s of p·(1 + s·t)); t·f_row (rhs: [B, T, N, D])."""
+def row_columns(
+    model: EquationsModel,
+    data: Trajectories,
+    row: int,
+    omega: float,
+    rhs: np.ndarray,  # [B, T, N, D] the nominal right-hand side
+    time: bool = True,
+) -> list[Column]:
+    """The terms of one row: the drive sin ωt, cos ωt; with `time`, the drift t·p·∂f_row/∂p of each learnable
+    scalar p of the nominal model (`ParameterDrift(p)`, coefficient the rate s of p·(1 + s·t)) and t·f_row."""
     drive = fx.PeriodicForcing(0.0, omega=omega, target=0)
     out = [Column("PeriodicForcing", f"PeriodicForcing(ω={omega:.4g})", {"omega": omega}, _effect(data, drive))]
+    if not time:
+        return out
     t = data.t.double().numpy()[None, :, None, None]  # [1, T, 1, 1]
     values = {k: v.detach().double() for k, v in model.parameters_now().items()}
     for p in (p for p in model.raw if values[p].dim() == 0):  # the spec's few learnable scalars
@@ -184,9 +196,12 @@ def sparse_fit(ps: Any, columns: list[Column], y: np.ndarray, threshold: float, 
     return named
 
 
-def pysindy_side(data: Trajectories, model: EquationsModel, threshold: float = 0.05) -> tuple[list[dict], float]:
+def pysindy_side(
+    data: Trajectories, model: EquationsModel, threshold: float = 0.05, extend: tuple[str, ...] = EXTENSIONS
+) -> tuple[list[dict], float]:
     """(the terms PySINDy names on the dynamic rows, its wall time in seconds) for `data` and the nominal `model`
-    (`peers.py`'s docstring: target, library, threshold rule). The first max(DELAY_STEPS) samples of every
+    (`peers.py`'s docstring: target, library, threshold rule; `extend`: the families added to the loop's kinds,
+    `EXTENSIONS`). With delays, the first max(DELAY_STEPS) samples of every
     recording, which have no delayed copy, are left out of the fit."""
     ps = require_pysindy()
     start = time.perf_counter()
@@ -195,15 +210,16 @@ def pysindy_side(data: Trajectories, model: EquationsModel, threshold: float = 0
     xdot = ps.FiniteDifference(axis=1)(x.reshape(b, n_t, n * d), t).reshape(b, n_t, n, d)
     rhs = nominal_rhs(model, data)
     residual = xdot - rhs
-    shared = state_columns(data)
-    timed = timed_columns(data, shared)
-    first = max((m for m in DELAY_STEPS if m < n_t - 1), default=0)
+    shared = state_columns(data, extend)
+    timed = timed_columns(data, shared) if "time" in extend else []
+    first = max((m for m in DELAY_STEPS if m < n_t - 1 and "delays" in extend), default=0)
     named: list[dict] = []
     for i, row in enumerate(data.state_names):
         if row in model.kinematic_states:
             continue
         # library order matters only for dependent columns (the earlier is kept): drift before t·(−s)
-        columns = shared + row_columns(model, data, i, periodogram_peak(residual[..., i], t), rhs) + timed
+        omega = periodogram_peak(residual[..., i], t)
+        columns = shared + row_columns(model, data, i, omega, rhs, "time" in extend) + timed
         kept = [Column(c.kind, c.name, c.params, c.values[:, first:]) for c in columns]
         rule = threshold * float(np.sqrt((xdot[:, first:, :, i] ** 2).mean()))
         named += sparse_fit(ps, kept, residual[:, first:, :, i].reshape(-1), rule, row)
