@@ -73,3 +73,5 @@ def test_bad_settings_are_refused():
         PeersBench(specs="/nonexistent")
     with pytest.raises(ConfigError, match="bench.params"):
         PeersBench(specs=str(SPECS), params="guess")
+    with pytest.raises(ConfigError, match="bench.extend"):
+        PeersBench(specs=str(SPECS), extend=["wavelets"])
