@@ -311,6 +311,12 @@ def test_l_only_node_2_is_damped():
     expected = torch.zeros_like(extra)
     expected[:, 2, 1] = -0.3 * x0[:, 2, 1]  # LinearDamping(0.3) on v of node 2, nothing elsewhere
     assert torch.allclose(extra, expected)
+    # ... which is the library's per-node LinearDamping(coef=[0.3], nodes=[2], target=v) on the undamped chain
+    from mpsim.effects import LinearDamping
+
+    twin_spec = load_spec_file(COMMANDS["l_chain_node_clean"]["spec"])
+    library = EquationsSystem(twin_spec, effects=[LinearDamping(coef=[0.3], nodes=[2], target="v")])
+    assert torch.allclose(library.simulate(x0, data.t[:40]).x, data.x[:, :40], atol=1e-6)
     x, v = data.x[..., 0], data.x[..., 1]  # [B, T, 4]
     stretch = x[..., 0] ** 2 + (x[..., 1:] - x[..., :-1]).pow(2).sum(-1) + x[..., -1] ** 2
     energy = 0.5 * v.pow(2).sum(-1) + 0.5 * 4.0 * stretch
