@@ -73,15 +73,27 @@ def _time_integral(f: torch.Tensor, dt: float) -> torch.Tensor:  # f: [B, T]
 def test_readme_lists_every_case_and_the_specs_fit_together():
     assert set(COMMANDS) == {
         "a_damped", "a_undamped", "b_vdp", "c_kuramoto_lag", "d_chain_friction", "e_pendulum_sin2", "f_kuramoto_harm2",
+        "h_drift", "h_drift_clean", "i_bias", "i_bias_clean", "j_semieuler", "j_semieuler_clean", "l_chain_node",
+        "l_chain_node_clean",
     }  # fmt: skip
-    for stem in ("a_chain", "b_vdp", "c_kuramoto_lag", "d_chain_friction", "e_pendulum_sin2", "f_kuramoto_harm2"):
+    stems = (
+        "a_chain", "b_vdp", "c_kuramoto_lag", "d_chain_friction", "e_pendulum_sin2", "f_kuramoto_harm2", "h_drift",
+        "i_bias", "j_semieuler", "l_chain_node",
+    )  # fmt: skip
+    for stem in stems:
         data, model = load_spec_file(CASES / f"{stem}_data.yaml"), load_spec_file(CASES / f"{stem}_model.yaml")
         assert parse_spec(model, extra_keys=SYSTEM_KEYS).states == parse_spec(data, extra_keys=SYSTEM_KEYS).states
         assert f"model.spec=$C/{stem}_model.yaml" in (CASES / "README.md").read_text()
-        if stem in ("a_chain", "b_vdp", "d_chain_friction", "f_kuramoto_harm2"):  # from system.effects only
-            assert data["equations"] == model["equations"]
+        if stem in ("a_chain", "b_vdp", "d_chain_friction", "f_kuramoto_harm2", "i_bias", "j_semieuler"):
+            assert data["equations"] == model["equations"]  # from system.effects only
         else:  # the effect is written into the data's equations
             assert data["equations"] != model["equations"]
+    # the clean twins hold nothing hidden: the nominal model's own equations (h, l) or the data spec without effects
+    for case in ("h_drift", "l_chain_node"):
+        twin = load_spec_file(COMMANDS[f"{case}_clean"]["spec"])
+        assert twin["equations"] == load_spec_file(CASES / f"{case}_model.yaml")["equations"]
+    for case in ("h_drift", "i_bias", "j_semieuler", "l_chain_node"):
+        assert COMMANDS[f"{case}_clean"]["effects"] == []
 
 
 @pytest.mark.parametrize("case", sorted(COMMANDS))
@@ -224,3 +236,97 @@ def test_f_second_harmonic_leaves_the_nominal_model_and_keeps_slipping():
     th = x[..., 0]
     pair = torch.stack([th.roll(1, dims=1), th.roll(-1, dims=1)], dim=-1) - th[..., None]  # [B, 8, 2]
     assert torch.allclose(extra[..., 0], 0.25 * torch.sin(2 * pair).sum(-1))
+
+
+def test_h_stiffness_drifts_by_forty_percent_and_the_twin_keeps_it():
+    def stiffness(case: str) -> tuple[float, float]:  # k read from the data's own accelerations, first / last 1 s
+        _, data = _data(case)
+        x, v = data.x[..., 0], data.x[..., 1]  # [B, T, 3] a chain between walls
+        acc = (v[:, 2:] - v[:, :-2]) / 0.1  # central differences, dt = 0.05
+        xs = x[:, 1:-1]
+        lap = 2 * xs - torch.nn.functional.pad(xs, (1, 1))[..., :-2] - torch.nn.functional.pad(xs, (1, 1))[..., 2:]
+        return tuple(  # least squares of acc = -k·lap over the window
+            float(-(acc[:, w] * lap[:, w]).sum() / lap[:, w].pow(2).sum()) for w in (slice(0, 20), slice(-20, None))
+        )
+
+    system, data = _data("h_drift")
+    assert data.t[0] == 0 and float(data.t[-1]) == pytest.approx(10.0)  # the drift is relative to t = 0 of the data
+    early, late = stiffness("h_drift")
+    assert early == pytest.approx(4.0 * (1 + 0.04 * 0.5), rel=0.02) and late == pytest.approx(4.0 * 1.38, rel=0.02)
+    assert late / early > 1.3  # the frequency rises by > 14 % over the record: clearly visible
+    early, late = stiffness("h_drift_clean")
+    assert late == pytest.approx(early, rel=0.01)
+    # the term the data add is exactly the nominal model's k·(1 + 0.04 t): its ParameterDrift(k, rate=0.04)
+    x = data.x[:, 50]
+    nominal = _nominal("h_drift", "h_drift")
+    drift = system.rhs(data.t[50], x) - nominal.rhs(data.t[50], x)
+    assert torch.allclose(drift, 0.04 * float(data.t[50]) * nominal.rhs(data.t[50], x) * torch.tensor([0.0, 1.0]))
+
+
+def test_i_bias_keeps_the_populations_positive_and_shrinks_the_cycles():
+    system, data = _data("i_bias")
+    (bias,) = system.effects
+    assert type(bias).__name__ == "Bias" and float(bias.coef.detach()) == pytest.approx(0.1)
+    assert float(data.x.min()) > 0.3  # both states one-signed: dry friction of them would be a constant
+    x0 = data.x[:, 0]
+    extra = system.rhs(0.0, x0) - _nominal("i_bias", "i_bias").rhs(0.0, x0)
+    assert torch.allclose(extra, torch.tensor([0.1, 0.0], dtype=extra.dtype).expand_as(extra))
+    period = 63  # samples of one cycle (2π at dt = 0.1)
+    spread = data.x[:, :, 0, 0].unfold(1, period, period).std(-1)  # [B, cycles] prey spread per cycle
+    assert float((spread[:, -1] / spread[:, 0]).max()) < 0.8  # the inflow spirals the cycles in: visible
+    _, twin = _data("i_bias_clean")
+    spread = twin.x[:, :, 0, 0].unfold(1, period, period).std(-1)
+    assert float((spread[:, -1] / spread[:, 0] - 1).abs().max()) < 0.1  # neutral cycles keep their size
+
+
+def test_j_coarse_semi_implicit_euler_artefact_is_first_order_and_the_damping_takes_its_energy():
+    system, data = _data("j_semieuler")
+    assert (
+        system.integrator == "semi_implicit_euler" and system.substep == 0.02 and data.meta["dt"] == pytest.approx(0.1)
+    )
+    spec = load_spec_file(COMMANDS["j_semieuler"]["spec"])
+    _, twin = _data("j_semieuler_clean")
+    x0, t = twin.x[:, 0], twin.t[:21]
+    exact = EquationsSystem({**spec, "integrator": "dopri5", "substep": None}).simulate(x0, t).x
+    error = {h: float((EquationsSystem(spec, substep=h).simulate(x0, t).x - exact).abs().max()) for h in (0.02, 0.01)}
+    assert error[0.02] > 0.01 * float(exact.abs().max())  # coarse: a percent-level artefact within 2 s
+    assert 1.8 < error[0.02] / error[0.01] < 2.2  # O(h)
+
+    def energy(x: torch.Tensor) -> torch.Tensor:  # [B, T] of the unit-mass Duffing oscillator, a = b = 1
+        q, v = x[..., 0, 0], x[..., 0, 1]
+        return 0.5 * v**2 + 0.5 * q**2 + 0.25 * q**4
+
+    e, v = energy(data.x), data.x[..., 0, 1]
+    assert torch.allclose(e[:, 0] - e[:, -1], 0.15 * _time_integral(v**2, 0.1), rtol=0.03)  # dE/dt = −0.15·v²
+    assert (e[:, -1] < 0.2 * e[:, 0]).all() and (e[:, -1] > 0.02 * e[:, 0]).all()
+    e = energy(twin.x)
+    assert float(((e - e[:, :1]).abs() / e[:, :1]).max()) < 0.05  # symplectic: bounded, no drift
+
+
+def test_l_only_node_2_is_damped():
+    system, data = _data("l_chain_node")
+    assert system.integrator == "dopri5"
+    x0 = data.x[:, 0]  # [B, 4, 2]
+    extra = system.rhs(0.0, x0) - _nominal("l_chain_node", "l_chain_node").rhs(0.0, x0)
+    expected = torch.zeros_like(extra)
+    expected[:, 2, 1] = -0.3 * x0[:, 2, 1]  # LinearDamping(0.3) on v of node 2, nothing elsewhere
+    assert torch.allclose(extra, expected)
+    # ... which is the library's per-node LinearDamping(coef=[0.3], nodes=[2], target=v) on the undamped chain
+    from mpsim.effects import LinearDamping
+
+    twin_spec = load_spec_file(COMMANDS["l_chain_node_clean"]["spec"])
+    library = EquationsSystem(twin_spec, effects=[LinearDamping(coef=[0.3], nodes=[2], target="v")])
+    assert torch.allclose(library.simulate(x0, data.t[:40]).x, data.x[:, :40], atol=1e-6)
+    x, v = data.x[..., 0], data.x[..., 1]  # [B, T, 4]
+    stretch = x[..., 0] ** 2 + (x[..., 1:] - x[..., :-1]).pow(2).sum(-1) + x[..., -1] ** 2
+    energy = 0.5 * v.pow(2).sum(-1) + 0.5 * 4.0 * stretch
+    lost = energy[:, 0] - energy[:, -1]
+    assert torch.allclose(lost, 0.3 * _time_integral(v[..., 2] ** 2, 0.05), rtol=0.01)  # dE/dt = −0.3·v_2²
+    assert (energy[:, -1] < 0.8 * energy[:, 0]).all() and (energy[:, -1] > 0.2 * energy[:, 0]).all()
+    uniform = lost / _time_integral(v.pow(2).sum(-1), 0.05)  # the coefficient a damping of every node would need
+    assert float(uniform.max() / uniform.min()) > 1.5  # ... differs between trajectories: not a uniform damping
+    _, twin = _data("l_chain_node_clean")
+    x, v = twin.x[..., 0], twin.x[..., 1]
+    stretch = x[..., 0] ** 2 + (x[..., 1:] - x[..., :-1]).pow(2).sum(-1) + x[..., -1] ** 2
+    energy = 0.5 * v.pow(2).sum(-1) + 0.5 * 4.0 * stretch
+    assert float(((energy - energy[:, :1]).abs() / energy[:, :1]).max()) < 1e-3  # dopri5: conserved
