@@ -118,8 +118,9 @@ has e_pendulum_sin2 && launch spec_case e_pendulum_sin2 e_pendulum_sin2_data.yam
 has c_kuramoto_lag && launch spec_case c_kuramoto_lag c_kuramoto_lag_data.yaml c_kuramoto_lag_model.yaml
 has f_kuramoto_harm2 && launch spec_case f_kuramoto_harm2 f_kuramoto_harm2_data.yaml f_kuramoto_harm2_model.yaml \
   'system.effects=[{_target_: mpsim.effects.SineCoupling, coef: 0.25, target: theta, harmonic: 2}]'
-# issue 61's cases. h and l write their effect into the data's equations (a system cannot carry a ParameterDrift;
-# LinearDamping has no per-node form yet), so their twins have their own data spec (<case>_clean_data.yaml)
+# issue 61's cases. h and l write their effect into the data's equations (a system cannot carry a ParameterDrift; the
+# one-node damping is a per-node parameter there, another generator than the effect's own `nodes=[2]`), so their
+# twins have their own data spec (<case>_clean_data.yaml)
 has h_drift && launch spec_case h_drift h_drift_data.yaml h_drift_model.yaml
 has l_chain_node && launch spec_case l_chain_node l_chain_node_data.yaml l_chain_node_model.yaml
 has j_semieuler && launch spec_case j_semieuler j_semieuler_data.yaml j_semieuler_model.yaml \

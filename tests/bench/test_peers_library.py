@@ -83,7 +83,7 @@ def test_a_t_modulated_nominal_term_is_named_parameter_drift_with_its_rate(pendu
     residual = 0.02 * t * -9.81 * np.sin(pendulum.x[..., 0].double().numpy())  # g·(1 + 0.02·t)
     named = fit(columns, residual)
     assert [(e["kind"], e["label"]) for e in named] == [("ParameterDrift", "domega/dt: ParameterDrift(g)")]
-    assert named[0]["values"]["rate"] == pytest.approx(0.02, rel=1e-4)
+    assert named[0]["values"]["s"] == pytest.approx(0.02, rel=1e-4)
 
 
 def test_a_second_harmonic_column_is_named_sine_coupling_k2(ring):

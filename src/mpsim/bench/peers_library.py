@@ -191,7 +191,7 @@ def sparse_fit(ps: Any, columns: list[Column], y: np.ndarray, threshold: float, 
         if len(c) == 2:
             values = {"amplitude": float(np.hypot(*c)), **col.params}
         else:
-            values = {("rate" if col.kind == "ParameterDrift" else "coef"): float(c[0]), **col.params}
+            values = {("s" if col.kind == "ParameterDrift" else "coef"): float(c[0]), **col.params}
         named.append({"kind": col.kind, "row": row, "label": f"d{row}/dt: {col.name}", "values": values})
     return named
 
