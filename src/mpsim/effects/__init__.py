@@ -40,6 +40,7 @@ from mpsim.effects.base import (
     ParameterDrift,
     PeriodicForcing,
     QuadraticDrag,
+    max_delay,
     min_delay,
     total,
 )
@@ -59,6 +60,7 @@ __all__ = [
     "PeriodicForcing",
     "QuadraticDrag",
     "SineCoupling",
+    "max_delay",
     "min_delay",
     "total",
 ]
