@@ -65,7 +65,8 @@ def past_samples(model: Model, data: Trajectories, first: list[int]) -> torch.Te
     reach = max_delay(model.effects)
     if reach <= 0 or data.n_times < 2:
         return None
-    p = math.ceil(reach / float(data.t[1] - data.t[0]) - 1e-9) + 1  # one more: the interpolation's left knot
+    # one more sample: the interpolation's left knot; never more than the record (before it the history is held)
+    p = min(math.ceil(reach / float(data.t[1] - data.t[0]) - 1e-9) + 1, data.n_times)
     return (torch.tensor(first)[:, None] - p + torch.arange(p)).clamp(min=0)
 
 

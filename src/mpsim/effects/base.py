@@ -345,10 +345,19 @@ class DelayedFeedback(Effect):
             raise ConfigError(f"DelayedFeedback.delay must be a finite number > 0; got {delay}.")
         self.log_delay = nn.Parameter(torch.tensor(math.log(delay), dtype=torch.float64), requires_grad=learnable)
 
+    def tau(self) -> torch.Tensor:
+        """[] τ as a tensor (its gradient reaches log τ), kept within e^±30 (a fit's trial step never makes it 0)."""
+        return self.log_delay.clamp(-30.0, 30.0).exp()
+
     @property
     def delay(self) -> float:
         """τ, the current delay."""
-        return float(self.log_delay.detach().exp())
+        return float(self.tau().detach())
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # a checkpoint from before τ was a parameter: τ stays the configured one
+        state_dict.setdefault(prefix + "log_delay", self.log_delay.detach().clone())
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def features(self, t, x, ctx):
         if ctx.history is None:
@@ -356,7 +365,7 @@ class DelayedFeedback(Effect):
                 "DelayedFeedback needs the state history: integrate with a delay-aware solver "
                 "(systems and models switch to one automatically when a delay effect is present)."
             )
-        past = ctx.history(torch.as_tensor(t, dtype=x.dtype) - self.log_delay.exp().to(x))
+        past = ctx.history(torch.as_tensor(t, dtype=x.dtype) - self.tau().to(x))
         return past[..., self.source : self.source + 1]
 
     def _formula(self, s):

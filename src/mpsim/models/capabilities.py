@@ -106,7 +106,7 @@ def one_step_by_rollouts(
     delayed effect reads the observed states before x_k as its history, `Inputs.past`)."""
     u = inputs.u
     reach = max_delay(model.effects)
-    p = math.ceil(reach / float(t[1] - t[0]) - 1e-9) + 1 if reach > 0 and t.numel() > 1 else 0
+    p = min(math.ceil(reach / float(t[1] - t[0]) - 1e-9) + 1, t.numel()) if reach > 0 and t.numel() > 1 else 0
     steps = []
     for k in range(x.shape[1] - 1):  # sequential in time only; each step batches every trajectory
         past = x[:, (k - p + torch.arange(p)).clamp(min=0)] if p else None  # [B, P, N, D] the record before x_k
