@@ -266,3 +266,21 @@ def test_a_delay_between_grid_points_is_named_with_its_fitted_delay_not_as_dampi
     assert abs(named.values["delay"] - TAU) < 0.1 * TAU and abs(named.values["coef"] - GAIN) < 0.1 * abs(GAIN)
     lo, hi = named.interval["delay"]
     assert lo < named.values["delay"] < hi
+
+
+def test_delays_tried_because_no_plain_kind_passed_are_not_tried_twice(monkeypatch):
+    base, e = object(), torch.full((4,), 1e-2, dtype=torch.float64)
+    s = TrialSetting(base, e, torch.full((4,), 1e-9), None, None, None, None, 10, DiagnoseParams(), ["x", "v"])  # type: ignore[arg-type]
+    calls = []
+
+    def fake(s_, current, e_current, cand, finding):
+        calls.append(cand.kind)
+        if current is not base or cand.kind == "LinearDamping":
+            return _trial(cand.kind, float(e_current.mean()), False), current, e_current
+        return _trial(cand.kind, 2e-4, True), cand.kind, torch.full_like(e, 2e-4)  # passes, above the floor
+
+    monkeypatch.setattr(heldout, "try_candidate", fake)
+    plain = [(_finding("", "LinearDamping", 1, 0.9, False, False), Candidate("LinearDamping", 1))]
+    delayed = [(_finding("", "DelayedFeedback", 1, 0.9, True, True), Candidate("DelayedFeedback", 1, {"delay": 0.1}))]
+    current, _, trials = _add_greedily(s, (plain, delayed))
+    assert calls == ["LinearDamping", "DelayedFeedback"] and current == "DelayedFeedback"

@@ -207,7 +207,8 @@ def _add_greedily(s: TrialSetting, ranked: Ranked) -> tuple[Model, torch.Tensor,
     pending, later = ranked
     current, e_current, trials = _greedy(s, pending, later)
     floor = null_floor(s)
-    if not later or not any(t.accepted for t in trials) or float(e_current.mean()) <= floor:
+    tried = any(t.kind == "DelayedFeedback" for t in trials)  # none of the plain kinds passed: tried already
+    if tried or not later or not any(t.accepted for t in trials) or float(e_current.mean()) <= floor:
         return current, e_current, trials
     d_current, d_e, d_trials = _greedy(s, later, [])
     plain, delayed = float(e_current.mean()), float(d_e.mean())
