@@ -94,3 +94,12 @@ def test_the_delay_stays_positive_and_carries_a_gradient():
     _, pred = window_predictions(model, data, 10)[3]  # a window that starts mid-record: it reads the past too
     pred[:, -1, 0, 1].sum().backward()
     assert effect.log_delay.grad is not None and float(effect.log_delay.grad.abs()) > 0
+
+
+def test_a_delay_fitted_past_the_records_is_no_finding():
+    from mpsim.diagnose.trial import _beyond_record
+
+    data = delayed_pendulum(1, seed=0)  # 5 s records
+    long = fx.DelayedFeedback(0.1, delay=2.8e4, target="omega")  # scorecard a_damped: a fit ran off to 27 810 s
+    assert "longer than the records" in _beyond_record(long, data)[0]
+    assert _beyond_record(fx.DelayedFeedback(0.1, delay=TAU, target="omega"), data) == []

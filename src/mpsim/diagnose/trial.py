@@ -114,7 +114,7 @@ def try_candidate(
     floor = max(float(s.e_null.mean()), 1e-14)
     p = paired(e_current, e_after, floor, s.params.margin)
     # the null fit only raises the bar: a candidate that fails with it at zero is not fitted to null data too
-    failed = _failed_checks(fit, p, 0.0, excess, s.params)
+    failed = _failed_checks(fit, p, 0.0, excess, s.params) + _beyond_record(trial.effects[-1], s.train)
     null_gain, null_log = (math.nan, math.nan) if failed else _null_gain(s, current, cand, finding, coef, floor)
     values, interval, derived = _reported_values(cand, trial, fit, s.train, finding.target)
     if not failed:
@@ -157,6 +157,15 @@ def fitted_label(label: str, effect) -> str:
     if type(effect).__name__ != "DelayedFeedback":
         return label
     return re.sub(r"τ=[^,)]*", f"τ={effect.delay:.4g}", label)
+
+
+def _beyond_record(effect, train: Trajectories) -> list[str]:
+    """Why a fitted delay is no finding when it ran past the records (empty otherwise): there its history is the
+    first state held, a constant per recording, not a delayed state."""
+    span = float(train.t[-1] - train.t[0])
+    if type(effect).__name__ != "DelayedFeedback" or effect.delay < span:
+        return []
+    return [f"the fitted delay {effect.delay:.4g} is longer than the records ({span:.4g}): not a delay they can show"]
 
 
 def _untested(finding: Finding, reason: str, e_current: torch.Tensor) -> Trial:
