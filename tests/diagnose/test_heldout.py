@@ -213,3 +213,74 @@ def test_a_delayed_feedback_is_named_only_near_the_null_level(kind, after, verdi
     assert (j.verdict == EFFECTS_NAMED) == trial.accepted
     if not trial.accepted:
         assert "delayed feedback is named only within 10×" in trial.reason
+
+
+@pytest.mark.parametrize(
+    ("damping_error", "delay_error", "named"),
+    [
+        (4e-4, 5e-7, "DelayedFeedback"),  # at the null level where damping left 4e-4: the delay it imitated is named
+        (4e-4, 2e-4, "LinearDamping"),  # better, but 200× the floor 1e-6: a delay could not be named there
+        (5e-6, 4.5e-6, "LinearDamping"),  # within 1.25× of damping's: the simpler kind stays
+    ],
+)
+def test_delays_are_tried_where_plain_kinds_pass_but_stay_above_the_null_level(
+    monkeypatch, damping_error, delay_error, named
+):
+    # issue 61, item 1: a pendulum's delayed velocity feedback c·ω(t − τ) is imitated by a damping (4e-4, 200 000×
+    # the null level), which passed, so the delay was never tried; now it is, from the refit model
+    base, e = object(), torch.full((4,), 1e-2, dtype=torch.float64)
+    s = TrialSetting(base, e, torch.full((4,), 1e-9), None, None, None, None, 10, DiagnoseParams(), ["x", "v"])  # type: ignore[arg-type]
+    errors = {"LinearDamping": damping_error, "DelayedFeedback": delay_error}
+
+    def fake(s_, current, e_current, cand, finding):
+        if current is not base:
+            return _trial(cand.kind, float(e_current.mean()), False), current, e_current
+        after = errors[cand.kind]
+        return _trial(cand.kind, after, True), cand.kind, torch.full_like(e, after)
+
+    monkeypatch.setattr(heldout, "try_candidate", fake)
+    plain = [(_finding("", "LinearDamping", 1, 0.9, False, False), Candidate("LinearDamping", 1))]
+    delayed = [(_finding("", "DelayedFeedback", 1, 0.9, True, True), Candidate("DelayedFeedback", 1, {"delay": 0.1}))]
+    current, e_current, trials = _add_greedily(s, (plain, delayed))
+    assert current == named and [t.kind for t in trials if t.accepted] == [named]
+    assert sorted(t.kind for t in trials) == ["DelayedFeedback", "LinearDamping"]  # both reported
+    loser = next(t for t in trials if not t.accepted)
+    assert ("imitated the delay" if named == "DelayedFeedback" else "tried because the plain kinds") in loser.reason
+
+
+@pytest.mark.slow
+def test_a_delay_between_grid_points_is_named_with_its_fitted_delay_not_as_damping():
+    """Issue 61, item 1, end to end: screen and held-out judgement of a pendulum with c·ω(t − τ), c = −0.8,
+    τ = 3 sampling steps (hand-written method-of-steps Euler, `test_trial.delayed_pendulum`)."""
+    from tests.diagnose.test_trial import GAIN, TAU, delayed_pendulum
+
+    data = delayed_pendulum(24, seed=1)
+    splits = Splits(data.subset(slice(0, 14)), data.subset(slice(14, 16)), data.subset(slice(16, 24)))
+    params = DiagnoseParams(n_boot=20, fit_trajectories=6, horizon=40, shooting_iters=15)
+    model = nominal(splits.train)
+    diag, library = screen(model, splits.train, params, 0)
+    j = judge(model, diag, library, splits.train, splits.test, params)
+    assert j.verdict == EFFECTS_NAMED
+    (named,) = j.named
+    assert named.kind == "DelayedFeedback" and named.label.startswith("domega/dt: DelayedFeedback(omega, τ=0.15")
+    assert abs(named.values["delay"] - TAU) < 0.1 * TAU and abs(named.values["coef"] - GAIN) < 0.1 * abs(GAIN)
+    lo, hi = named.interval["delay"]
+    assert lo < named.values["delay"] < hi
+
+
+def test_delays_tried_because_no_plain_kind_passed_are_not_tried_twice(monkeypatch):
+    base, e = object(), torch.full((4,), 1e-2, dtype=torch.float64)
+    s = TrialSetting(base, e, torch.full((4,), 1e-9), None, None, None, None, 10, DiagnoseParams(), ["x", "v"])  # type: ignore[arg-type]
+    calls = []
+
+    def fake(s_, current, e_current, cand, finding):
+        calls.append(cand.kind)
+        if current is not base or cand.kind == "LinearDamping":
+            return _trial(cand.kind, float(e_current.mean()), False), current, e_current
+        return _trial(cand.kind, 2e-4, True), cand.kind, torch.full_like(e, 2e-4)  # passes, above the floor
+
+    monkeypatch.setattr(heldout, "try_candidate", fake)
+    plain = [(_finding("", "LinearDamping", 1, 0.9, False, False), Candidate("LinearDamping", 1))]
+    delayed = [(_finding("", "DelayedFeedback", 1, 0.9, True, True), Candidate("DelayedFeedback", 1, {"delay": 0.1}))]
+    current, _, trials = _add_greedily(s, (plain, delayed))
+    assert calls == ["LinearDamping", "DelayedFeedback"] and current == "DelayedFeedback"

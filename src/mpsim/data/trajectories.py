@@ -28,12 +28,15 @@ class Inputs:
         u: [B, T, N, C] controls on the rollout's time grid (zero-order hold between samples), or None.
         node_features: [N, F] or [B, N, F] static node features (mass, charge, ...), or None.
         meta: the data's metadata (e.g. ``box_size`` of a periodic domain, ``params`` for an energy metric).
+        past: [B, P, N, D] recorded states at the P samples before the rollout's first time (same spacing), read
+            by delayed effects as their history (None: the history before x0 is x0).
     """
 
     edge_index: torch.Tensor  # [2, E] shared or [B, 2, E] per-trajectory graph (padded with -1)
     u: torch.Tensor | None = None  # [B, T, N, C] controls
     node_features: torch.Tensor | None = None  # [N, F] or [B, N, F] static node features (mass, charge)
     meta: dict[str, Any] = field(default_factory=dict)
+    past: torch.Tensor | None = None  # [B, P, N, D] recorded states before the first time (delays' history)
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Inputs:
         """Move tensors to `device`; cast floating tensors to `dtype` (as `Trajectories.to`); `meta` is kept."""
@@ -42,6 +45,7 @@ class Inputs:
             edge_index=self.edge_index.to(device),
             u=_cast(self.u, device, dtype),
             node_features=_cast(self.node_features, device, dtype),
+            past=_cast(self.past, device, dtype),
         )
 
 

@@ -199,12 +199,48 @@ def _ranked(diag: Diagnosis, library: list[Candidate], params: DiagnoseParams) -
 
 
 def _add_greedily(s: TrialSetting, ranked: Ranked) -> tuple[Model, torch.Tensor, list[Trial]]:
+    """The plain kinds added greedily (`_greedy`; the delayed ones only if none of them passes). A delayed copy
+    of a state is imitated in part by plain kinds (a damping and a stiffness at one frequency): where plain kinds
+    pass but leave the held-out error above the null level, the delayed candidates are tried too, from the refit
+    model, and they replace the plain ones only if they predict held-out data better by more than
+    `SIMPLER_WITHIN` and come within `DELAY_NEAR_NULL` × the null floor (the only way a delay can be named)."""
+    pending, later = ranked
+    current, e_current, trials = _greedy(s, pending, later)
+    floor = null_floor(s)
+    tried = any(t.kind == "DelayedFeedback" for t in trials)  # none of the plain kinds passed: tried already
+    if tried or not later or not any(t.accepted for t in trials) or float(e_current.mean()) <= floor:
+        return current, e_current, trials
+    d_current, d_e, d_trials = _greedy(s, later, [])
+    plain, delayed = float(e_current.mean()), float(d_e.mean())
+    named = [t for t in d_trials if t.accepted]
+    if named and delayed <= DELAY_NEAR_NULL * floor and SIMPLER_WITHIN * delayed < plain:
+        for t in trials:
+            if t.accepted:
+                t.accepted = False
+                t.reason = (
+                    f"passes, but leaves the held-out MSE at {plain:.3g}, above the null level, where "
+                    f"{named[0].label} brings it to {delayed:.3g}: the plain kinds imitated the delay in part; "
+                    + t.reason
+                )
+        return d_current, d_e, trials + d_trials
+    for t in named:
+        t.accepted = False
+        t.reason = (
+            f"tried because the plain kinds left the held-out MSE at {plain:.3g} (above the null level), but "
+            f"with it {delayed:.3g}: not better by {SIMPLER_WITHIN:g}× and within {DELAY_NEAR_NULL:g}× of the null "
+            f"floor {floor:.3g}; " + t.reason
+        )
+    return current, e_current, trials + d_trials
+
+
+def _greedy(
+    s: TrialSetting, pending: list[tuple[Finding, Candidate]], later: list[tuple[Finding, Candidate]]
+) -> tuple[Model, torch.Tensor, list[Trial]]:
     """Each candidate is first tried alone on the refit model; the best passing one is added — the simplest kind
     among those within `SIMPLER_WITHIN` of the best held-out error or at the null level (`null_floor`: below it
     the difference between them is noise) — and the rest are tried again on top of it, unless it brought the
     error to the null level: (the model with the added candidates, [B] its held-out MSE, every trial). A more
     complex kind set aside so is reported as indistinguishable from the simpler one on these data."""
-    pending, later = ranked
     current, e_current, trials = s.base, s.e_base, []
     floor = null_floor(s)
     aside: dict[int, str] = {}  # id of a finding -> why its kind was set aside for a simpler, equivalent one

@@ -120,6 +120,7 @@ def shooting_fit(
     free: Sequence[nn.Parameter],
     iters: int = 25,
     stderr: bool = True,
+    restarts: int = 1,
 ) -> ShootingFit:
     """Fit the `free` parameters of `model` (in place) by L-BFGS on the window error of `data`; every other
     parameter stays fixed. Returns the fit with standard errors from the Jacobian of the window residuals.
@@ -127,7 +128,10 @@ def shooting_fit(
     With unmeasured states the latent part of every window's start is free too, fitted jointly by variable
     projection (`diagnose.latent`): started from the data's estimate, refreshed for the current parameters at
     every evaluation of the objective. `stderr=False`: no standard errors (nan), for a fit whose values are used
-    but never reported (a null fit, the refit of the model's own parameters)."""
+    but never reported (a null fit, the refit of the model's own parameters). `restarts` > 1: L-BFGS starts again
+    (with the curvature scales of where it stopped) up to this many times while the loss still falls by more
+    than 1 % — for a curved valley such as a delay's τ against the gain and the model's own parameters, where one
+    run stops early."""
     free = list(free)
     latent = initial_latent(model, data, length)
     if latent is not None:
@@ -146,39 +150,12 @@ def shooting_fit(
     model.train()
     ok = True
     try:
-        scales = curvature_scales(model, data, length, free, latent)
-        # L-BFGS moves z, p = start + scale·z: unit curvature along every parameter, whatever its units (a cubic
-        # stiffness of 1e5 in raw units beside a log-mass of 0.7 would otherwise never move)
-        zs = [torch.zeros(p.shape, dtype=torch.float64, device=p.device, requires_grad=True) for p in free]
-        opt = torch.optim.LBFGS(zs, lr=1.0, max_iter=iters, history_size=20, line_search_fn="strong_wolfe")
-
-        def place() -> None:
-            with torch.no_grad():
-                for p, p0, s, z in zip(free, start, scales, zs, strict=True):
-                    p.copy_((p0.double() + s * z.detach()).to(p.dtype))
-
-        def closure() -> torch.Tensor:
-            opt.zero_grad(set_to_none=True)
-            for p in free:
-                p.grad = None
-            place()
-            try:
-                if held[0] is not None:
-                    held[0] = fit_latent(model, data, held[0], REFRESH_ITERS)
-                loss = window_sq_error(model, data, length, held[0]).mean()
-            except DivergenceError:
-                loss = None
-            if loss is None or not torch.isfinite(loss):  # a trial step too far: a bad point the line search leaves
-                for z in zs:
-                    z.grad = torch.zeros_like(z)
-                return torch.tensor(1e30, dtype=torch.float64)
-            loss.backward()
-            for p, s, z in zip(free, scales, zs, strict=True):
-                z.grad = torch.zeros_like(z) if p.grad is None else p.grad.double() * s
-            return loss.detach().double()
-
-        opt.step(closure)
-        place()  # where the line search left z
+        last = math.inf
+        for k in range(max(restarts, 1)):  # a handful of L-BFGS runs
+            loss = _lbfgs(model, data, length, free, held, iters, measure=k < restarts - 1)
+            if not loss < 0.99 * last:
+                break
+            last = loss
     except DivergenceError:
         ok = False
         with torch.no_grad():  # back to where the fit started
@@ -189,6 +166,51 @@ def shooting_fit(
             p.requires_grad_(keep.get(id(p), True))
     model.eval()
     return _finish(model, data, length, free, start, ok, stderr)
+
+
+def _lbfgs(
+    model: Model, data: Trajectories, length: int, free: list[nn.Parameter], held: list, iters: int, measure: bool
+) -> float:
+    """One L-BFGS run from the free parameters' current values (in place): the loss where it stopped (with
+    `measure`, else nan). `held`: the latent starts of the last evaluation (warm start of the next)."""
+    scales = curvature_scales(model, data, length, free, held[0])
+    start = [p.detach().clone() for p in free]
+    # L-BFGS moves z, p = start + scale·z: unit curvature along every parameter, whatever its units (a cubic
+    # stiffness of 1e5 in raw units beside a log-mass of 0.7 would otherwise never move)
+    zs = [torch.zeros(p.shape, dtype=torch.float64, device=p.device, requires_grad=True) for p in free]
+    opt = torch.optim.LBFGS(zs, lr=1.0, max_iter=iters, history_size=20, line_search_fn="strong_wolfe")
+
+    def place() -> None:
+        with torch.no_grad():
+            for p, p0, s, z in zip(free, start, scales, zs, strict=True):
+                p.copy_((p0.double() + s * z.detach()).to(p.dtype))
+
+    def closure() -> torch.Tensor:
+        opt.zero_grad(set_to_none=True)
+        for p in free:
+            p.grad = None
+        place()
+        try:
+            if held[0] is not None:
+                held[0] = fit_latent(model, data, held[0], REFRESH_ITERS)
+            loss = window_sq_error(model, data, length, held[0]).mean()
+        except DivergenceError:
+            loss = None
+        if loss is None or not torch.isfinite(loss):  # a trial step too far: a bad point the line search leaves
+            for z in zs:
+                z.grad = torch.zeros_like(z)
+            return torch.tensor(1e30, dtype=torch.float64)
+        loss.backward()
+        for p, s, z in zip(free, scales, zs, strict=True):
+            z.grad = torch.zeros_like(z) if p.grad is None else p.grad.double() * s
+        return loss.detach().double()
+
+    opt.step(closure)
+    place()  # where the line search left z
+    if not measure:
+        return math.nan
+    with torch.no_grad():
+        return float(window_sq_error(model, data, length, held[0]).double().mean())
 
 
 def curvature_scales(

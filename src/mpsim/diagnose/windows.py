@@ -4,13 +4,19 @@ Windows start every `length` steps at the same step index in every trajectory (o
 so absolute time stays right for time-dependent terms — a drive, the data's inputs; the loop is over the few
 window starts in time, every trajectory and node of a window at once); the last window may be shorter.
 Residuals are on the measured states only (`Trajectories.observed_index`): a latent state is not a target.
+A model with a delayed effect reads the record before each window's start as its history (`Inputs.past`: the
+samples back to its longest delay, the record's first state held before the record began).
 """
 
 from __future__ import annotations
 
+import math
+from dataclasses import replace
+
 import torch
 
 from mpsim.data.trajectories import Inputs, Trajectories
+from mpsim.effects import max_delay
 from mpsim.metrics import select_features
 from mpsim.models.base import Model
 
@@ -45,8 +51,23 @@ def window_predictions(
     for k, s in enumerate(first):  # sequential in time only; each rollout batches every trajectory
         if k not in out:
             end = min(s + length, data.n_times - 1)
-            out[k] = (s, model.rollout(x0[:, k], t[s : end + 1], data.inputs(s, end + 1).to(device, dtype)))
+            inputs = data.inputs(s, end + 1).to(device, dtype)
+            before = past_samples(model, data, [s])
+            inputs = inputs if before is None else replace(inputs, past=x[:, before[0]])
+            out[k] = (s, model.rollout(x0[:, k], t[s : end + 1], inputs))
     return [out[k] for k in range(len(first))]
+
+
+def past_samples(model: Model, data: Trajectories, first: list[int]) -> torch.Tensor | None:
+    """[K, P] the indices of the P samples before each window start in `first` that the model's longest delay
+    reaches back to (clamped at the record's first sample: the history before it is held), or None for a model
+    without delayed effects."""
+    reach = max_delay(model.effects)
+    if reach <= 0 or data.n_times < 2:
+        return None
+    # one more sample: the interpolation's left knot; never more than the record (before it the history is held)
+    p = min(math.ceil(reach / float(data.t[1] - data.t[0]) - 1e-9) + 1, data.n_times)
+    return (torch.tensor(first)[:, None] - p + torch.arange(p)).clamp(min=0)
 
 
 def _uniform(t: torch.Tensor, first: list[int], length: int) -> bool:  # t: [T]
@@ -77,7 +98,9 @@ def _batched(
     feats = given.node_features
     if feats is not None and feats.dim() == 3:
         feats = feats.repeat(k, 1, 1)
-    inputs = Inputs(edge_index=edges, u=u, node_features=feats, meta=given.meta)
+    before = past_samples(model, data, first)  # [K, P] or None
+    past = None if before is None else data.x.to(device, dtype)[:, before].transpose(0, 1).flatten(0, 1)
+    inputs = Inputs(edge_index=edges, u=u, node_features=feats, meta=given.meta, past=past)  # past: [K·B, P, N, D]
     start = x0[:, index].transpose(0, 1).flatten(0, 1)  # [K·B, N, D]
     pred = model.rollout(start, t[first[0] : first[0] + length + 1], inputs)  # [K·B, L+1, N, D]
     return [(s, p) for s, p in zip(first, pred.unflatten(0, (k, b)).unbind(0), strict=True)]

@@ -43,6 +43,7 @@ from mpsim.effects.base import (
     ParameterDrift,
     PeriodicForcing,
     QuadraticDrag,
+    max_delay,
     min_delay,
     total,
 )
@@ -63,6 +64,7 @@ __all__ = [
     "PeriodicForcing",
     "QuadraticDrag",
     "SineCoupling",
+    "max_delay",
     "min_delay",
     "total",
 ]

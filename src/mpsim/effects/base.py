@@ -345,7 +345,18 @@ class PeriodicForcing(Effect):
 
 
 class DelayedFeedback(Effect):
-    """c·s(t − τ): delayed self-feedback (needs the state history: a fixed-step delay integrator)."""
+    """c·s(t − τ): delayed self-feedback (needs the state history: a fixed-step delay integrator).
+
+    τ is a number, not a multiple of the sampling step: the history is interpolated linearly between stored
+    states, and τ is a parameter (log τ, so it stays positive) that a fit moves with c when `learnable`.
+
+    Args:
+        coef: c.
+        delay: τ > 0 in the data's time units.
+        target: the state variable whose derivative receives the term.
+        source: the delayed state variable (default: the target).
+        learnable: whether c and τ are trained.
+    """
 
     basis = ("s(t-tau)",)
 
@@ -358,9 +369,23 @@ class DelayedFeedback(Effect):
         learnable: bool = True,
     ) -> None:
         super().__init__(coef, target, source, learnable)
-        if delay <= 0:
-            raise ConfigError(f"DelayedFeedback.delay must be > 0; got {delay}.")
-        self.delay = float(delay)
+        if not delay > 0 or math.isinf(delay):
+            raise ConfigError(f"DelayedFeedback.delay must be a finite number > 0; got {delay}.")
+        self.log_delay = nn.Parameter(torch.tensor(math.log(delay), dtype=torch.float64), requires_grad=learnable)
+
+    def tau(self) -> torch.Tensor:
+        """[] τ as a tensor (its gradient reaches log τ), kept within e^±30 (a fit's trial step never makes it 0)."""
+        return self.log_delay.clamp(-30.0, 30.0).exp()
+
+    @property
+    def delay(self) -> float:
+        """τ, the current delay."""
+        return float(self.tau().detach())
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # a checkpoint from before τ was a parameter: τ stays the configured one
+        state_dict.setdefault(prefix + "log_delay", self.log_delay.detach().clone())
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def features(self, t, x, ctx):
         if ctx.history is None:
@@ -368,11 +393,11 @@ class DelayedFeedback(Effect):
                 "DelayedFeedback needs the state history: integrate with a delay-aware solver "
                 "(systems and models switch to one automatically when a delay effect is present)."
             )
-        past = ctx.history(torch.as_tensor(t, dtype=x.dtype) - self.delay)
+        past = ctx.history(torch.as_tensor(t, dtype=x.dtype) - self.tau().to(x))
         return past[..., self.source : self.source + 1]
 
     def _formula(self, s):
-        return f"{float(self.coef.detach()[0]):+.4g}·{s}(t − {self.delay:g})"
+        return f"{float(self.coef.detach()[0]):+.4g}·{s}(t − {self.delay:.4g})"
 
     def config(self) -> dict[str, Any]:
         return {**super().config(), "delay": self.delay}
@@ -480,3 +505,8 @@ def total(
 def min_delay(effects: Sequence[Effect] | nn.ModuleList) -> float:
     """The smallest delay among `effects` (0 if there is no delayed term)."""
     return min((e.delay for e in effects if isinstance(e, DelayedFeedback)), default=0.0)
+
+
+def max_delay(effects: Sequence[Effect] | nn.ModuleList) -> float:
+    """The longest delay among `effects` (0 if there is no delayed term): how far back a rollout reads."""
+    return max((e.delay for e in effects if isinstance(e, DelayedFeedback)), default=0.0)

@@ -105,13 +105,18 @@ class Model(nn.Module):
         y0: torch.Tensor,  # [B, ...] initial state
         t: torch.Tensor,  # [T] output times
         solver: Any,
+        past: torch.Tensor | None = None,  # [B, P, ...] recorded states before t[0] (delays' history), or None
     ) -> torch.Tensor:
         """[B, T, ...] the field integrated by `solver`, or by fixed-step RK4 with history when an effect is
-        delayed (an ODE solver cannot read past states)."""
+        delayed (an ODE solver cannot read past states): the history before t[0] is `past` (then y0 before it),
+        interpolated linearly. The RK4 step is a quarter of the sampling interval, shorter for a shorter delay but
+        never below a sixteenth (a fitted delay that shrinks must not make the step vanish; a query inside the
+        current step is then extrapolated from the last two states)."""
         delay = min_delay(self.effects)
         if delay > 0:
             step = float(t[1] - t[0]) / 4 if t.numel() > 1 else delay
-            return rk4_delay(lambda tt, yy, hist: field(tt, yy, hist), y0, t, step=step, min_delay=delay)
+            reach = max(delay, step / 4)
+            return rk4_delay(lambda tt, yy, hist: field(tt, yy, hist), y0, t, step=step, min_delay=reach, past=past)
         return solver(field, y0, t)
 
     # ---- normalisation -------------------------------------------------------------------------------

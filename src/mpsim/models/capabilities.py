@@ -9,12 +9,14 @@ is stepped along the data by one rollout per step (`one_step_by_rollouts`).
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import torch
 
 from mpsim.data.trajectories import Inputs
+from mpsim.effects import max_delay
 
 if TYPE_CHECKING:
     from mpsim.models.base import Model
@@ -100,10 +102,14 @@ def one_step_by_rollouts(
     inputs: Inputs,  # graph [2, E] or [B, 2, E], controls [B, T, N, C] on the grid t, node features, meta
 ) -> torch.Tensor:
     """[B, T−1, N, D] each x_{k+1} predicted from the observed x_k by a one-step rollout at its absolute time
-    (the controls `inputs.u` cut to that step's two samples; the graph, node features and meta as they are)."""
+    (the controls `inputs.u` cut to that step's two samples; the graph, node features and meta as they are; a
+    delayed effect reads the observed states before x_k as its history, `Inputs.past`)."""
     u = inputs.u
+    reach = max_delay(model.effects)
+    p = min(math.ceil(reach / float(t[1] - t[0]) - 1e-9) + 1, t.numel()) if reach > 0 and t.numel() > 1 else 0
     steps = []
     for k in range(x.shape[1] - 1):  # sequential in time only; each step batches every trajectory
-        step_inputs = replace(inputs, u=None if u is None else u[:, k : k + 2])
+        past = x[:, (k - p + torch.arange(p)).clamp(min=0)] if p else None  # [B, P, N, D] the record before x_k
+        step_inputs = replace(inputs, u=None if u is None else u[:, k : k + 2], past=past)
         steps.append(model.rollout(x[:, k], t[k : k + 2], step_inputs)[:, 1])
     return torch.stack(steps, dim=1)

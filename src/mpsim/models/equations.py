@@ -241,7 +241,7 @@ class EquationsModel(Model):
             if getattr(self.solver, "restarts", False):  # dopri5 steps to every sample and restarts there
                 return self.solver(field, x0, t, restart=True)
             return integrate_held(lambda f, y, tt: self.integrate(f, y, tt, self.solver), field, x0, t)
-        return self.integrate(field, x0, t, self.solver)
+        return self.integrate(field, x0, t, self.solver, inputs.past)
 
     def _signal(self, x0: torch.Tensor, t: torch.Tensor, inputs: Inputs) -> GridInput | None:  # x0: [B, N, D]
         """The rollout's inputs on its grid (None for a spec without inputs), checked against the spec by name

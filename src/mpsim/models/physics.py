@@ -127,7 +127,7 @@ class PhysicsModel(Model):
         b, n, _ = x0.shape
         graph = batch_graph(inputs.edge_index.to(x0.device), b, n, dtype=x0.dtype) if len(self.effects) else None
         try:
-            return self.integrate(_PhysicsField(self, graph), x0, t, self.solver)
+            return self.integrate(_PhysicsField(self, graph), x0, t, self.solver, inputs.past)
         finally:
             for name in self.raw:
                 setattr(self.system, name, self.declared[name])
