@@ -105,7 +105,7 @@ CASES: dict[str, PeerCase] = {
     "e_pendulum_sin2": PeerCase("e_pendulum_sin2", "[]", UNEXPLAINED),
     "f_kuramoto_harm2": PeerCase("f_kuramoto_harm2", _HARM2, ("SineCoupling(k=2)", "theta", "coef", 0.25, 0.10)),
     # new cases (issue 61): truth values and effects TODO until the recipe's lines exist
-    "g_delay": PeerCase("g_delay", "[{_target_: mpsim.effects.DelayedFeedback, coef: TODO, delay: TODO, target: v}]", ("DelayedFeedback", "v", "delay", TODO, 0.10)),
+    "g_delay": PeerCase("g_delay", "[{_target_: mpsim.effects.DelayedFeedback, coef: -0.8, delay: 0.125, target: omega}]", ("DelayedFeedback", "omega", "delay", 0.125, 0.10)),
     "g_delay_clean": PeerCase("g_delay"),
     "h_drift": PeerCase("h_drift", "[]", ("ParameterDrift", "v", "s", 0.04, 0.10)),
     "h_drift_clean": PeerCase("h_drift", params={"s": 0.0}),
