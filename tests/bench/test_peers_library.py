@@ -15,6 +15,7 @@ import pytest
 import torch
 
 from mpsim.bench.peers import CASES, PeerCase, PeersBench, judge, kind_of
+from mpsim.bench.peers_cases import TODO
 from mpsim.bench.peers_library import Column, row_columns, sparse_fit, state_columns, timed_columns
 from mpsim.models.equations import EquationsModel
 from mpsim.spec.files import load_spec_file
@@ -105,14 +106,15 @@ def test_new_kinds_are_judged_by_their_value_and_mpsim_names_carry_the_harmonic(
     assert CASES["f_kuramoto_harm2"].text == "SineCoupling(theta, k=2) coef 0.25"
 
 
-def test_a_case_without_specs_or_with_a_todo_truth_gets_a_row_that_says_so(tmp_path):
+def test_a_case_without_specs_or_with_a_todo_truth_gets_a_row_that_says_so(tmp_path, monkeypatch):
     pytest.importorskip("pysindy")
     for name in ("a_chain_data.yaml", "a_chain_model.yaml"):
         shutil.copy(SPECS / name, tmp_path / name)
-    shutil.copy(SPECS / "a_chain_data.yaml", tmp_path / "g_delay_data.yaml")  # specs there, truth still TODO
-    shutil.copy(SPECS / "a_chain_model.yaml", tmp_path / "g_delay_model.yaml")
-    rows = PeersBench(cases=["a_undamped", "g_delay", "h_drift"], twins=False, specs=str(tmp_path)).run()
+    # a case whose specs are there but whose truth is still TODO, and one whose specs are not
+    monkeypatch.setitem(CASES, "x_todo", PeerCase("a_chain", "[]", ("LinearDamping", "v", "coef", TODO, 0.10)))
+    monkeypatch.setitem(CASES, "x_nospec", PeerCase("x_nospec"))
+    rows = PeersBench(cases=["a_undamped", "x_todo", "x_nospec"], twins=False, specs=str(tmp_path)).run()
     texts = {r["case"]: r["PySINDy named (fitted)"] for r in rows}
-    assert texts["h_drift"] == "spec missing: h_drift_data.yaml, h_drift_model.yaml"
-    assert texts["g_delay"].startswith("truth TODO") and CASES["g_delay"].todo
+    assert texts["x_nospec"] == "spec missing: x_nospec_data.yaml, x_nospec_model.yaml"
+    assert texts["x_todo"].startswith("truth TODO") and CASES["x_todo"].todo
     assert rows[0]["PySINDy right"] in ("yes", "NO")

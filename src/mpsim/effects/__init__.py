@@ -27,27 +27,23 @@ some nodes only, with a coefficient each: `nodes=[2]` (or `[0, 2]`) and `coef` o
 with s the source variable of node i and A the coupling graph. A phase lag in Kuramoto coupling is the pair
 `SineCoupling` + `CosineCoupling`: K·sin(s_j − s_i − α) = K cos α·sin(s_j − s_i) − K sin α·cos(s_j − s_i).
 
-The classes live in `mpsim.effects.base` (state, time and delay terms) and `mpsim.effects.couplings` (neighbour
-couplings); configs name them here, `_target_: mpsim.effects.<Name>`.
+The classes live in `mpsim.effects.base` (the base class and state terms), `mpsim.effects.temporal` (time and
+delay terms) and `mpsim.effects.couplings` (neighbour couplings); configs name them here, `_target_: mpsim.effects.<Name>`.
 """
 
 from mpsim.effects.base import (
     PER_NODE_KINDS,
     Bias,
     CubicStiffness,
-    DelayedFeedback,
     DryFriction,
     Effect,
     EffectContext,
     LinearDamping,
-    ParameterDrift,
-    PeriodicForcing,
     QuadraticDrag,
-    max_delay,
-    min_delay,
     total,
 )
 from mpsim.effects.couplings import CosineCoupling, DiffusiveCoupling, SineCoupling
+from mpsim.effects.temporal import DelayedFeedback, ParameterDrift, PeriodicForcing, max_delay, min_delay
 
 __all__ = [
     "Bias",
