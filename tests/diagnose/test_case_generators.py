@@ -73,18 +73,18 @@ def _time_integral(f: torch.Tensor, dt: float) -> torch.Tensor:  # f: [B, T]
 def test_readme_lists_every_case_and_the_specs_fit_together():
     assert set(COMMANDS) == {
         "a_damped", "a_undamped", "b_vdp", "c_kuramoto_lag", "d_chain_friction", "e_pendulum_sin2", "f_kuramoto_harm2",
-        "h_drift", "h_drift_clean", "i_bias", "i_bias_clean", "j_semieuler", "j_semieuler_clean", "l_chain_node",
+        "g_delay", "g_delay_clean", "h_drift", "h_drift_clean", "i_bias", "i_bias_clean", "j_semieuler", "j_semieuler_clean", "l_chain_node",
         "l_chain_node_clean",
     }  # fmt: skip
     stems = (
-        "a_chain", "b_vdp", "c_kuramoto_lag", "d_chain_friction", "e_pendulum_sin2", "f_kuramoto_harm2", "h_drift",
-        "i_bias", "j_semieuler", "l_chain_node",
+        "a_chain", "b_vdp", "c_kuramoto_lag", "d_chain_friction", "e_pendulum_sin2", "f_kuramoto_harm2", "g_delay",
+        "h_drift", "i_bias", "j_semieuler", "l_chain_node",
     )  # fmt: skip
     for stem in stems:
         data, model = load_spec_file(CASES / f"{stem}_data.yaml"), load_spec_file(CASES / f"{stem}_model.yaml")
         assert parse_spec(model, extra_keys=SYSTEM_KEYS).states == parse_spec(data, extra_keys=SYSTEM_KEYS).states
         assert f"model.spec=$C/{stem}_model.yaml" in (CASES / "README.md").read_text()
-        if stem in ("a_chain", "b_vdp", "d_chain_friction", "f_kuramoto_harm2", "i_bias", "j_semieuler"):
+        if stem in ("a_chain", "b_vdp", "d_chain_friction", "f_kuramoto_harm2", "g_delay", "i_bias", "j_semieuler"):
             assert data["equations"] == model["equations"]  # from system.effects only
         else:  # the effect is written into the data's equations
             assert data["equations"] != model["equations"]
@@ -92,7 +92,7 @@ def test_readme_lists_every_case_and_the_specs_fit_together():
     for case in ("h_drift", "l_chain_node"):
         twin = load_spec_file(COMMANDS[f"{case}_clean"]["spec"])
         assert twin["equations"] == load_spec_file(CASES / f"{case}_model.yaml")["equations"]
-    for case in ("h_drift", "i_bias", "j_semieuler", "l_chain_node"):
+    for case in ("g_delay", "h_drift", "i_bias", "j_semieuler", "l_chain_node"):
         assert COMMANDS[f"{case}_clean"]["effects"] == []
 
 
@@ -236,6 +236,22 @@ def test_f_second_harmonic_leaves_the_nominal_model_and_keeps_slipping():
     th = x[..., 0]
     pair = torch.stack([th.roll(1, dims=1), th.roll(-1, dims=1)], dim=-1) - th[..., None]  # [B, 8, 2]
     assert torch.allclose(extra[..., 0], 0.25 * torch.sin(2 * pair).sum(-1))
+
+
+def test_g_delay_sits_between_grid_points_and_is_resolvable():
+    system, data = _data("g_delay")
+    (effect,) = system.effects
+    dt = float(data.t[1] - data.t[0])
+    assert type(effect).__name__ == "DelayedFeedback" and effect.delay / dt == pytest.approx(2.5)
+    nominal = _nominal("g_delay", "g_delay").simulate(data.x[:, 0], data.t).x
+    assert float((data.x[:, -1] - nominal[:, -1]).abs().max()) > 0.5  # rad: the feedback is visible
+    spread = float(data.x.std())
+    for steps in (2, 3):  # the same gain at the grid delays either side of τ gives other records
+        other = EquationsSystem(
+            load_spec_file(CASES / "g_delay_data.yaml"),
+            effects=[instantiate({**COMMANDS["g_delay"]["effects"][0], "delay": steps * dt})],
+        ).simulate(data.x[:, 0], data.t)
+        assert float((other.x - data.x).abs().max()) > 0.01 * spread
 
 
 def test_h_stiffness_drifts_by_forty_percent_and_the_twin_keeps_it():
