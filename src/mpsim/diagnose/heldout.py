@@ -132,8 +132,8 @@ def _judge(
 ) -> Judgement:
     train = train.subset(slice(0, params.fit_trajectories))  # a handful of parameters: a few records suffice
     horizon = params.horizon or diag.horizon or horizon_from_data(model, train, params.vpt_threshold)
-    given = float(window_error(model, test, horizon).mean())
-    s = _levels(model, diag, train, test, horizon, given, params, seed)
+    s, given = _levels(model, diag, train, test, horizon, params, seed)
+    horizon = s.horizon  # no longer than the refit model tracks its own noisy data (`_null_twin`)
     e_base, e_null = float(s.e_base.mean()), float(s.e_null.mean())
     floor = null_floor(s)
     if e_base <= floor:  # at the null level: nothing to test
@@ -151,22 +151,51 @@ def _levels(
     train: Trajectories,
     test: Trajectories,
     horizon: int,
-    given: float,
     params: DiagnoseParams,
     seed: int,
-) -> TrialSetting:
-    """The model with its own parameters refit by multiple shooting (never worse than `given`, its held-out
-    MSE), its held-out errors, and null records simulated by it with the data's noise level."""
+) -> tuple[TrialSetting, float]:
+    """The model with its own parameters refit by multiple shooting (never worse than the model as given on
+    held-out data), its held-out errors, and null records simulated by it with the data's noise level; with the
+    held-out MSE of the model as given. The held-out windows are at most `horizon` steps, and no longer than
+    the refit model tracks its own noisy null records (`_null_twin`)."""
     noise = torch.tensor(diag.noise_std, dtype=torch.float64)
     base = copy.deepcopy(model)
     shooting_fit(base, train, min(horizon, params.fit_window), own_parameters(base), params.shooting_iters, False)
+    horizon, null_train = _null_twin(base, train, noise, horizon, params, seed + 11)
+    given = float(window_error(model, test, horizon).mean())
     e_base = window_error(base, test, horizon)
     if not float(e_base.mean()) <= given:  # the refit never makes the starting point worse
         base, e_base = copy.deepcopy(model), window_error(model, test, horizon)
-    null_train = null_data(base, train, noise, seed + 11, segment=horizon)
+        null_train = null_data(base, train, noise, seed + 11, segment=horizon)
     null_test = null_data(base, test, noise, seed + 12, segment=horizon)
     e_null = window_error(base, null_test, horizon)
-    return TrialSetting(base, e_base, e_null, train, test, null_train, null_test, horizon, params, diag.state_names)
+    setting = TrialSetting(base, e_base, e_null, train, test, null_train, null_test, horizon, params, diag.state_names)
+    return setting, given
+
+
+#: the held-out horizon ends where the null twin's error passes this share of `vpt_threshold` (`_null_twin`)
+NULL_TRACKING = 1 / 3
+
+
+def _null_twin(
+    base: Model, train: Trajectories, noise: torch.Tensor, horizon: int, params: DiagnoseParams, seed: int
+) -> tuple[int, Trajectories]:
+    """(the held-out horizon, null records of the held-in data cut to it). On a chaotic system even the exact
+    model loses its own noisy data after a while: held-out windows longer than that saturate for every model,
+    the right one included, and the share of the error it removes means nothing. So the horizon is at most the
+    time the refit model tracks its own null data (`noise`: [D] the data's noise level): the step where the null
+    windows' normalised RMS error first passes `NULL_TRACKING` × `vpt_threshold`, or twice its first step's
+    (the noise level) if that is larger. Well inside the valid prediction time, where an error still grows in
+    proportion to its cause: there a near-right model's error is near the null level, which the share explained
+    measures. A horizon set by hand (`diagnose.horizon`) is kept; where the model never loses its own data (not
+    chaotic) nothing changes."""
+    null_train = null_data(base, train, noise, seed, segment=horizon)
+    if params.horizon is not None:
+        return horizon, null_train
+    tracked = horizon_from_data(base, null_train, NULL_TRACKING * params.vpt_threshold, above_first=2.0)
+    if tracked >= horizon:
+        return horizon, null_train
+    return tracked, null_data(base, train, noise, seed, segment=tracked)
 
 
 #: candidates to try, each with its candidate column group: (the ones tried first, the ones tried if none passes)

@@ -76,10 +76,10 @@ def window_error(model: Model, data: Trajectories, length: int) -> torch.Tensor:
     return torch.where(torch.isfinite(err), err, torch.full_like(err, math.inf))
 
 
-def horizon_from_data(model: Model, data: Trajectories, threshold: float) -> int:
+def horizon_from_data(model: Model, data: Trajectories, threshold: float, above_first: float = 0.0) -> int:
     """Steps the model tracks the held-in data from their first states before its normalised rollout error
-    exceeds `threshold` (at least 2; the whole record when it never does): short windows for chaotic systems,
-    whole records otherwise."""
+    exceeds `threshold`, or `above_first` × its error at the first step if that is larger (at least 2; the whole
+    record when it never does): short windows for chaotic systems, whole records otherwise."""
     with torch.no_grad():
         try:
             latent = fitted_latent(model, data, data.n_times - 1)  # unmeasured states: their best start
@@ -89,7 +89,7 @@ def horizon_from_data(model: Model, data: Trajectories, threshold: float) -> int
         except DivergenceError:
             return 2
         err = torch.cat([res.new_zeros(1), res[:, 0].pow(2).mean(dim=(0, 2, 3)).sqrt()]).cpu()  # [T]
-    over = torch.nonzero(~(err <= threshold)).flatten()
+    over = torch.nonzero(~(err <= max(threshold, above_first * float(err[1])))).flatten()
     return data.n_times - 1 if over.numel() == 0 else max(int(over[0]), 2)
 
 
