@@ -20,7 +20,7 @@ JOBS=${JOBS:-1}
 # >>> the hidden effects of cases g and k (spec files g_delay_*.yaml, k_chaos_drive_*.yaml, written separately).
 # PLACEHOLDERS until those cases settle their truth: the scorer reads its truth from these same two values.
 G_DELAY_EFFECT=${G_DELAY_EFFECT:-"{_target_: mpsim.effects.DelayedFeedback, coef: -0.8, delay: 0.125, target: omega}"}
-K_CHAOS_EFFECT=${K_CHAOS_EFFECT:-"{_target_: mpsim.effects.PeriodicForcing, amplitude: 2.0, omega: 1.7, phase: 0.0, target: y, random_phase: true, phase_seed: 0}"}
+K_CHAOS_EFFECT=${K_CHAOS_EFFECT:-"{_target_: mpsim.effects.PeriodicForcing, amplitude: 4.0, omega: 7.0, phase: 0.0, target: y, random_phase: true, phase_seed: 0}"}
 # <<<
 ALL_CASES="a_damped a_undamped b_vdp c_kuramoto_lag d_chain_friction e_pendulum_sin2 f_kuramoto_harm2 g_delay g_delay_clean
   h_drift h_drift_clean i_bias i_bias_clean j_semieuler j_semieuler_clean k_chaos_drive k_chaos_drive_clean l_chain_node

@@ -73,18 +73,21 @@ def _time_integral(f: torch.Tensor, dt: float) -> torch.Tensor:  # f: [B, T]
 def test_readme_lists_every_case_and_the_specs_fit_together():
     assert set(COMMANDS) == {
         "a_damped", "a_undamped", "b_vdp", "c_kuramoto_lag", "d_chain_friction", "e_pendulum_sin2", "f_kuramoto_harm2",
-        "g_delay", "g_delay_clean", "h_drift", "h_drift_clean", "i_bias", "i_bias_clean", "j_semieuler", "j_semieuler_clean", "l_chain_node",
+        "g_delay", "g_delay_clean", "h_drift", "h_drift_clean", "i_bias", "i_bias_clean", "j_semieuler", "j_semieuler_clean", "k_chaos_drive",
+        "k_chaos_drive_clean", "l_chain_node",
         "l_chain_node_clean",
     }  # fmt: skip
     stems = (
         "a_chain", "b_vdp", "c_kuramoto_lag", "d_chain_friction", "e_pendulum_sin2", "f_kuramoto_harm2", "g_delay",
-        "h_drift", "i_bias", "j_semieuler", "l_chain_node",
+        "h_drift", "i_bias", "j_semieuler", "k_chaos_drive", "l_chain_node",
     )  # fmt: skip
     for stem in stems:
         data, model = load_spec_file(CASES / f"{stem}_data.yaml"), load_spec_file(CASES / f"{stem}_model.yaml")
         assert parse_spec(model, extra_keys=SYSTEM_KEYS).states == parse_spec(data, extra_keys=SYSTEM_KEYS).states
         assert f"model.spec=$C/{stem}_model.yaml" in (CASES / "README.md").read_text()
-        if stem in ("a_chain", "b_vdp", "d_chain_friction", "f_kuramoto_harm2", "g_delay", "i_bias", "j_semieuler"):
+        if stem in (
+            "a_chain", "b_vdp", "d_chain_friction", "f_kuramoto_harm2", "g_delay", "i_bias", "j_semieuler", "k_chaos_drive",
+        ):  # fmt: skip
             assert data["equations"] == model["equations"]  # from system.effects only
         else:  # the effect is written into the data's equations
             assert data["equations"] != model["equations"]
@@ -92,7 +95,7 @@ def test_readme_lists_every_case_and_the_specs_fit_together():
     for case in ("h_drift", "l_chain_node"):
         twin = load_spec_file(COMMANDS[f"{case}_clean"]["spec"])
         assert twin["equations"] == load_spec_file(CASES / f"{case}_model.yaml")["equations"]
-    for case in ("g_delay", "h_drift", "i_bias", "j_semieuler", "l_chain_node"):
+    for case in ("g_delay", "h_drift", "i_bias", "j_semieuler", "k_chaos_drive", "l_chain_node"):
         assert COMMANDS[f"{case}_clean"]["effects"] == []
 
 
@@ -317,6 +320,25 @@ def test_j_coarse_semi_implicit_euler_artefact_is_first_order_and_the_damping_ta
     assert (e[:, -1] < 0.2 * e[:, 0]).all() and (e[:, -1] > 0.02 * e[:, 0]).all()
     e = energy(twin.x)
     assert float(((e - e[:, :1]).abs() / e[:, :1]).max()) < 0.05  # symplectic: bounded, no drift
+
+
+def test_k_rossler_is_chaotic_and_the_drive_has_a_phase_per_recording():
+    system, data = _data("k_chaos_drive")
+    (effect,) = system.effects
+    assert type(effect).__name__ == "PeriodicForcing" and effect.random_phase
+    clean, _ = _data("k_chaos_drive_clean")
+    x0 = data.x[:, 0]  # [B, 1, 3]
+    a = clean.simulate(x0, data.t).x
+    b = clean.simulate(x0 + 1e-6, data.t).x
+    growth = (a - b).abs().amax(dim=(2, 3))  # [B, T] how far two starts 1e-6 apart separate
+    assert float(growth[:, -1].median()) > 1e-3  # more than 1e3× within the record: chaos
+    phases = effect.trajectory_phases(data.x.shape[0])  # [B]
+    assert float(phases.std()) > 0.5  # a phase of its own in each recording
+    # the term the data add is the drive A·sin(ω t + φ_b) on y alone
+    t = data.t[10]
+    extra = system.rhs(t, x0[:1]) - clean.rhs(t, x0[:1])  # [1, 1, 3]
+    assert float(extra[..., 0].abs().max()) == 0 and float(extra[..., 2].abs().max()) == 0
+    assert float(extra[..., 1].abs().max()) <= 4.0 + 1e-9
 
 
 def test_l_only_node_2_is_damped():

@@ -94,8 +94,8 @@ _DRIVE = "[{_target_: mpsim.effects.PeriodicForcing, amplitude: 1.5, omega: 3.1,
 _FRICTION = "[{_target_: mpsim.effects.DryFriction, coef: 0.5, target: v, scale: 0.001}]"
 _HARM2 = "[{_target_: mpsim.effects.SineCoupling, coef: 0.25, target: theta, harmonic: 2}]"
 # fmt: off
-#: every case, one line each: name: PeerCase(spec stem, the recipe's system.effects, truth, ...). The new cases'
-#: effects and values are TODO where the recipe's lines were not written yet: copy them from cli/diagnose_cases.sh.
+#: every case, one line each: name: PeerCase(spec stem, the recipe's system.effects, truth, ...), the effects copied
+#: from cli/diagnose_cases.sh (a value not known yet would be TODO).
 CASES: dict[str, PeerCase] = {
     "a_damped": PeerCase("a_chain", _DAMP, ("LinearDamping", "v", "coef", 0.3, 0.10)),
     "a_undamped": PeerCase("a_chain"),
@@ -104,7 +104,7 @@ CASES: dict[str, PeerCase] = {
     "d_chain_friction": PeerCase("d_chain_friction", _FRICTION, ("DryFriction", "v", "coef", 0.5, 0.10)),
     "e_pendulum_sin2": PeerCase("e_pendulum_sin2", "[]", UNEXPLAINED),
     "f_kuramoto_harm2": PeerCase("f_kuramoto_harm2", _HARM2, ("SineCoupling(k=2)", "theta", "coef", 0.25, 0.10)),
-    # new cases (issue 61): truth values and effects TODO until the recipe's lines exist
+    # issue 61's cases
     "g_delay": PeerCase("g_delay", "[{_target_: mpsim.effects.DelayedFeedback, coef: -0.8, delay: 0.125, target: omega}]", ("DelayedFeedback", "omega", "delay", 0.125, 0.10)),
     "g_delay_clean": PeerCase("g_delay"),
     "h_drift": PeerCase("h_drift", "[]", ("ParameterDrift", "v", "s", 0.04, 0.10)),
@@ -113,7 +113,7 @@ CASES: dict[str, PeerCase] = {
     "i_bias_clean": PeerCase("i_bias"),
     "j_semieuler": PeerCase("j_semieuler", "[{_target_: mpsim.effects.LinearDamping, coef: 0.15, target: v}]", ("LinearDamping", "v", "coef", 0.15, 0.10)),
     "j_semieuler_clean": PeerCase("j_semieuler"),
-    "k_chaos_drive": PeerCase("k_chaos_drive", "[{_target_: mpsim.effects.PeriodicForcing, amplitude: TODO, omega: TODO, target: TODO, random_phase: true, phase_seed: 0}]", ("PeriodicForcing", "TODO", "omega", TODO, 0.03)),
+    "k_chaos_drive": PeerCase("k_chaos_drive", "[{_target_: mpsim.effects.PeriodicForcing, amplitude: 4.0, omega: 7.0, phase: 0.0, target: y, random_phase: true, phase_seed: 0}]", ("PeriodicForcing", "y", "omega", 7.0, 0.03)),
     "k_chaos_drive_clean": PeerCase("k_chaos_drive"),
     "l_chain_node": PeerCase("l_chain_node", "[]", ("LinearDamping", "v", "coef", 0.3, 0.10)),
     "l_chain_node_clean": PeerCase("l_chain_node", params={"c": [0.0, 0.0, 0.0, 0.0]}),
