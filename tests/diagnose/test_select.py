@@ -102,3 +102,30 @@ def test_a_wide_group_that_lowers_the_residual_most_does_not_stop_the_selection(
     sel = stepwise_bic(y, [wide, truth])
     assert sel.groups == [1]
     assert sel.coef[1][0] == pytest.approx(0.5, abs=0.03)
+
+
+def test_one_effect_written_two_ways_is_selected_once():
+    """A drive with a phase per recording at ω₁ and the shared-phase drive at ω₂ ≈ ω₁ are nearly collinear; on a
+    drive a little off both frequencies the pair together fits better than either, so without the labels the
+    selection takes both with coefficients that cancel each other (case 2: 77 and −67 for a true 10).
+    Labelled as one effect, only one of them is chosen, with a coefficient near the truth."""
+    b, m = 20, 100
+    t = torch.linspace(0, 5, m, dtype=torch.float64)
+    gen = torch.Generator().manual_seed(0)
+
+    def waves(omega):  # [m, 2]
+        return torch.stack([torch.sin(omega * t), torch.cos(omega * t)], dim=-1)
+
+    shared = waves(20.015)[None].expand(b, m, 2)
+    phased = torch.zeros(b, m, 2 * b, dtype=torch.float64)
+    for r in range(b):  # a test fixture of 20 recordings
+        phased[r, :, 2 * r : 2 * r + 2] = waves(20.02)
+    y = 10 * torch.sin(20.0 * t)[None].expand(b, m) + 0.2 * torch.randn(b, m, generator=gen, dtype=torch.float64)
+    groups = [shared.reshape(b * m, 2), phased.reshape(b * m, 2 * b)]
+    both = stepwise_bic(y.reshape(-1), groups)
+    assert sorted(both.groups) == [0, 1]  # unlabelled: both chosen, and they cancel
+    assert max(abs(v) for v in both.coef[0]) > 30
+    one = stepwise_bic(y.reshape(-1), groups, same=[0, 0])
+    assert len(one.groups) == 1
+    g = one.groups[0]
+    assert max(abs(v) for v in one.coef[g]) == pytest.approx(10, rel=0.1)

@@ -90,7 +90,7 @@ def _fit_target(
     b = y.shape[0]
     flat_y = y.reshape(-1)
     flat_g = [g.reshape(flat_y.numel(), -1) for g in groups]
-    sel = stepwise_bic(flat_y, flat_g)
+    sel = stepwise_bic(flat_y, flat_g, same=same)
     if base is not None:  # the nuisance columns count as parameters of every model in the BIC
         sel.bic_path = [v + base.shape[-1] * math.log(flat_y.numel()) for v in sel.bic_path]
     alone, alone_coef = fit_alone(flat_y, flat_g)

@@ -84,9 +84,21 @@ def _gram_fit(gram: torch.Tensor, xty: torch.Tensor, yty: float, cols: list[int]
 
 
 def _stepwise_gram(
-    gram: torch.Tensor, xty: torch.Tensor, yty: float, n: int, spans: list[list[int]], base: list[int], max_terms: int
+    gram: torch.Tensor,
+    xty: torch.Tensor,
+    yty: float,
+    n: int,
+    spans: list[list[int]],
+    base: list[int],
+    max_terms: int,
+    same: list[int] | None = None,
 ) -> Selection:
-    """Forward stepwise BIC selection on precomputed normal equations (`spans`: each group's column indices)."""
+    """Forward stepwise BIC selection on precomputed normal equations (`spans`: each group's column indices).
+
+    Groups with one label in `same` are one effect written two ways (a drive with a phase per recording and the
+    shared-phase drive at nearly the same frequency): once one is chosen the others are not offered, since the
+    two together are nearly collinear and their coefficients would cancel each other (case 2: 77 and −67)."""
+    labels = list(range(len(spans))) if same is None else list(same)
     _, total = _gram_fit(gram, xty, yty, base)
     if total <= 0 or n == 0:
         return Selection([], {}, {}, 0.0, [], max(total, 0.0))
@@ -96,8 +108,9 @@ def _stepwise_gram(
     path, gains = [bic], {}
     while len(chosen) < max_terms:
         best = None
+        taken = {labels[i] for i in chosen}
         for g in range(len(spans)):  # the group that lowers the BIC most (a wide group pays for its columns)
-            if g in chosen:
+            if labels[g] in taken:
                 continue
             cols = base + [c for i in [*chosen, g] for c in spans[i]]
             _, r = _gram_fit(gram, xty, yty, cols)
@@ -140,13 +153,14 @@ def stepwise_bic(
     groups: list[torch.Tensor],  # each [n, k_g] basis columns of one candidate
     max_terms: int = 6,
     base: torch.Tensor | None = None,  # [n, q] columns always in the fit (never selected or named)
+    same: list[int] | None = None,  # per group, a label: groups with one label exclude each other
 ) -> Selection:
     """Forward stepwise selection: add the group that lowers the BIC = n·log(RSS/n) + p·log(n) most, while it
     decreases (a group of many columns, a drive with a phase per recording, must pay for them). The fits run on the normal equations (one pass over the
     rows), so the cost does not grow with the number of samples per step."""
     x, spans, base_cols = _design(groups, base)
     gram, xty, yty = x.T @ x, x.T @ y, float(y @ y)
-    return _stepwise_gram(gram, xty, yty, y.numel(), spans, base_cols, max_terms)
+    return _stepwise_gram(gram, xty, yty, y.numel(), spans, base_cols, max_terms, same)
 
 
 def explained_alone(y: torch.Tensor, groups: list[torch.Tensor], base: torch.Tensor | None = None) -> list[float]:
@@ -210,7 +224,7 @@ def bootstrap(
     for _ in range(n_boot):  # resamples, not a loop over data elements
         w = torch.bincount(torch.randint(0, b, (b,), generator=gen), minlength=b).to(x.dtype)  # multiplicities
         gram, xty, yty = torch.einsum("b,bpq->pq", w, grams), w @ xtys, float(w @ ytys)
-        picked = {labels[g] for g in _stepwise_gram(gram, xty, yty, b * m, spans, base_cols, max_terms).groups}
+        picked = {labels[g] for g in _stepwise_gram(gram, xty, yty, b * m, spans, base_cols, max_terms, same).groups}
         for g in range(len(groups)):
             counts[g] += labels[g] in picked
         if selected:
