@@ -17,11 +17,10 @@ C=examples/diagnose_cases
 SEEDS=${SEEDS:-"0 1 2 3 4"}
 NOISES=${NOISES:-"0 0.01"}
 JOBS=${JOBS:-1}
-# >>> the hidden effects of cases g and k (spec files g_delay_*.yaml, k_chaos_drive_*.yaml, written separately).
-# PLACEHOLDERS until those cases settle their truth: the scorer reads its truth from these same two values.
+# the hidden effects of cases g and k (spec files g_delay_*.yaml, k_chaos_drive_*.yaml); the scorer reads its truth
+# from these same two values, so an override changes the data and the truth together
 G_DELAY_EFFECT=${G_DELAY_EFFECT:-"{_target_: mpsim.effects.DelayedFeedback, coef: -0.8, delay: 0.125, target: omega}"}
 K_CHAOS_EFFECT=${K_CHAOS_EFFECT:-"{_target_: mpsim.effects.PeriodicForcing, amplitude: 4.0, omega: 7.0, phase: 0.0, target: y, random_phase: true, phase_seed: 0}"}
-# <<<
 ALL_CASES="a_damped a_undamped b_vdp c_kuramoto_lag d_chain_friction e_pendulum_sin2 f_kuramoto_harm2 g_delay g_delay_clean
   h_drift h_drift_clean i_bias i_bias_clean j_semieuler j_semieuler_clean k_chaos_drive k_chaos_drive_clean l_chain_node
   l_chain_node_clean case1 case2 case2_clean clean"
@@ -127,7 +126,7 @@ has j_semieuler && launch spec_case j_semieuler j_semieuler_data.yaml j_semieule
   'system.effects=[{_target_: mpsim.effects.LinearDamping, coef: 0.15, target: v}]'
 has i_bias && launch spec_case i_bias i_bias_data.yaml i_bias_model.yaml \
   'system.effects=[{_target_: mpsim.effects.Bias, coef: 0.1, target: x}]'
-# cases whose spec files may not be in this checkout yet: skipped with a note when absent
+# a case whose spec files are missing (a trimmed checkout) is skipped with a note
 spec_files() { [[ -f $C/$1 && -f $C/$2 ]] || { echo "$3: skipped, $C/$1 or $C/$2 is missing"; return 1; }; }
 has g_delay && spec_files g_delay_data.yaml g_delay_model.yaml g_delay &&
   launch spec_case g_delay g_delay_data.yaml g_delay_model.yaml "system.effects=[$G_DELAY_EFFECT]"
