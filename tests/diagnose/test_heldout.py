@@ -63,7 +63,7 @@ def _damping_is_named(kinds: list[str] | None) -> None:
     data = pendulum(24, seed=0)
     splits = Splits(data.subset(slice(0, 14)), data.subset(slice(14, 16)), data.subset(slice(16, 24)))
     kw = {"kinds": kinds} if kinds else {}
-    params = DiagnoseParams(n_boot=20, fit_trajectories=6, horizon=40, shooting_iters=15, **kw)
+    params = DiagnoseParams(n_boot=20, fit_trajectories=6, horizon=20, shooting_iters=15, **kw)
     model = nominal(splits.train)
     diag, library = screen(model, splits.train, params, 0)
     # the one-step screen prefers the delayed velocity: alone, it explains more of the residual than the damping
