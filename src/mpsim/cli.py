@@ -234,6 +234,46 @@ def _check_spec_files(cfg: Any) -> None:
             continue
 
 
+def _check_data_names(cfg: Any) -> None:
+    """Refuse at once, before Hydra makes a run folder, a `data.columns` / `data.observed` /
+    `data.control_columns` name that the model's spec does not have (`mpsim.data.keys`). A model that comes from
+    a checkpoint (`init=`) is checked once it is loaded."""
+    from collections.abc import Mapping
+
+    from omegaconf import OmegaConf
+
+    from mpsim.data.keys import check_data_names
+    from mpsim.safeload import SPEC_BYTES, load_yaml, not_a_regular_file
+
+    data, model = cfg.get("data"), cfg.get("model")
+    if data is None or model is None or not data.get("path") or cfg.get("init"):
+        return
+    spec = model.get("spec")
+    if isinstance(spec, str):
+        path = Path(os.path.expanduser(spec))
+        if not_a_regular_file(path) is not None:
+            return
+        try:
+            spec = load_yaml(path, SPEC_BYTES, f"spec file {path}", "")
+        except Exception:  # noqa: BLE001 - the spec's reader names what is wrong with it
+            return
+    else:
+        spec = OmegaConf.to_container(spec, resolve=True) if spec is not None else None
+    spec = spec if isinstance(spec, Mapping) else {}
+    states = model.get("states") or spec.get("states")
+    inputs = model.get("inputs") or spec.get("inputs") or []
+    columns = OmegaConf.to_container(data.columns, resolve=True) if data.get("columns") is not None else None
+    if not _names(states) or not _names(inputs) or not (columns is None or isinstance(columns, Mapping)):
+        return
+    check_data_names(columns, list(data.observed or []), list(data.control_columns or []), list(states), list(inputs))
+
+
+def _names(value: Any) -> bool:
+    from omegaconf import ListConfig
+
+    return isinstance(value, list | tuple | ListConfig) and all(isinstance(v, str) for v in value)
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console entry point (`mpsim`, `python -m mpsim`, `torchrun -m mpsim`).
 
@@ -272,6 +312,7 @@ def main(argv: list[str] | None = None) -> None:
         if cfg is not None:
             _check_writable(cfg, command)
             _check_spec_files(cfg)
+            _check_data_names(cfg)
     except MpsimError as err:
         _fail(command, err)
     sys.argv = [f"mpsim {command}", *rest]

@@ -72,5 +72,6 @@ class ResourceError(MpsimError, MemoryError):
 
 def did_you_mean(name: str, choices: Sequence[str]) -> str:
     """ " Did you mean 'x'?" for the closest of `choices` to a misspelt `name` (empty when none is close)."""
-    close = difflib.get_close_matches(name, list(choices), n=2)
+    same_letters = [c for c in choices if c.lower() == name.lower() and c != name]
+    close = same_letters[:2] or difflib.get_close_matches(name, list(choices), n=2)
     return f" Did you mean {' or '.join(repr(c) for c in close)}?" if close else ""

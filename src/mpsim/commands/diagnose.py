@@ -25,6 +25,7 @@ from mpsim.commands.prepare import Job, prepare
 from mpsim.commands.runtime import Runtime
 from mpsim.config import plain_dict
 from mpsim.console import print_summary
+from mpsim.data.account import data_record
 from mpsim.data.dataset import Splits
 from mpsim.diagnose import report
 from mpsim.diagnose.finetuned import serial
@@ -295,6 +296,7 @@ def summarise(job: Job, result: LoopResult, truths: list[dict[str, Any]], fix: b
             "source": job.data.path or "simulated",
             "n_heldin": len(splits.train),
             "n_heldout": len(splits.test),
+            **data_record(splits),
         },
         "verdict": verdict,
         "verdict_note": verdict_note,

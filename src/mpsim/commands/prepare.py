@@ -8,6 +8,7 @@ value or an object built from one.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -32,6 +33,8 @@ from mpsim.spec.parse import MODEL_KEYS, SYSTEM_KEYS, merge_spec, parse_spec
 from mpsim.systems.base import System
 from mpsim.training import distributed
 from mpsim.training.distributed import SINGLE, DistContext
+
+log = logging.getLogger(__name__)
 
 MODES = ("scratch", "finetune", "zeroshot")
 
@@ -188,14 +191,44 @@ def prepare(
         raise
 
 
-def spec_states(model_cfg: dict[str, Any]) -> tuple[list[str] | None, dict[str, str]]:
-    """The states a model states by name, in its order, and {s: o} for each equation o' = s (how a state the
-    data lack is estimated): a spec's (`model=equations`); (None, {}) for a model that takes the data's."""
+def spec_states(model_cfg: dict[str, Any]) -> tuple[list[str] | None, dict[str, str], list[str] | None]:
+    """The states a model states by name, in its order, {s: o} for each equation o' = s (how a state the data
+    lack is estimated) and its inputs: a spec's (`model=equations`); (None, {}, None) for a model that takes the
+    data's."""
     if not any(model_cfg.get(k) for k in ("spec", "states", "equations")):
-        return None, {}
+        return None, {}, None
     inline = {k: model_cfg.get(k) for k in MODEL_KEYS if k != "spec"}
     spec = parse_spec(merge_spec(model_cfg.get("spec"), inline, "model"), "model.spec", extra_keys=SYSTEM_KEYS)
-    return list(spec.states), spec.rates()
+    return list(spec.states), spec.rates(), list(spec.inputs)
+
+
+def _refuse_inputs_read_as_states(inputs: list[str] | None, splits: Splits, data: DataOptions) -> None:
+    """A spec's inputs that a batch file (npz, long CSV) holds as state columns because `data.control_columns`
+    does not list them: say so, rather than that the data have no controls."""
+    part = next((s for s in (splits.train, splits.test, splits.val) if len(s)), splits.test)
+    as_states = [n for n in inputs or [] if n in part.state_names and n not in part.control_names]
+    if as_states and not data.control_columns:
+        raise ConfigError(
+            f"the model's inputs {inputs} are columns of {data.path}, read as states because data.control_columns "
+            f"does not list them. Add data.control_columns={list(inputs or [])}."
+        )
+
+
+def _warn_other_hold(ckpt: dict[str, Any] | None, splits: Splits) -> None:
+    """Warn when the data hold their inputs between samples otherwise than the data the checkpoint was fitted to
+    (`data.input_hold`): a model fitted with `zoh` inputs and run with `linear` ones sees other forces."""
+    if ckpt is None:
+        return
+    data = next((s for s in (splits.train, splits.test, splits.val) if len(s)), splits.test)
+    if data.u is None:
+        return
+    trained, now = ckpt.get("system", {}).get("input_hold"), data.meta.get("input_hold", "linear")
+    if trained is not None and trained != now:
+        log.warning(
+            f"{ckpt.get('path')} was fitted to inputs held '{trained}' between samples, but these data hold them "
+            f"'{now}' (data.input_hold={now}): the model sees other forces than it was fitted to. Give "
+            f"data.input_hold={trained} unless the new data are held otherwise."
+        )
 
 
 def with_model_and_data(job: Job, ctx: DistContext, explicit_horizons: bool, training: bool, refit: bool) -> Job:
@@ -211,10 +244,14 @@ def with_model_and_data(job: Job, ctx: DistContext, explicit_horizons: bool, tra
     graph = None if system is None else system.edge_index
     splits = None
     if data.from_file:
-        states, rates = spec_states(job.model_config)
-        splits = load_splits(data, rt.start_dir, dtype_name, need, system_graph=graph, states=states, rates=rates)
+        states, rates, inputs = spec_states(job.model_config)
+        splits = load_splits(
+            data, rt.start_dir, dtype_name, need, system_graph=graph, states=states, rates=rates, inputs=inputs
+        )
+        _refuse_inputs_read_as_states(inputs, splits, data)
     horizons = job.horizons
     if splits is not None:
+        _warn_other_hold(job.start, splits)
         steps = next(s for s in (splits.train, splits.test, splits.val) if len(s)).n_times - 1
         horizons = fit_horizons(horizons, explicit_horizons, steps, f"data.path={data.path}")
     source = (splits.train if len(splits.train) else splits.test) if splits else system

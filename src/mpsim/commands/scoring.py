@@ -13,6 +13,7 @@ import torch
 from mpsim import plotting
 from mpsim.commands.prepare import Job
 from mpsim.console import fmt, print_summary
+from mpsim.data.account import data_record
 from mpsim.data.io import save_npz
 from mpsim.data.trajectories import Trajectories
 from mpsim.files import write_json
@@ -133,6 +134,7 @@ def evaluate_checkpoint(job: Job, options: EvalOptions, task: str, started: floa
             "n_times": test.n_times,
             "dt": test.meta.get("dt"),
             "source": job.data.path or "simulated",
+            **data_record(splits),
         },
         "test": metrics,
         "test_error": metrics["rmse"],

@@ -23,6 +23,7 @@ from mpsim.commands.runtime import describe_device, is_multirun, resolve_path
 from mpsim.commands.scoring import EvalOptions, evaluate_checkpoint, horizon_rows, score
 from mpsim.config import check_target_node, plain_dict
 from mpsim.console import duration, fmt, print_summary
+from mpsim.data.account import data_record
 from mpsim.errors import ConfigError, OutputError
 from mpsim.files import atomic_write, child_path, file_sha256, keep_previous, safe_name, write_json
 from mpsim.metrics import epochs_x_min_error
@@ -225,6 +226,7 @@ def summarise(job: Job, trainer: Trainer, metrics: dict[str, Any], started: floa
             "source": data.path or "simulated",
             "seed": data.seed,
             "noise_std": data.noise_std,
+            **data_record(splits),
         },
         "seed": job.seed,
         "epochs_run": history[-1]["epoch"],

@@ -60,6 +60,10 @@ def _quote_hint(overrides: list[str]) -> str:
     for arg in overrides:
         key, _, value = arg.partition("=")
         if "(" not in value and "=" not in value:
+            try:
+                parser.parse_override(arg)
+            except Exception:  # noqa: BLE001 - Hydra raises several kinds for one unparsable override
+                return _plain_quote_hint(key, value)
             continue
         try:
             parser.parse_override(arg)
@@ -74,6 +78,17 @@ def _quote_hint(overrides: list[str]) -> str:
                 )
             return f'. In {key}=..., quote every item that holds "=", inside the single quotes: [..., "system=lorenz3"]'
     return ""
+
+
+def _plain_quote_hint(key: str, value: str) -> str:
+    """Advice for a value Hydra's grammar cannot read as it stands: text with spaces or letters outside ASCII
+    (`{q: θ pos}`), or brackets in a file name (`rec[1].csv`). Quoted inside the single quotes, it is a string."""
+    if value.startswith("{") and ":" in value:
+        inner = ", ".join(
+            f'{k.strip()}: "{v.strip()}"' for k, _, v in (item.partition(":") for item in value.strip("{}").split(","))
+        )
+        return f". In {key}=..., quote each name or column that holds spaces or other letters: '{key}={{{inner}}}'"
+    return f""". In {key}=..., quote the value inside the single quotes: '{key}="{value.replace('"', "'")}"'"""
 
 
 def compose_command(command: str, args: list[str], config_dir: str) -> DictConfig | None:

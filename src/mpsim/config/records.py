@@ -44,4 +44,9 @@ def file_stem(path: str | Path) -> str:
 def run_name(system_choice: str, data_path: Any = None) -> str:
     """The suffix of a run's directory: the data file's name when the run reads one (`data.path`), else the
     system's (`outputs/train/<date>/<time>_<this>`)."""
-    return (file_stem(data_path) if data_path else "") or system_choice
+    if not data_path:
+        return system_choice
+    path = Path(str(data_path))
+    if any(c in path.name for c in "*?[") and not path.exists():  # a pattern: its fixed part, else its folder's name
+        return file_stem(path.name.split("*")[0].split("?")[0].split("[")[0]) or file_stem(path.parent.name + ".x") or "recordings"
+    return file_stem(path) or system_choice

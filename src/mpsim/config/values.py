@@ -71,6 +71,15 @@ def validate_values(cfg: DictConfig) -> None:
             _check(data[key] >= 1, f"data.{key}={data[key]}: each split needs at least 1 trajectory.")
         _check(data.burn_in >= 0, f"data.burn_in={data.burn_in}: give a number of steps >= 0.")
         _check(data.dt is None or data.dt > 0, f"data.dt={data.dt}: the sampling step must be > 0 (or null).")
+        _check(
+            data.get("resample") is None or data.resample > 0,
+            f"data.resample={data.get('resample')}: give a step in seconds > 0 (or null: use each file's own grid).",
+        )
+        _check(
+            data.get("segment") is None or data.segment > 0,
+            f"data.segment={data.get('segment')}: give a length in seconds > 0 (or null: whole recordings).",
+        )
+        _check(data.get("stride", 1) >= 1, f"data.stride={data.get('stride')}: keep every k-th sample, k >= 1.")
         _check(data.horizon is None or data.horizon >= 1, f"data.horizon={data.horizon}: give >= 1 step (or null).")
         _check(data.gt_rtol > 0 and data.gt_atol > 0, "data.gt_rtol and data.gt_atol must be > 0.")
     ev = cfg.get("eval")

@@ -181,11 +181,20 @@ def split_trajectories(
     b = len(data)
     n_train, n_val, _ = n
     order = torch.randperm(b, generator=torch.Generator().manual_seed(int(seed)))
-    return Splits(
-        train=data.subset(order[:n_train]),
-        val=data.subset(order[n_train : n_train + n_val]),
-        test=data.subset(order[n_train + n_val :]),
-    )
+    parts = [order[:n_train], order[n_train : n_train + n_val], order[n_train + n_val :]]
+    train, val, test = (_indexed(data, idx) for idx in parts)
+    return Splits(train=train, val=val, test=test)
+
+
+def _indexed(data: Trajectories, idx: torch.Tensor) -> Trajectories:  # idx: [b] trajectory indices
+    """The trajectories `idx` of `data`; ``meta['covers']`` says which ("3 of the file's 20 trajectories: 1, 4,
+    9", the first dozen named)."""
+    part = data.subset(idx)
+    numbers = sorted(int(i) for i in idx)
+    shown = ", ".join(str(i) for i in numbers[:12]) + (", ..." if len(numbers) > 12 else "")
+    text = f"{len(numbers)} of the file's {len(data)} trajectories: {shown}" if numbers else "nothing"
+    part.meta = {**part.meta, "covers": text}
+    return part
 
 
 def fit_normalisation(train: Trajectories, min_std: float = 1e-8) -> tuple[torch.Tensor, torch.Tensor]:

@@ -23,6 +23,14 @@ JITTER_RTOL = 0.05
 HOLDS = ("linear", "zoh")
 
 
+def check_resample_step(dt: object) -> None:
+    """`data.resample` is a step in seconds > 0 (null: off); 0, a negative, NaN or inf is refused."""
+    if isinstance(dt, bool) or not isinstance(dt, int | float) or not (math.isfinite(dt) and dt > 0):
+        raise ConfigError(
+            f"data.resample must be a step in seconds > 0 (or null: use each file's own grid); got {dt!r}."
+        )
+
+
 def resample(rec: Trajectories, dt: float, hold: str = "linear") -> Trajectories:
     """`rec` on the uniform grid t0, t0 + dt, ... up to its last time (`data.resample=<dt>`).
 
@@ -32,8 +40,7 @@ def resample(rec: Trajectories, dt: float, hold: str = "linear") -> Trajectories
         hold: `data.input_hold`, how inputs are read between samples: ``linear`` interpolation, or ``zoh`` (zero-order
             hold: the sample at or before each new time). States are always interpolated linearly.
     """
-    if not (math.isfinite(dt) and dt > 0):
-        raise ConfigError(f"data.resample must be a step in seconds > 0; got {dt}.")
+    check_resample_step(dt)
     if hold not in HOLDS:
         raise ConfigError(f"data.input_hold must be one of {list(HOLDS)}; got {hold!r}.")
     t = rec.t.double()
@@ -106,11 +113,15 @@ def uniform_or_refuse(rec: Trajectories, rtol: float = JITTER_RTOL) -> Trajector
     if off > rtol:
         t = rec.t.double()
         steps = t[1:] - t[:-1]
+        median = float(steps.median())
+        origin = float(rec.meta.get("t0", [0.0])[0])
+        row = int(rec.meta.get("first_row", 0)) + k + 1
         raise DataError(
-            f"{rec.meta.get('source', 'data')}: the sampling is not uniform: sample {k + 1} (t = {float(t[k]):.6g} s) "
-            f"lies {100 * off:.3g} % of a step from the uniform grid of step {step:.6g} s (steps range from "
-            f"{float(steps.min()):.6g} to {float(steps.max()):.6g} s; up to {100 * rtol:g} % is accepted). "
-            f"Interpolate onto a uniform grid with data.resample=<dt>, e.g. data.resample={_round_step(step):g}."
+            f"{rec.meta.get('source', 'data')}: the sampling is not uniform: row {row} (t = "
+            f"{origin + float(t[k]):.6g} s) lies {100 * off:.3g} % of a step from the uniform grid of step {step:.6g} s "
+            f"(steps range from {float(steps.min()):.6g} to {float(steps.max()):.6g} s, median {median:.6g} s; up to "
+            f"{100 * rtol:g} % is accepted). Interpolate onto a uniform grid with data.resample=<dt>, e.g. "
+            f"data.resample={_round_step(median):g} (the median step)."
         )
     return replace(rec, t=grid.to(rec.t.dtype), meta={**rec.meta, "dt": step, "jitter": off})
 

@@ -1,24 +1,34 @@
-"""Measured recordings as they come: one wide CSV or `.mat` file per recording (or several by a glob), read into
+"""Measured recordings as they come: one wide CSV or `.mat` file per recording (or several by a pattern), read into
 the batch a model trains on, in small steps that each do one thing:
 
 read (`mpsim.data.wide.read_wide_csv`, `mpsim.data.matfile.read_mat`) → map columns to the model's states and
 inputs (`mpsim.data.recording.to_recording`, `data.columns`) → noise level and quantisation step of each signal
-as recorded (``meta["noise"]``, `mpsim.data.noise.noise_summary`) → one uniform grid per recording (`data.resample`, or
-the file's own clock if it runs steadily) → every k-th sample (`data.stride`) → latent states estimated
-(`data.observed`, `mpsim.data.latent.estimate_latent`) → segments (`data.segment`) or whole recordings → the batch.
-Splitting (contiguous blocks in time order) is the caller's (`mpsim.data.pipeline.load_splits`).
+as recorded (``meta["noise"]``, `mpsim.data.noise.noise_summary`) → split at gaps in the clock
+(`mpsim.data.gaps`) → one uniform grid per piece (`data.resample`, or the file's own clock if it runs steadily) →
+every k-th sample (`data.stride`) → latent states estimated (`data.observed`, `mpsim.data.latent.estimate_latent`)
+→ segments (`data.segment`) or whole recordings → the batch. Splitting (contiguous blocks in time order) is the
+caller's (`mpsim.data.pipeline.load_splits`).
+
+Every sample is accounted for (``meta["account"]``, `mpsim.data.account`): the files a pattern matched, the rows
+of each, its gaps (split or filled), the pieces too short to use, and the samples after the last whole segment.
+A file that exists is read as named, even when its name holds ``[`` or ``*``; a name is a pattern only when no
+file has it. Two files holding the same samples are refused (a copy would sit in training and test at once).
 """
 
 from __future__ import annotations
 
 import glob
+import hashlib
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
-from mpsim.data.grid import HOLDS, resample, stride, uniform_or_refuse
-from mpsim.data.latent import estimate_latent
+from mpsim.data.account import account_lines
+from mpsim.data.gaps import split_at_gaps
+from mpsim.data.grid import HOLDS, check_resample_step, resample, stride, uniform_or_refuse
+from mpsim.data.latent import MIN_WINDOW, estimate_latent
 from mpsim.data.matfile import read_mat
 from mpsim.data.noise import noise_summary
 from mpsim.data.recording import to_recording
@@ -26,7 +36,7 @@ from mpsim.data.segments import segment, stack_recordings
 from mpsim.data.table import Table
 from mpsim.data.trajectories import Trajectories
 from mpsim.data.wide import read_wide_csv
-from mpsim.errors import ConfigError, DataError
+from mpsim.errors import ConfigError, DataError, did_you_mean
 from mpsim.safeload import not_a_regular_file
 
 log = logging.getLogger(__name__)
@@ -36,6 +46,8 @@ LONG_COLUMNS = ("traj", "t", "node")
 #: bytes of a CSV's head looked at to tell the long format from a wide one
 HEAD_BYTES = 65536
 GLOB_CHARS = "*?["
+#: suffixes read as text tables (wide or long CSV); ".gz" of any of them is read decompressed
+TEXT_SUFFIXES = (".csv", ".txt", ".dat", ".tsv")
 
 
 @dataclass(frozen=True)
@@ -51,6 +63,8 @@ class Recordings:
         states: the model's states in its order, when the model states them (a spec); None: the file's.
         rates: {latent state s: measured o} for each equation ``o' = s`` (how a latent state is estimated).
         resample, stride, segment, input_hold: `data.resample`, `data.stride`, `data.segment`, `data.input_hold`.
+        inputs: the model's inputs when it states them (a spec's `inputs:`): read when `controls` is empty.
+        dtype_name: the model's precision (a value it cannot hold is refused with its file row).
     """
 
     time_column: str | None = "t"
@@ -64,11 +78,29 @@ class Recordings:
     stride: int = 1
     segment: float | None = None
     input_hold: str = "linear"
+    inputs: Sequence[str] | None = None
+    dtype_name: str = "float64"
+
+
+def is_pattern(path: Path) -> bool:
+    """Whether `path` is read as a pattern: it holds `*`, `?` or `[` and no file or folder has that very name."""
+    return any(c in str(path) for c in GLOB_CHARS) and not path.exists()
 
 
 def paths_of(path: Path) -> list[Path]:
-    """The files `path` names: itself, or the files a glob matches, sorted by name (one recording each)."""
-    if not any(c in str(path) for c in GLOB_CHARS):
+    """The files `path` names: itself when it exists (``rec[1].csv`` is that file), else the files it matches as a
+    pattern, sorted by name (one recording each). A missing file or a folder is refused, with what is there."""
+    if not is_pattern(path):
+        why = not_a_regular_file(path)
+        if why == "does not exist":
+            here = sorted(p.name for p in path.parent.iterdir()) if path.parent.is_dir() else []
+            where = "" if path.parent.is_dir() else f" (nor does the folder {path.parent})"
+            raise DataError(f"data file {path} does not exist{where} (data.path).{did_you_mean(path.name, here)}")
+        if why is not None and path.is_dir():
+            raise DataError(
+                f"data.path={path} is a folder. Give one of its files, or all its recordings as a pattern: "
+                f"data.path='{path / '*.csv'}'."
+            )
         return [path]
     found = sorted(Path(p) for p in glob.glob(str(path)))
     files = [p for p in found if p.is_file()]
@@ -77,20 +109,34 @@ def paths_of(path: Path) -> list[Path]:
     return files
 
 
+def table_suffix(path: Path) -> str:
+    """The suffix that tells a file's format, past a ``.gz``: ``rec.csv.gz`` -> ``.csv``."""
+    suffixes = [s.lower() for s in path.suffixes]
+    if suffixes and suffixes[-1] == ".gz":
+        suffixes = suffixes[:-1]
+    return suffixes[-1] if suffixes else ""
+
+
 def is_recording(path: Path) -> bool:
     """Whether `path` is read as a recording (wide CSV or `.mat`), not as a batch of trajectories (npz, long CSV)."""
-    suffix = path.suffix.lower()
+    suffix = table_suffix(path)
     if suffix == ".mat":
         return True
-    if suffix != ".csv" or not path.is_file():
+    if suffix not in TEXT_SUFFIXES or not path.is_file():
         return False
     return not _long_header(path)
 
 
 def _long_header(path: Path) -> bool:
     """Whether the CSV's first line that is not a comment names the long format's columns traj, t and node."""
-    with open(path, "rb") as f:
-        head = f.read(HEAD_BYTES).decode("utf-8", errors="replace").lstrip("\ufeff")
+    import gzip
+
+    opener: Any = gzip.open if path.suffix.lower() == ".gz" else open
+    try:
+        with opener(path, "rb") as f:
+            head = f.read(HEAD_BYTES).decode("utf-8", errors="replace").lstrip("\ufeff")
+    except (OSError, EOFError):
+        return False  # the reader names what is wrong with it
     for line in head.splitlines():
         if line.strip() and not line.lstrip().startswith("#"):
             names = {c.strip().strip("\"'").strip() for c in line.replace(";", ",").replace("\t", ",").split(",")}
@@ -103,7 +149,7 @@ def read_table(path: Path, how: Recordings) -> Table:
     why = not_a_regular_file(path)
     if why:
         raise DataError(f"data file {path} {why}.")
-    if path.suffix.lower() == ".mat":
+    if table_suffix(path) == ".mat":
         return read_mat(path, how.time_column, how.dt)
     return read_wide_csv(path, how.time_column, how.dt)
 
@@ -122,16 +168,81 @@ def _states_in_file(table: Table, how: Recordings) -> list[str]:
     return [name for name in table.columns if name not in used]
 
 
-def one_recording(path: Path, how: Recordings) -> Trajectories:
-    """One file as a recording on a uniform grid: read, columns mapped, resampled or its clock checked, strided,
-    its latent states estimated."""
+def _controls(how: Recordings) -> list[str]:
+    """The model's inputs to read: `data.control_columns`, else a spec's `inputs:` (by name, through
+    `data.columns`)."""
+    return list(how.controls) if how.controls else list(how.inputs or [])
+
+
+def one_recording(path: Path, how: Recordings) -> tuple[list[Trajectories], dict[str, Any]]:
+    """One file as pieces of a recording on uniform grids (one piece unless its clock has gaps): read, columns
+    mapped, split at gaps, resampled or its clock checked, strided, its latent states estimated; and the file's
+    entry of the account (rows, gaps, pieces)."""
     table = read_table(path, how)
-    rec = to_recording(table, how.columns, _states_in_file(table, how), list(how.controls))
+    rec = to_recording(table, how.columns, _states_in_file(table, how), _controls(how), how.dtype_name)
     rec = replace(rec, meta={**rec.meta, "input_hold": how.input_hold, "noise": noise_summary(rec)})
-    rec = resample(rec, how.resample, how.input_hold) if how.resample else uniform_or_refuse(rec)
-    if how.stride != 1:
-        rec = stride(rec, how.stride)
-    return _with_latent(rec, how)
+    pieces, gaps = split_at_gaps(rec, fill=bool(how.resample))
+    entry: dict[str, Any] = {
+        "file": str(path),
+        "rows": rec.n_times,
+        "span": [float(rec.meta["t0"][0]), float(rec.meta["t0"][0] + rec.t[-1])],
+        "gaps": gaps,
+        "pieces": [],
+        "digest": _digest(rec),
+    }
+    if table.time_origin is not None:
+        entry["time_origin"] = table.time_origin
+    out = []
+    for piece in pieces:  # a loop over the few pieces of one file
+        origin = float(piece.meta["t0"][0])
+        part: dict[str, Any] = {
+            "piece": int(piece.meta.get("piece", 1)),
+            "rows": piece.n_times,
+            "span": [origin + float(piece.t[0]), origin + float(piece.t[-1])],
+        }
+        entry["pieces"].append(part)
+        why = _too_short(piece, how)
+        if why is not None:
+            part["skipped"] = why
+            continue
+        piece = resample(piece, how.resample, how.input_hold) if how.resample else uniform_or_refuse(piece)
+        if how.stride != 1:
+            piece = stride(piece, how.stride)
+        part["samples"] = piece.n_times
+        out.append(_with_latent(piece, how))
+    return out, entry
+
+
+def _too_short(piece: Trajectories, how: Recordings) -> str | None:
+    """Why a piece of a recording is too short to use (None: it is not): fewer than 2 samples on its grid after
+    `data.resample` and `data.stride`, or fewer than `MIN_WINDOW` when latent states are estimated from it."""
+    seconds = float(piece.t[-1] - piece.t[0])
+    if how.resample:
+        n = int(seconds / how.resample + 1e-9) + 1
+    else:
+        n = piece.n_times
+    n = (n - 1) // how.stride + 1
+    grid = f"{n} sample{'s' if n != 1 else ''}" + (" on the data.resample grid" if how.resample else "")
+    grid += f" after data.stride={how.stride}" if how.stride != 1 else ""
+    if n < 2:
+        return f"{grid} ({seconds:.4g} s)"
+    latent = how.states is not None and any(s not in _observed_names(how) for s in how.states)
+    if latent and n < MIN_WINDOW:
+        return f"{grid}, fewer than the {MIN_WINDOW} a latent state's estimate needs"
+    return None
+
+
+def _observed_names(how: Recordings) -> list[str]:
+    return list(how.observed) if how.observed else list(how.states or [])
+
+
+def _digest(rec: Trajectories) -> str:
+    """A fingerprint of a recording's samples (times from its start, states, inputs): copies have the same."""
+    h = hashlib.sha256(rec.t.double().numpy().tobytes())
+    h.update(rec.x.double().contiguous().numpy().tobytes())
+    if rec.u is not None:
+        h.update(rec.u.double().contiguous().numpy().tobytes())
+    return h.hexdigest()
 
 
 def _with_latent(rec: Trajectories, how: Recordings) -> Trajectories:
@@ -149,13 +260,29 @@ def _with_latent(rec: Trajectories, how: Recordings) -> Trajectories:
     return estimate_latent(rec, {s: how.rates[s] for s in missing}, states=list(how.states))
 
 
+def _refuse_copies(entries: list[dict[str, Any]]) -> None:
+    """Two files of one pattern holding the same samples: a copy would sit in training and in test at once."""
+    seen: dict[str, str] = {}
+    for e in entries:
+        first = seen.setdefault(e["digest"], e["file"])
+        if first != e["file"]:
+            raise DataError(
+                f"{e['file']} holds the same samples as {first} (times, states and inputs identical): a copy would "
+                "put the same data in training and in test. Remove one of the two, or give a pattern that matches "
+                "one of them."
+            )
+
+
 def read_recordings(path: Path, how: Recordings) -> Trajectories:
-    """The batch of every recording `path` names (a file or a glob): their segments of `data.segment` seconds,
-    or the whole recordings when they share one length."""
+    """The batch of every recording `path` names (a file or a pattern): their segments of `data.segment`
+    seconds, or the whole recordings (pieces between gaps) when they share one length. ``meta['account']`` says
+    what became of every file's samples (`mpsim.data.account`); it is also logged."""
     if how.input_hold not in HOLDS:
         raise ConfigError(f"data.input_hold must be one of {list(HOLDS)}; got {how.input_hold!r}.")
-    if how.stride < 1:
-        raise ConfigError(f"data.stride must be a whole number >= 1; got {how.stride}.")
+    if isinstance(how.stride, bool) or not isinstance(how.stride, int) or how.stride < 1:
+        raise ConfigError(f"data.stride must be a whole number >= 1 (keep every k-th sample); got {how.stride!r}.")
+    if how.resample is not None:
+        check_resample_step(how.resample)
     files = paths_of(path)
     longs = [p for p in files if not is_recording(p)]
     if longs and len(files) > 1:
@@ -163,11 +290,41 @@ def read_recordings(path: Path, how: Recordings) -> Trajectories:
             f"data.path={path} matches {len(files)} files, {longs[0].name} among them an .npz or long CSV; a pattern "
             "reads recordings (wide CSV or .mat files), one per file. Give a batch file by its name."
         )
-    recs = [one_recording(p, how) for p in files]
-    batch = stack_recordings(recs) if how.segment is None else segment(recs, how.segment)
+    pieces: list[Trajectories] = []
+    entries: list[dict[str, Any]] = []
+    for p in files:  # a loop over the few files
+        got, entry = one_recording(p, how)
+        pieces += got
+        entries.append(entry)
+    _refuse_copies(entries)
+    if not pieces:
+        raise DataError(f"{path}: no piece of any recording holds 2 samples or more between gaps in its clock.")
+    batch = stack_recordings(pieces) if how.segment is None else segment(pieces, how.segment)
     batch.meta["input_hold"] = how.input_hold
-    log.info(
-        f"read {len(recs)} recording(s) from {path}: {len(batch)} {'segments' if how.segment else 'trajectories'} "
-        f"of {batch.n_times} samples, states {batch.state_names}, inputs {batch.control_names}"
-    )
+    for entry in entries:
+        entry.pop("digest")
+    account = {
+        "path": str(path),
+        "pattern": is_pattern(path),
+        "files": entries,
+        "segment": batch.meta.get("segment"),
+        "resample": how.resample,
+        "stride": how.stride,
+        "inputs_from_spec": bool(not how.controls and how.inputs),
+        "inputs": _controls(how),
+    }
+    _add_usage(account, batch.meta.get("usage", []))
+    batch.meta["account"] = account
+    for line in account_lines(account):
+        log.info(line)
     return batch
+
+
+def _add_usage(account: dict[str, Any], usage: list[dict[str, Any]]) -> None:
+    """Each piece's segments and unused samples (from `segment` / `stack_recordings`), into the account."""
+    by_piece = {(u["recording"], int(u.get("piece", 1))): u for u in usage}
+    for entry in account["files"]:
+        for part in entry["pieces"]:
+            use = by_piece.get((entry["file"], part["piece"]))
+            if use is not None:
+                part.update({k: v for k, v in use.items() if k not in ("recording", "piece")})

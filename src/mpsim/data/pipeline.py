@@ -18,8 +18,10 @@ from typing import Any
 
 import torch
 
+from mpsim.data.account import split_covers, split_lines
 from mpsim.data.dataset import SPLITS, DatasetSpec, Simulator, Splits, simulate_splits, split_trajectories
 from mpsim.data.io import load_trajectories
+from mpsim.data.keys import check_data_names
 from mpsim.data.measured import Recordings, is_recording, paths_of, read_recordings
 from mpsim.data.precision import check_representable
 from mpsim.data.segments import contiguous_split
@@ -62,15 +64,22 @@ class DataOptions:
     def from_file(self) -> bool:
         return bool(self.path)
 
-    def recordings(self, states: Sequence[str] | None, rates: Mapping[str, str]) -> Recordings:
-        """How recordings become a batch, for a model with `states` (None: the file's) and `rates` ({s: o} for
-        each equation o' = s: how a latent state is estimated)."""
+    def recordings(
+        self,
+        states: Sequence[str] | None,
+        rates: Mapping[str, str],
+        inputs: Sequence[str] | None = None,
+        dtype_name: str = "float64",
+    ) -> Recordings:
+        """How recordings become a batch, for a model with `states` and `inputs` (None: the file's), `rates`
+        ({s: o} for each equation o' = s: how a latent state is estimated) and precision `dtype_name`."""
         columns = self.columns or {}
         if not isinstance(columns, Mapping) or not all(isinstance(v, str) for v in columns.values()):
             raise ConfigError(
                 f"data.columns must map model names to file columns, e.g. data.columns='{{q: position, u: torque}}'; "
                 f"got {columns!r}."
             )
+        check_data_names(columns, self.observed, self.control_columns, states, inputs)
         return Recordings(
             time_column=self.time_column,
             dt=self.dt,
@@ -83,6 +92,8 @@ class DataOptions:
             stride=self.stride,
             segment=self.segment,
             input_hold=self.input_hold,
+            inputs=None if inputs is None else list(inputs),
+            dtype_name=dtype_name,
         )
 
     def dataset_spec(self, system_config: dict[str, Any]) -> DatasetSpec:
@@ -131,13 +142,16 @@ def read(
     system_graph: torch.Tensor | None = None,
     states: Sequence[str] | None = None,
     rates: Mapping[str, str] | None = None,
+    inputs: Sequence[str] | None = None,
+    dtype_name: str = "float64",
 ) -> Trajectories:
     """Read step: `data.path` by its extension, with its graph (an edge list, or the system's) and the columns
     that are controls (`data.control_columns`); recordings (`is_recordings`) through `mpsim.data.measured`, as
-    the model's `states` (None: the file's), latent ones estimated by `rates`."""
+    the model's `states` and `inputs` (None: the file's), latent ones estimated by `rates`."""
     assert options.path is not None
     if is_recordings(options, start_dir):
-        return read_recordings(resolve(options.path, start_dir), options.recordings(states, rates or {}))
+        how = options.recordings(states, rates or {}, inputs, dtype_name)
+        return read_recordings(resolve(options.path, start_dir), how)
     _refuse_recording_keys(options)
     edges = resolve(options.edges, start_dir) if options.edges else None
     loaded = load_trajectories(
@@ -179,6 +193,7 @@ def load_splits(
     cache_dir: Path | None = None,
     states: Sequence[str] | None = None,
     rates: Mapping[str, str] | None = None,
+    inputs: Sequence[str] | None = None,
 ) -> Splits:
     """The data of a command, train/val/test: a file read and split by trajectory (the splits in `need` get a
     share > 0), or the system's three splits simulated (cached in `cache_dir`; None: no cache).
@@ -187,17 +202,21 @@ def load_splits(
         dtype_name: the model's precision (`float32`/`float64`): a file's values must fit it.
         system, system_graph, system_config: the ground truth when simulating (its graph also serves a file
             given with `data.graph=system`); its config is part of the cache key.
-        states, rates: the model's states and how its latent ones are estimated (`read`).
+        states, rates, inputs: the model's states and inputs and how its latent states are estimated (`read`).
 
     Recordings are split into contiguous blocks in time order (`contiguous_split`); a batch file at random by
-    trajectory (`data.seed`).
+    trajectory (`data.seed`). What each split covers is logged (and kept in its ``meta['covers']``).
     """
     if options.from_file:
-        data = read(options, start_dir, system_graph, states, rates)
+        data = read(options, start_dir, system_graph, states, rates, inputs, dtype_name)
         check_representable(data, dtype_name, str(options.path))
         if "segments" in data.meta:
-            return contiguous_split(data, tuple(options.split), need)
-        return split_trajectories(data, tuple(options.split), options.seed, need)
+            splits = contiguous_split(data, tuple(options.split), need)
+        else:
+            splits = split_trajectories(data, tuple(options.split), options.seed, need)
+        for line in split_lines(split_covers(splits)):
+            log.info(line)
+        return splits
     if system is None:
         raise ConfigError("no data: pass system=<name> or data.path=<file>.")
     return simulate_splits(system, options.dataset_spec(system_config or {}), cache_dir)
@@ -207,3 +226,4 @@ def record_steps(options: DataOptions, system: Any) -> int:
     """Steps per trajectory of the data before they are loaded: a simulated record's horizon (a file's is known
     once read)."""
     return int(options.horizon or system.horizon)
+

@@ -2,14 +2,15 @@
 trajectory each) and `contiguous_split` (train, validation and test as contiguous blocks in time).
 
 The batch's time grid ``t`` is relative (it starts at 0). ``meta['segments']`` lists, in batch order (recording,
-then time), ``{"recording": <source>, "index": k, "t0": <absolute start time>}``: a sample's absolute time is
-t0 + t.
+then time), ``{"recording": <source>, "piece": p, "index": k, "t0": <the file's time at its start>}``: a sample's
+time in its file is t0 + t. ``meta['usage']`` says, per recording (or piece of one, between gaps), how many
+segments it gave and how many of its samples they use.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,13 +22,17 @@ from mpsim.errors import ConfigError, DataError
 
 #: recordings share a step when theirs differ by less than this share of it
 DT_RTOL = 1e-6
+#: a segment, rounded to whole steps, may differ from `data.segment` by at most this share of it
+SEGMENT_RTOL = 0.01
 
 
 def segment(recs: Sequence[Trajectories], seconds: float) -> Trajectories:
     """Every recording cut into consecutive segments of L + 1 samples, L = round(seconds / dt), stacked as a batch.
 
     Segment k of a recording covers its samples kL .. (k+1)L (neighbours share their end sample); the incomplete
-    tail is dropped, and a recording shorter than one segment is skipped (named in ``meta['skipped']``).
+    tail is dropped, and a recording shorter than one segment is skipped (named in ``meta['skipped']``; both are
+    counted in ``meta['usage']``). A length that is not a whole number of steps within `SEGMENT_RTOL` is refused
+    with the two nearest that are.
 
     Args:
         recs: recordings (each [1, T_r, N, D], B = 1) on uniform grids of one step (after `data.resample`), with
@@ -38,45 +43,102 @@ def segment(recs: Sequence[Trajectories], seconds: float) -> Trajectories:
         [S, L + 1, N, D] for the S segments of all recordings, in recording then time order.
     """
     dt = _common_step(recs)
-    if not (math.isfinite(seconds) and seconds > 0):
-        raise ConfigError(f"data.segment must be a length in seconds > 0; got {seconds}.")
-    n = round(seconds / dt)
-    if n < 1:
-        raise ConfigError(f"data.segment={seconds:g} s is shorter than one sampling step ({dt:g} s); make it longer.")
+    if isinstance(seconds, bool) or not isinstance(seconds, int | float) or not (math.isfinite(seconds) and seconds > 0):
+        raise ConfigError(f"data.segment must be a length in seconds > 0; got {seconds!r}.")
+    longest = max(float(r.t[-1] - r.t[0]) for r in recs)
+    if seconds > longest + 0.5 * dt:
+        raise DataError(
+            f"{_names(recs)}: data.segment={seconds:g} s is longer than every recording (the longest lasts "
+            f"{longest:g} s{_sampled(recs, dt)}); use a shorter segment."
+        )
+    n = whole_steps(seconds, dt, recs)
     parts: list[Trajectories] = []
     entries: list[dict[str, Any]] = []
     skipped: list[dict[str, Any]] = []
+    usage: list[dict[str, Any]] = []
     for rec in recs:  # a loop over the few recordings; each is cut with one unfold
         count = (rec.n_times - 1) // n
         source = str(rec.meta.get("source", rec.system_name))
+        piece = int(rec.meta.get("piece", 1))
+        used = count * n + 1 if count else 0
+        usage.append({"recording": source, "piece": piece, "segments": count, "used": used, "samples": rec.n_times})
         if count == 0:
-            skipped.append({"recording": source, "seconds": float(rec.t[-1] - rec.t[0])})
+            skipped.append({"recording": source, "piece": piece, "seconds": float(rec.t[-1] - rec.t[0])})
             continue
         parts.append(_windows(rec, n, count))
-        t0 = rec.t.double()[0] + dt * n * torch.arange(count, dtype=torch.float64)
-        entries += [{"recording": source, "index": k, "t0": float(t0[k])} for k in range(count)]
+        t0 = _origin(rec) + rec.t.double()[0] + dt * n * torch.arange(count, dtype=torch.float64)
+        entries += [{"recording": source, "piece": piece, "index": k, "t0": float(t0[k])} for k in range(count)]
     if not parts:
-        longest = max(float(r.t[-1] - r.t[0]) for r in recs)
         raise DataError(
             f"{_names(recs)}: data.segment={seconds:g} s is longer than every recording (the longest lasts "
-            f"{longest:g} s); use a shorter segment."
+            f"{longest:g} s{_sampled(recs, dt)}); use a shorter segment."
         )
-    meta = {**_batch_meta(recs, dt), "segments": entries, "segment": float(seconds), "skipped": skipped}
+    meta = {
+        **_batch_meta(recs, dt),
+        "segments": entries,
+        "segment": float(n * dt),
+        "skipped": skipped,
+        "usage": usage,
+    }
     return _stack(parts, n + 1, dt, meta)
+
+
+def whole_steps(seconds: float, dt: float, recs: Sequence[Trajectories] = ()) -> int:
+    """`data.segment` as a whole number of steps of `dt` (at least 1): refused, with the two nearest lengths
+    that are, when rounding would change it by more than `SEGMENT_RTOL`."""
+    n = max(1, round(seconds / dt))
+    if abs(n * dt - seconds) > SEGMENT_RTOL * seconds:
+        low, high = max(1, math.floor(seconds / dt)), math.ceil(seconds / dt)
+        choices = sorted({low, high, n})
+        shown = " or ".join(f"data.segment={k * dt:.6g}" for k in choices)
+        raise ConfigError(
+            f"data.segment={seconds:g} s is {seconds / dt:.4g} steps of {dt:g} s{_sampled(recs, dt)}; a segment is a "
+            f"whole number of steps, and the nearest ({n * dt:.6g} s) differs by "
+            f"{100 * abs(n * dt - seconds) / seconds:.3g} %. Use {shown}."
+        )
+    return n
+
+
+def _sampled(recs: Sequence[Trajectories], dt: float) -> str:
+    """How the step came about, for messages: ", sampled every 1.5 s after data.stride=30"."""
+    if not recs:
+        return ""
+    k = int(recs[0].meta.get("stride", 1))
+    return f" after data.stride={k}" if k > 1 else ""
+
+
+def _origin(rec: Trajectories) -> float:
+    """The file's time of a recording's time 0 (its first sample's, ``meta['t0']``)."""
+    t0 = rec.meta.get("t0", [0.0])
+    return float(t0[0]) if isinstance(t0, list | tuple) and t0 else 0.0
 
 
 def stack_recordings(recs: Sequence[Trajectories]) -> Trajectories:
     """Whole recordings as the batch, one trajectory each (no `data.segment`): they must share their step and
     their length (after `data.resample` / `data.stride`)."""
     dt = _common_step(recs)
-    lengths = {str(r.meta.get("source", r.system_name)): r.n_times for r in recs}
+    names = [_piece_name(r) for r in recs]
+    lengths = {name: r.n_times for name, r in zip(names, recs, strict=True)}
     if len(set(lengths.values())) > 1:
+        split = any(int(r.meta.get("pieces", 1)) > 1 for r in recs)
+        why = " (a gap in a recording's clock splits it into parts)" if split else ""
         raise DataError(
-            f"recordings of different lengths {lengths} (samples) cannot be one batch of whole trajectories. Cut "
-            "them into segments of one length with data.segment=<seconds> (e.g. data.segment=1.0)."
+            f"recordings of different lengths {lengths} (samples){why} cannot be one batch of whole trajectories. "
+            "Cut them into segments of one length with data.segment=<seconds> (e.g. data.segment=1.0)."
         )
-    entries = [{"recording": src, "index": 0, "t0": float(r.t[0])} for src, r in zip(lengths, recs, strict=True)]
-    return _stack(list(recs), recs[0].n_times, dt, {**_batch_meta(recs, dt), "segments": entries})
+    entries, usage = [], []
+    for r in recs:
+        source, piece = str(r.meta.get("source", r.system_name)), int(r.meta.get("piece", 1))
+        entries.append({"recording": source, "piece": piece, "index": 0, "t0": _origin(r) + float(r.t[0])})
+        usage.append({"recording": source, "piece": piece, "segments": 1, "used": r.n_times, "samples": r.n_times})
+    meta = {**_batch_meta(recs, dt), "segments": entries, "usage": usage}
+    return _stack(list(recs), recs[0].n_times, dt, meta)
+
+
+def _piece_name(rec: Trajectories) -> str:
+    name = Path(str(rec.meta.get("source", rec.system_name))).name
+    pieces = int(rec.meta.get("pieces", 1))
+    return f"{name} part {rec.meta.get('piece')} of {pieces}" if pieces > 1 else name
 
 
 def _windows(rec: Trajectories, n: int, count: int) -> Trajectories:
@@ -131,9 +193,9 @@ def _common_step(recs: Sequence[Trajectories]) -> float:
 
 def _batch_meta(recs: Sequence[Trajectories], dt: float) -> dict[str, Any]:
     """The metadata a batch keeps of its recordings: the first one's, less what belongs to one file."""
-    per_file = ("source", "system", "t0", "jitter")
+    per_file = ("source", "system", "t0", "jitter", "piece", "pieces", "first_row", "rows", "time_origin")
     meta = {k: v for k, v in recs[0].meta.items() if k not in per_file}
-    sources = [str(r.meta.get("source", r.system_name)) for r in recs]
+    sources = list(dict.fromkeys(str(r.meta.get("source", r.system_name)) for r in recs))
     systems = {r.system_name for r in recs}
     meta.update(
         system=systems.pop() if len(systems) == 1 else "recordings",
@@ -145,7 +207,7 @@ def _batch_meta(recs: Sequence[Trajectories], dt: float) -> dict[str, Any]:
 
 
 def _names(recs: Sequence[Trajectories]) -> str:
-    names = [str(r.meta.get("source", r.system_name)) for r in recs]
+    names = list(dict.fromkeys(str(r.meta.get("source", r.system_name)) for r in recs))
     return ", ".join(names) if len(names) <= 3 else f"{names[0]} and {len(names) - 1} more files"
 
 
@@ -157,11 +219,17 @@ def contiguous_split(data: Trajectories, fractions: Sequence[float], need: tuple
     ("ddp_500Hz.csv 0–4 s, direct_collocation_333Hz.csv 0–2 s"), ``meta['segments']`` its own entries.
     """
     b = len(data)
-    sizes = split_sizes(b, fractions, need, "segments")
+    kind = "segments" if data.meta.get("segment") is not None else "recordings"
+    sizes = split_sizes(b, fractions, need, kind)
     if sizes is None:
+        fix = (
+            "use a shorter data.segment or more recordings"
+            if kind == "segments"
+            else "cut the recordings into segments with data.segment=<seconds>, or give more recordings"
+        )
         raise DataError(
-            f"{data.meta.get('source', 'data')}: {b} segments cannot be split into train/val/test {list(fractions)} "
-            f"with at least one each; use a shorter data.segment or more recordings."
+            f"{data.meta.get('source', 'data')}: {b} {kind} cannot be split into train/val/test {list(fractions)} "
+            f"with at least one each; {fix}."
         )
     bounds = [0, sizes[0], sizes[0] + sizes[1], b]
     out = [_block(data, bounds[i], bounds[i + 1]) for i in range(3)]
@@ -173,18 +241,32 @@ def _block(data: Trajectories, start: int, stop: int) -> Trajectories:
     entries = list(data.meta.get("segments", []))[start:stop]
     part = data.subset(list(range(start, stop)))
     seconds = float(data.t[-1] - data.t[0])
-    part.meta = {**data.meta, "segments": entries, "covers": covers(entries, seconds)}
+    origins = {f["file"]: f["span"][0] for f in data.meta.get("account", {}).get("files", [])}
+    part.meta = {**data.meta, "segments": entries, "covers": covers(entries, seconds, origins)}
     return part
 
 
-def covers(entries: Sequence[dict[str, Any]], seconds: float) -> str:
+#: file times at least this large (seconds since 1970, say) are shown from the recording's first sample
+LARGE_TIME = 1e5
+
+
+def covers(entries: Sequence[dict[str, Any]], seconds: float, origins: Mapping[str, float] | None = None) -> str:
     """What segments cover, per recording, as the summary says it: "ddp_500Hz.csv 0–4 s, dircol.csv 2–3.5 s"
-    (contiguous segments merged; `seconds`: one segment's length)."""
-    spans: list[list[Any]] = []  # [name, start, end]
+    (contiguous segments merged; `seconds`: one segment's length). Times are the file's own; where they are large
+    (`LARGE_TIME`: a clock since 1970) they are counted from the recording's first sample, `origins`
+    ({recording: its first time}), and say so."""
+    spans: list[list[Any]] = []  # [name, start, end, origin]
     for e in entries:
         name, start = Path(str(e["recording"])).name, float(e["t0"])
+        origin = (origins or {}).get(str(e["recording"]), 0.0)
         if spans and spans[-1][0] == name and abs(spans[-1][2] - start) <= 1e-6 * max(seconds, 1e-12):
             spans[-1][2] = start + seconds
         else:
-            spans.append([name, start, start + seconds])
-    return ", ".join(f"{name} {start:.4g}–{end:.4g} s" for name, start, end in spans) or "nothing"
+            spans.append([name, start, start + seconds, origin])
+    parts = []
+    for name, start, end, origin in spans:
+        if max(abs(start), abs(end)) >= LARGE_TIME:
+            parts.append(f"{name} {start - origin:.4g}–{end - origin:.4g} s from its start")
+        else:
+            parts.append(f"{name} {start:.4g}–{end:.4g} s")
+    return ", ".join(parts) or "nothing"

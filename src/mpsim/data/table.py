@@ -7,6 +7,7 @@ format: finite and strictly increasing (`check_times`), or made from `data.dt` w
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -32,6 +33,8 @@ class Table:
         time_column: the column the times came from (None: made from `data.dt`).
         unusable: {name: why} variables that could not become columns (text, cell arrays, 3-D arrays, ...).
         where: row index -> how a message names that row ("row 5 (line 7)"); default "row <i + 1>".
+        time_origin: the date of the first row when the time column held ISO 8601 dates (times are then seconds
+            since it), else None.
     """
 
     t: np.ndarray | None  # [T] float64 absolute times
@@ -41,6 +44,7 @@ class Table:
     time_column: str | None = None
     unusable: dict[str, str] = field(default_factory=dict)
     where: Callable[[int], str] | None = None
+    time_origin: str | None = None
 
     def row(self, i: int) -> str:
         """How a message names row `i` (0-based) of the file."""
@@ -92,12 +96,22 @@ def time_grid(
         if dt is not None and abs(step - dt) > 0.01 * dt:
             raise DataError(
                 f"{source}: the time column '{time_column}' steps by {step:.6g} s (median) but data.dt={dt:g}. "
-                "Leave data.dt unset to use the file's times, or set data.time_column=null to use data.dt instead."
+                "Drop data.dt to use the file's times, or set data.time_column=null to use data.dt instead."
             )
         return t, time_column
+    looks = _time_like(columns, time_column)
+    if dt is not None and time_column == "t" and looks is not None:
+        raise DataError(
+            f"{source}: column '{looks}' looks like the file's times (increasing), but data.time_column is 't', "
+            f"which the file lacks, so data.dt={dt:g} would put the samples {dt:g} s apart and ignore '{looks}' "
+            f"(and any gap in it). Use the file's times with data.time_column={looks} (and drop data.dt), or, if "
+            f"'{looks}' is not the time, say the file has none with data.time_column=null."
+        )
     if dt is None or (time_column is not None and time_column != "t"):
         names = sorted(columns)
         hint = did_you_mean(time_column, names) if time_column else ""
+        if looks is not None and looks != time_column and not hint:
+            hint = f" Column '{looks}' looks like the times: data.time_column={looks}."
         raise DataError(
             f"{source}: no time column '{time_column}' (data.time_column) among the file's columns {names}.{hint} "
             "Name the time column with data.time_column=<name>, or, for a file without one, give the sampling step "
@@ -107,3 +121,18 @@ def time_grid(
     if len(lengths) != 1:
         return None, None
     return np.arange(lengths.pop(), dtype=np.float64) * dt, None
+
+
+#: column names that say "time" (t, time, Time [s], timestamp, t_s, seconds, zeit, ...)
+_TIME_NAME = re.compile(r"^\s*(t|time|times|timestamps?|zeit|sec|secs|seconds|t_?s)\b|time", re.I)
+
+
+def _time_like(columns: dict[str, np.ndarray], not_this: str | None) -> str | None:
+    """The first column whose name says "time" and whose values strictly increase (None if there is none)."""
+    for name, values in columns.items():
+        if name == not_this or not _TIME_NAME.search(name) or len(values) < 2:
+            continue
+        steps = np.diff(np.asarray(values, dtype=np.float64))
+        if np.isfinite(steps).all() and (steps > 0).all():
+            return name
+    return None

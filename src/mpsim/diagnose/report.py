@@ -13,6 +13,7 @@ from typing import Any
 import torch
 
 from mpsim import plotting
+from mpsim.data.account import record_lines
 from mpsim.console import fmt
 from mpsim.diagnose.heldout import EFFECTS_NAMED, NOTHING_MISSING
 from mpsim.diagnose.loop import LoopResult
@@ -82,7 +83,13 @@ def _verdict_section(s: dict[str, Any]) -> list[str]:
         f"(share of the excess removed: {j['explained']:.0%}).",
         "",
     ]
-    return lines + [f"- {n}" for n in j["notes"]]
+    return lines + [f"- {n}" for n in j["notes"]] + _data_section(s["data"])
+
+
+def _data_section(data: dict[str, Any]) -> list[str]:
+    """What was read from the file: every file's rows, gaps, pieces left out, and what each split covers."""
+    bullets = record_lines(data)
+    return ["", "## Data", "", *bullets] if bullets else []
 
 
 def _null_text(gain: Any) -> str:
