@@ -465,7 +465,7 @@ CASES: dict[str, Case] = {
     "data_missing_file": Case(lambda w, d: data_args(d / "nothing.npz"), 2, "does not exist"),
     "data_path_folder": Case(lambda w, d: ((d / "runs.npz").mkdir(), data_args(d / "runs.npz"))[1], 2, "is a folder"),
     "data_unknown_format": Case(
-        lambda w, d: ((d / "d.txt").write_text("1"), data_args(d / "d.txt"))[1], 2, "unknown data format"
+        lambda w, d: ((d / "d.xlsx").write_text("1"), data_args(d / "d.xlsx"))[1], 2, "unknown data format '.xlsx'"
     ),
     # -- report
     "report_metrics_text": Case(
@@ -767,6 +767,64 @@ CASES: dict[str, Case] = {
     "recording_bad_input_hold": Case(
         lambda w, d: _recording(d, "data.input_hold=cubic"), 2, "data.input_hold must be one of"
     ),
+    # -- issue 69: the file named, the columns meant, every sample accounted for; one message in the file's terms
+    "recording_column_key_typo": Case(  # Q for q: the file's q column (other units) was read, unseen
+        lambda w, d: _recording(d, "data.columns={Q: q_rad}"), 2, "'Q' is not a state or input of the model"
+    ),
+    "recording_column_key_left_out_of_observed": Case(
+        lambda w, d: _recording(d, "data.columns={v: vel}"), 2, "data.observed=['q'] leaves 'v' out"
+    ),
+    "recording_observed_not_a_state": Case(  # used to be refused in internal terms once the run folder existed
+        lambda w, d: _recording(d, "data.observed=[q,w]"), 2, "data.observed=[q, w]: 'w' is not a state of the model"
+    ),
+    "recording_control_not_an_input": Case(
+        lambda w, d: _recording(d, "data.control_columns=[tau]"), 2, "'tau' is not an input of the model"
+    ),
+    "recording_dt_beside_a_time_column": Case(  # data.dt ignored the file's 'time' column and its 2 s gap
+        lambda w, d: _recording(d, "data.dt=0.1", header="time,q,u", gap=True), 2, "column 'time' looks like"
+    ),
+    "recording_copies_in_a_pattern": Case(  # two identical files put copies of training segments into the test
+        lambda w, d: _recording(d, f"data.path={d / 'rec*.csv'}", copy=True), 2, "holds the same samples as"
+    ),
+    "recording_time_with_a_unit": Case(
+        lambda w, d: _recording(d, edit=lambda rows: _cell(rows, 5, 0, "0.5s")), 2, "a number with a unit"
+    ),
+    "recording_footer": Case(lambda w, d: _recording(d, edit=lambda rows: [*rows, "end of record,,"]), 2, "a footer"),
+    "recording_header_repeated": Case(
+        lambda w, d: _recording(d, edit=lambda rows: [*rows[:100], "t,q,u", *rows[100:]]), 2, "repeats the header"
+    ),
+    "recording_path_mistyped": Case(
+        lambda w, d: _recording(d, f"data.path={d / 'recc.csv'}"), 2, "does not exist (data.path). Did you mean"
+    ),
+    "recording_path_a_folder": Case(lambda w, d: _recording(d, f"data.path={d}"), 2, "is a folder"),
+    "recording_segment_not_whole_steps": Case(
+        lambda w, d: _recording(d, "data.segment=0.123"), 2, "Use data.segment=0.1 or data.segment=0.2"
+    ),
+    "recording_stride_changes_the_segment": Case(
+        lambda w, d: _recording(d, "data.stride=15"), 2, "0.6667 steps of 1.5 s after data.stride=15"
+    ),
+    "recording_segment_1e308": Case(  # an OverflowError traceback
+        lambda w, d: _recording(d, "data.segment=1e308"), 2, "longer than every recording"
+    ),
+    "recording_input_sample_1e30": Case(  # a ZeroDivisionError traceback in dopri5's first step
+        lambda w, d: _recording(d, edit=lambda rows: _cell(rows, 57, 2, "1e30")), 2, "row 58 (line 59), column 'u'"
+    ),
+    "recording_beyond_float32": Case(  # was "x[8, 10, 0, 0] = ...": a batch index, not the file's row
+        lambda w, d: _recording(d, edit=lambda rows: _cell(rows, 90, 1, "1e39")), 2, "row 91 (line 92), column 'q'"
+    ),
+    "recording_resample_zero": Case(lambda w, d: _recording(d, "data.resample=0"), 2, "data.resample=0.0: give a step"),
+    "recording_columns_unquoted_text": Case(  # a bare Hydra lexer exception
+        lambda w, d: _recording(d, "data.columns={q: θ pos}"), 2, """'data.columns={q: "θ pos"}'"""
+    ),
+    "recording_path_with_brackets_unquoted": Case(
+        lambda w, d: _recording(d, f"data.path={d / 'rec[1].csv'}"), 2, "quote the value inside the single quotes"
+    ),
+    "recordings_too_few_without_segments": Case(  # said "use a shorter data.segment" though none was given
+        lambda w, d: _recording(d, "data.segment=null"), 2, "1 recordings cannot be split"
+    ),
+    "batch_file_inputs_read_as_states": Case(  # said "the data have 0 control(s)" though the file has column u
+        lambda w, d: _long_driven(d), 2, "read as states because data.control_columns does not list them"
+    ),
     "recording_keys_on_a_batch_file": Case(
         lambda w, d: (
             (d / "long.csv").write_text("traj,t,node,x\n0,0,0,1\n0,1,0,2\n1,0,0,1\n1,1,0,2\n2,0,0,1\n2,1,0,2\n"),
@@ -780,17 +838,50 @@ CASES: dict[str, Case] = {
 RECORDING_SPEC = "states: [q, v]\ninputs: [u]\nequations: {q: v, v: -k*q + u}\nparams: {k: 4.0}\n"
 
 
-def _recording(d: Path, *extra: str, jitter: float = 0.0) -> list[str]:
+def _recording(
+    d: Path,
+    *extra: str,
+    jitter: float = 0.0,
+    header: str = "t,q,u",
+    gap: bool = False,
+    copy: bool = False,
+    edit: Callable[[list[str]], list[str]] | None = None,
+) -> list[str]:
     """A wide CSV of one recording (t, q, u; 30 s at 10 Hz, times moved by `jitter` of a step on every third
-    sample) and the `mpsim train` of a driven spec on it, positions only, in 1 s segments."""
-    t = [0.1 * k + (0.1 * jitter if k % 3 == 1 else 0.0) for k in range(301)]
-    rows = "\n".join(f"{tk:.4f},{0.01 * k},{(k % 7) / 7}" for k, tk in enumerate(t))
-    (d / "rec.csv").write_text("t,q,u\n" + rows + "\n")
+    sample; with `gap`, 2 s missing after 10 s; its rows changed by `edit`; with `copy`, also as rec2.csv) and the
+    `mpsim train` of a driven spec on it, positions only, in 1 s segments."""
+    t = [0.1 * k + (0.1 * jitter if k % 3 == 1 else 0.0) + (2.0 if gap and k > 100 else 0.0) for k in range(301)]
+    rows = [f"{tk:.4f},{0.01 * k},{(k % 7) / 7}" for k, tk in enumerate(t)]
+    rows = edit(rows) if edit is not None else rows
+    (d / "rec.csv").write_text(header + "\n" + "\n".join(rows) + "\n")
+    if copy:
+        shutil.copy(d / "rec.csv", d / "rec2.csv")
     (d / "rec.yaml").write_text(RECORDING_SPEC)
     keys = [f"data.path={d / 'rec.csv'}", "data.control_columns=[u]", "data.observed=[q]", "data.segment=1.0"]
     given = {e.split("=", 1)[0] for e in extra}
     keys = [k for k in keys if k.split("=", 1)[0] not in given]
     return ["train", "model=equations", f"model.spec={d / 'rec.yaml'}", "trainer=whitebox", *keys, *extra]
+
+
+def _cell(rows: list[str], row: int, column: int, value: str) -> list[str]:
+    """`rows` (CSV lines) with the cell at 0-based `row`, `column` replaced by `value`."""
+    cells = rows[row].split(",")
+    cells[column] = value
+    return [*rows[:row], ",".join(cells), *rows[row + 1 :]]
+
+
+def _long_driven(d: Path) -> list[str]:
+    """A long CSV whose column u is the driven spec's input, and a train run that does not list it as a control."""
+    rows = [f"{b},{0.1 * k:.1f},0,{0.01 * k},{0.1 * b},{(k % 7) / 7}" for b in range(4) for k in range(11)]
+    (d / "long.csv").write_text("traj,t,node,x,v,u\n" + "\n".join(rows) + "\n")
+    (d / "driven.yaml").write_text(DRIVEN_SPEC)
+    return [
+        "train",
+        "model=equations",
+        f"model.spec={d / 'driven.yaml'}",
+        f"data.path={d / 'long.csv'}",
+        *TINY_TRAIN[:2],
+    ]
 
 
 DRIVEN_SPEC = (

@@ -262,10 +262,12 @@ def _check_data_names(cfg: Any) -> None:
     spec = spec if isinstance(spec, Mapping) else {}
     states = model.get("states") or spec.get("states")
     inputs = model.get("inputs") or spec.get("inputs") or []
-    columns = OmegaConf.to_container(data.columns, resolve=True) if data.get("columns") is not None else None
-    if not _names(states) or not _names(inputs) or not (columns is None or isinstance(columns, Mapping)):
+    columns = OmegaConf.to_container(data.columns, resolve=True) if data.get("columns") is not None else {}
+    if not _names(states) or not _names(inputs) or not isinstance(columns, Mapping):
         return
-    check_data_names(columns, list(data.observed or []), list(data.control_columns or []), list(states), list(inputs))
+    mapped = {str(k): str(v) for k, v in columns.items()}
+    observed, controls = list(data.observed or []), list(data.control_columns or [])
+    check_data_names(mapped, observed, controls, list(states or []), list(inputs))
 
 
 def _names(value: Any) -> bool:

@@ -78,3 +78,34 @@ def test_recording_keys_on_a_batch_file_are_one_message(tmp_path):
     res = run_mpsim(["train", "data.path=long.csv", "data.segment=1.0", "hydra.run.dir=run"], tmp_path)
     assert res.code == 2 and "data.segment apply to recordings" in res.err
     assert not (tmp_path / "run").exists()
+
+
+def test_a_pattern_run_says_what_it_read_and_keeps_it(tmp_path):
+    """Console, summary.json and the checkpoint say which files and seconds were read, skipped, split and scored;
+    the run is named after the pattern; a model fitted to zoh inputs warns when run on linear ones."""
+    (tmp_path / "recs").mkdir()
+    _record(tmp_path / "recs" / "long.csv", seconds=6.0)
+    _record(tmp_path / "recs" / "short.csv", seconds=0.5, seed=1)  # shorter than a segment
+    (tmp_path / "osc.yaml").write_text(SPEC)
+    keys = [
+        "model=equations",
+        "model.spec=osc.yaml",
+        "data.path=recs/*.csv",
+        "data.time_column=time",
+        "data.columns={q: enc, u: drive}",
+        "data.observed=[q]",
+        "data.segment=1.0",
+        "eval.plots=false",
+    ]
+    res = run_mpsim_ok(["train", *keys, "trainer=whitebox", "trainer.max_epochs=1", "data.input_hold=zoh"], tmp_path)
+    said = res.out + res.err
+    assert "matched 2 files: long.csv, short.csv" in said
+    assert "short.csv: 51 rows, 0–0.5 s; not used: its 51 samples are shorter than one segment (1 s)" in said
+    assert "data: train: long.csv 0–4 s; val: long.csv 4–5 s; test: long.csv 5–6 s" in said
+    assert "inputs ['u'] read from the files' columns" in said  # the spec's inputs; data.control_columns not given
+    (run,) = (tmp_path / "outputs" / "train").glob("*/*_recs")  # named after the pattern's folder
+    data = json.loads((run / "summary.json").read_text())["data"]
+    assert data["covers"]["test"] == "long.csv 5–6 s" and len(data["account"]["files"]) == 2
+    ckpt = tmp_path / "checkpoints" / "recordings.ckpt"
+    res = run_mpsim_ok(["eval", f"init={ckpt}", *keys[2:], "data.split=[0,0,1]"], tmp_path)
+    assert "fitted to inputs held 'zoh' between samples, but these data hold them 'linear'" in res.out + res.err

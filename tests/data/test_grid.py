@@ -81,7 +81,7 @@ def test_uniform_or_refuse_snaps_small_jitter_and_refuses_a_gap():
     assert off > JITTER_RTOL
     with pytest.raises(
         DataError,
-        match=r"r.csv: the sampling is not uniform: sample \d+ .* % of a step.*"
-        r"data.resample=<dt>, e.g. data.resample=0.002\.",
+        match=r"r.csv: the sampling is not uniform: row \d+ .* % of a step.*"
+        r"data.resample=<dt>, e.g. data.resample=0.002 \(the median step\)\.",
     ):
         uniform_or_refuse(_rec(gap, np.arange(100.0)))

@@ -119,9 +119,23 @@ def test_npz_without_x_or_with_bad_shape(tmp_path):
 
 
 def test_unknown_extension(tmp_path):
-    (tmp_path / "d.txt").write_text("x")
-    with pytest.raises(DataError, match="use .npz or .csv"):
-        load_trajectories(tmp_path / "d.txt")
+    (tmp_path / "d.xlsx").write_text("x")
+    with pytest.raises(DataError, match=r"unknown data format '.xlsx'; mpsim reads .npz, .csv"):
+        load_trajectories(tmp_path / "d.xlsx")
+
+
+def test_a_long_csv_named_txt_or_gzipped_reads_as_the_csv(tmp_path):
+    import gzip
+    import shutil
+
+    text = "traj,t,node,x\n0,0,0,1\n0,1,0,2\n1,0,0,3\n1,1,0,4\n"
+    (tmp_path / "d.csv").write_text(text)
+    (tmp_path / "d.txt").write_text(text)
+    with open(tmp_path / "d.csv", "rb") as src, gzip.open(tmp_path / "d.csv.gz", "wb") as dst:
+        shutil.copyfileobj(src, dst)
+    want = load_trajectories(tmp_path / "d.csv").x
+    for name in ("d.txt", "d.csv.gz"):
+        assert torch.equal(load_trajectories(tmp_path / name).x, want)
 
 
 def test_a_folder_given_as_a_data_file_or_edge_list_is_named_as_one(tmp_path, traj):

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mpsim.data.account import account_lines
 from mpsim.data.measured import Recordings, is_recording, paths_of, read_recordings
 from mpsim.data.pipeline import DataOptions, load_splits
 from mpsim.errors import ConfigError, DataError
@@ -94,3 +95,105 @@ def test_recording_keys_are_refused_for_a_batch_file(tmp_path):
 def test_data_columns_must_be_a_mapping():
     with pytest.raises(ConfigError, match="data.columns must map"):
         DataOptions(columns=["q"]).recordings(None, {})  # type: ignore[arg-type]
+
+
+def _opts(path: Path, **keys) -> DataOptions:
+    return DataOptions(path=str(path), control_columns=["u"], **keys)
+
+
+def test_a_file_whose_name_holds_brackets_is_read_as_named_not_as_a_pattern(tmp_path):
+    _wide(tmp_path / "rec1.csv", *_sine(301, 0.1), names=("t", "q", "u"))  # what the pattern rec[1].csv matches
+    _wide(tmp_path / "rec[1].csv", *_sine(201, 0.1, omega=5.0), names=("t", "q", "u"))
+    assert paths_of(tmp_path / "rec[1].csv") == [tmp_path / "rec[1].csv"]
+    batch = read_recordings(tmp_path / "rec[1].csv", Recordings(controls=["u"], segment=1.0))
+    assert len(batch) == 20 and batch.meta["account"]["pattern"] is False
+    assert np.allclose(batch.x[3, :, 0, 0].numpy(), np.sin(5.0 * (3.0 + 0.1 * np.arange(11))), atol=1e-8)
+    assert [p.name for p in paths_of(tmp_path / "rec[0-9].csv")] == ["rec1.csv"]  # no such file: a pattern
+
+
+def test_a_pattern_names_every_file_and_each_one_too_short_to_use(tmp_path, caplog):
+    _wide(tmp_path / "a.csv", *_sine(301, 0.1), names=("t", "q", "u"))
+    _wide(tmp_path / "b.csv", *_sine(6, 0.1), names=("t", "q", "u"))  # 0.5 s: shorter than a segment
+    with caplog.at_level("INFO"):
+        splits = load_splits(_opts(tmp_path / "*.csv", segment=1.0), tmp_path, "float64")
+    files = splits.train.meta["account"]["files"]
+    assert [f["pieces"][0]["segments"] for f in files] == [30, 0]
+    said = caplog.text
+    assert "pattern " in said and "matched 2 files: a.csv, b.csv" in said
+    assert "b.csv: 6 rows, 0–0.5 s; not used: its 6 samples are shorter than one segment (1 s)" in said
+    assert "data: train: a.csv 0–22 s; val: a.csv 22–26 s; test: a.csv 26–30 s" in said
+
+
+def test_a_gap_splits_the_recording_rather_than_being_interpolated(tmp_path, caplog):
+    t, q, u = _sine(301, 0.1)
+    keep = (t < 9.95) | (t > 12.05)  # 2 s missing after t = 9.9
+    _wide(tmp_path / "r.csv", t[keep], q[keep], u[keep], names=("t", "q", "u"))
+    for resample in (None, 0.05):
+        with caplog.at_level("INFO"):
+            data = read_recordings(tmp_path / "r.csv", Recordings(controls=["u"], resample=resample, segment=1.0))
+        (gap,) = data.meta["account"]["files"][0]["gaps"]
+        assert gap["action"] == "split" and gap["seconds"] == pytest.approx(2.2) and gap["row"] == 100
+        starts = [e["t0"] for e in data.meta["segments"]]
+        assert starts[:9] == pytest.approx(range(9)) and starts[9] == pytest.approx(12.1)  # none spans the gap
+        x = data.x[..., 0, 0].numpy()
+        truth = np.sin(2.0 * (np.array(starts)[:, None] + np.asarray(data.t)[None, :]))
+        assert np.abs(x - truth).max() < (0.01 if resample else 1e-8)  # the samples of those times, not a filled line
+        assert "a gap of 2.2 s (22 steps) before row 101 (t = 9.9 s) splits it" in caplog.text
+
+
+def test_a_lost_sample_is_filled_only_by_resampling_and_named(tmp_path):
+    t, q, u = _sine(101, 0.1)
+    keep = np.arange(101) != 50
+    _wide(tmp_path / "r.csv", t[keep], q[keep], u[keep], names=("t", "q", "u"))
+    filled = read_recordings(tmp_path / "r.csv", Recordings(controls=["u"], segment=1.0, resample=0.1))
+    (gap,) = filled.meta["account"]["files"][0]["gaps"]
+    assert gap["action"] == "filled" and len(filled) == 10
+    assert "filled by data.resample's interpolation" in account_lines(filled.meta["account"])[0]
+    split = read_recordings(tmp_path / "r.csv", Recordings(controls=["u"], segment=1.0))  # its own grid: split
+    assert split.meta["account"]["files"][0]["gaps"][0]["action"] == "split" and len(split) == 8  # 0–4.9, 5.1–10
+
+
+def test_unix_epoch_times_lose_no_digit(tmp_path):  # 1.7e9 + 0.05 k failed a step test below float64's resolution
+    t, q, u = _sine(401, 0.05)
+    _wide(tmp_path / "r.csv", 1.7e9 + t, q, u, names=("t", "q", "u"))
+    splits = load_splits(_opts(tmp_path / "r.csv", segment=1.0), tmp_path, "float32")
+    assert len(splits.train) == 14 and splits.train.meta["dt"] == pytest.approx(0.05, rel=1e-9)
+    assert splits.test.meta["covers"] == "r.csv 17–20 s from its start"
+    assert np.allclose(splits.train.x[1, :, 0, 0].numpy(), np.sin(2.0 * (1.0 + 0.05 * np.arange(21))), atol=1e-6)
+
+
+def test_copies_in_a_pattern_are_refused_naming_both(tmp_path):
+    _wide(tmp_path / "a.csv", *_sine(31, 0.1), names=("t", "q", "u"))
+    (tmp_path / "b.csv").write_text((tmp_path / "a.csv").read_text().replace(",", ", "))  # same samples, other text
+    with pytest.raises(DataError, match=r"b.csv holds the same samples as .*a.csv"):
+        read_recordings(tmp_path / "*.csv", Recordings(controls=["u"], segment=1.0))
+
+
+def test_files_named_txt_or_gzipped_are_recordings_too(tmp_path):
+    import gzip
+
+    _wide(tmp_path / "r.txt", *_sine(31, 0.1), names=("t", "q", "u"))
+    with gzip.open(tmp_path / "r.csv.gz", "wt") as f:
+        f.write((tmp_path / "r.txt").read_text())
+    for name in ("r.txt", "r.csv.gz"):
+        assert is_recording(tmp_path / name)
+        assert len(read_recordings(tmp_path / name, Recordings(controls=["u"], segment=1.0))) == 3
+
+
+def test_a_specs_inputs_are_read_when_no_control_columns_are_given_and_that_is_said(tmp_path):
+    _wide(tmp_path / "r.csv", *_sine(31, 0.1), names=("t", "q", "u"))
+    how = Recordings(states=["q", "v"], observed=["q"], rates={"v": "q"}, inputs=["u"], segment=1.0)
+    batch = read_recordings(tmp_path / "r.csv", how)
+    assert batch.control_names == ["u"] and batch.meta["account"]["inputs_from_spec"]
+    assert "inputs ['u'] read from the files' columns of those names" in account_lines(batch.meta["account"])[0]
+
+
+def test_reading_a_file_too_large_for_memory_is_refused_with_the_advice_that_helps(tmp_path, monkeypatch):
+    from mpsim import memory
+    from mpsim.errors import ResourceError
+
+    _wide(tmp_path / "r.csv", *_sine(301, 0.1), names=("t", "q", "u"))
+    monkeypatch.setattr(memory, "available_bytes", lambda device="cpu": 1000)
+    with pytest.raises(ResourceError, match=r"reading r.csv .*split the recording into several files.*data.stride"):
+        read_recordings(tmp_path / "r.csv", Recordings(controls=["u"], segment=1.0))
+    assert len(read_recordings(tmp_path / "r.csv", Recordings(controls=["u"], segment=1.0, memory_check=False))) == 30

@@ -9,9 +9,10 @@ from mpsim.errors import ConfigError, DataError
 
 
 def _rec(n, dt=0.1, t0=0.0, source="a.csv", controls=True):
-    t = t0 + dt * torch.arange(n, dtype=torch.float64)
-    x = torch.stack([t, -t], dim=-1).reshape(1, n, 1, 2)  # states: the absolute time and its negative
-    u = (10 * t).reshape(1, n, 1, 1) if controls else None
+    """A recording as `to_recording` makes one: times from its first sample, the file's first time in meta t0."""
+    t = dt * torch.arange(n, dtype=torch.float64)
+    x = torch.stack([t0 + t, -t0 - t], dim=-1).reshape(1, n, 1, 2)  # states: the file's time and its negative
+    u = (10 * (t0 + t)).reshape(1, n, 1, 1) if controls else None
     meta = {
         "source": source,
         "system": source[:-4],
@@ -41,11 +42,24 @@ def test_segments_share_end_samples_and_drop_the_tail():
 
 def test_short_recordings_are_skipped_and_named_and_none_left_is_refused():
     data = segment([_rec(26), _rec(5, source="short.csv")], 1.0)
-    assert len(data) == 2 and data.meta["skipped"] == [{"recording": "short.csv", "seconds": pytest.approx(0.4)}]
+    skipped = [{"recording": "short.csv", "piece": 1, "seconds": pytest.approx(0.4)}]
+    assert len(data) == 2 and data.meta["skipped"] == skipped
+    assert data.meta["usage"][1] == {"recording": "short.csv", "piece": 1, "segments": 0, "used": 0, "samples": 5}
+    assert data.meta["usage"][0] == {"recording": "a.csv", "piece": 1, "segments": 2, "used": 21, "samples": 26}
     with pytest.raises(DataError, match=r"data.segment=3 s is longer than every recording \(the longest lasts 2.5 s\)"):
         segment([_rec(26)], 3.0)
-    with pytest.raises(ConfigError, match="shorter than one sampling step"):
+    with pytest.raises(ConfigError, match=r"data.segment=0.01 s is 0.1 steps of 0.1 s.*Use data.segment=0.1\."):
         segment([_rec(26)], 0.01)
+    with pytest.raises(DataError, match="longer than every recording"):  # not an OverflowError rounding 1e308/dt
+        segment([_rec(26)], 1e308)
+
+
+def test_a_length_that_rounding_would_change_is_refused_with_the_nearest_two():
+    with pytest.raises(
+        ConfigError, match=r"0.123 s is 1.23 steps.*differs by 18.7 %.*data.segment=0.1 or data.segment=0.2"
+    ):
+        segment([_rec(26)], 0.123)
+    assert segment([_rec(26)], 1.005).meta["segment"] == pytest.approx(1.0)  # within 1 %: used, and said
 
 
 def test_recordings_on_different_steps_are_refused_naming_both_files():

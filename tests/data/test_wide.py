@@ -118,3 +118,53 @@ def test_large_file_is_read_exactly(tmp_path):  # its speed is a bench figure, n
     np.savetxt(path, np.column_stack([t, values]), delimiter=",", header="t,a,b,c", comments="")
     table = read_wide_csv(path)
     assert np.array_equal(table.columns["b"], values[:, 1]) and np.array_equal(table.t, t)
+
+
+def test_a_hash_inside_a_text_cell_stays_in_the_cell(tmp_path):  # pandas' comment='#' cut the row there
+    table = read_wide_csv(_file(tmp_path, "# rig 3\nt,note,q\n0,take #3,1\n# pause\n1,ok,2\n"))
+    assert table.columns["q"].tolist() == [1.0, 2.0] and "take #3" in table.unusable["note"]
+    assert table.row(1) == "row 2 (line 5)"  # comment lines are not rows; lines are counted when named
+
+
+def test_decimal_commas_after_the_first_rows_are_found(tmp_path):  # the first 50 rows were all whole numbers
+    rows = [f"{k};{k};1" for k in range(60)] + ["60;60,5;1,25"]
+    table = read_wide_csv(_file(tmp_path, "t;q;u\n" + "\n".join(rows) + "\n"))
+    assert table.columns["q"][-1] == 60.5 and table.columns["u"][-1] == 1.25
+
+
+def test_iso_dates_in_the_time_column_are_seconds_since_the_first(tmp_path):
+    text = "time,q\n2026-01-02 10:00:00.00,1\n2026-01-02 10:00:00.05,2\n2026-01-02T10:00:00.10,3\n"
+    table = read_wide_csv(_file(tmp_path, text), time_column="time")
+    assert np.allclose(table.t, [0.0, 0.05, 0.1]) and table.time_origin == "2026-01-02 10:00:00"
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("t,q\n0,1\n0.5s,2\n1,3\n", r"row 2 \(line 3\), time column 't' holds '0.5s'.*a number with a unit"),
+        ("t,q\n0,1\n0.5,2\ntotal,3 rows\n", r"row 3 \(line 4\) holds text in every column.*a footer"),
+        ("t,q\n0,1\nt,q\n1,2\n", r"row 2 \(line 3\) repeats the header.*several recordings joined"),
+        ("t,q\n0,1\nsee note,n/a\n1,2\n", r"row 2 \(line 3\) holds text in every column.*between rows of numbers"),
+    ],
+)
+def test_text_where_numbers_belong_is_named_by_row_with_its_fix(tmp_path, text, match):
+    with pytest.raises(DataError, match=match):
+        read_wide_csv(_file(tmp_path, text))
+
+
+def test_a_time_column_not_named_t_is_not_ignored_for_data_dt(tmp_path):
+    path = _file(tmp_path, "time,q\n0,1\n0.1,2\n2.2,3\n")  # a 2 s gap that t = k·dt would stitch across
+    with pytest.raises(DataError, match=r"column 'time' looks like the file's times.*data.time_column=time"):
+        read_wide_csv(path, dt=0.1)
+    with pytest.raises(DataError, match=r"no time column 't'.*Column 'time' looks like the times"):
+        read_wide_csv(path)
+    assert read_wide_csv(path, time_column=None, dt=0.1).t.tolist() == pytest.approx([0.0, 0.1, 0.2])  # said so
+
+
+def test_a_gzipped_csv_is_read_as_its_text(tmp_path):
+    import gzip
+
+    path = tmp_path / "rec.csv.gz"
+    with gzip.open(path, "wt") as f:
+        f.write("t,q\n0,1\n0.5,3\n")
+    assert read_wide_csv(path).columns["q"].tolist() == [1.0, 3.0]

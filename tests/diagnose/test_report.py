@@ -81,3 +81,24 @@ def test_markdown_says_which_candidates_a_simpler_kind_stood_for():
     s["screen"]["equivalent_forms"] = [note]
     assert f"not searched unless `diagnose.targets` names them).\n\n- {note}\n\n| state |" in markdown(s)
     assert "- DryFriction" not in markdown(_summary("effects named", 0))  # none: nothing said
+
+
+def test_markdown_says_what_was_read_from_the_files():
+    s = _summary("nothing missing", 10)
+    s["data"]["covers"] = {"train": "a.csv 0–20 s", "val": "a.csv 20–25 s", "test": "a.csv 25–30 s"}
+    s["data"]["account"] = {
+        "path": "recs/*.csv",
+        "pattern": True,
+        "segment": 1.0,
+        "files": [
+            {"file": "recs/a.csv", "rows": 301, "span": [0.0, 30.0], "gaps": [], "pieces": [
+                {"piece": 1, "rows": 301, "span": [0.0, 30.0], "samples": 301, "segments": 30, "used": 301}]},
+            {"file": "recs/b.csv", "rows": 6, "span": [0.0, 0.5], "gaps": [], "pieces": [
+                {"piece": 1, "rows": 6, "span": [0.0, 0.5], "samples": 6, "segments": 0, "used": 0}]},
+        ],
+    }  # fmt: skip
+    text = markdown(s)
+    assert "\n## Data\n\n- pattern recs/*.csv matched 2 files: a.csv, b.csv\n" in text
+    assert "- b.csv: 6 rows, 0–0.5 s; not used: its 6 samples are shorter than one segment (1 s)\n" in text
+    assert "- train: a.csv 0–20 s; val: a.csv 20–25 s; test: a.csv 25–30 s\n" in text
+    assert "## Data" not in markdown(_summary("nothing missing", 10))  # simulated data: nothing to account for

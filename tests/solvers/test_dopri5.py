@@ -205,3 +205,16 @@ def test_restart_never_steps_across_an_output_and_matches_one_solve_per_interval
     assert len(field.times) < len(plain.times) / 2, (len(field.times), len(plain.times))
     with pytest.raises(ValueError, match="cannot restart"):
         ODESolver("rk4")(field, y0, t, restart=True)
+
+
+class _Huge(nn.Module):
+    """dy/dt = 1e30·y in float32: the derivative at the start overflows (an input sample of 1e30 did so)."""
+
+    def forward(self, t, y):
+        return y * 1e30 * 1e30
+
+
+def test_a_derivative_that_overflows_at_the_start_is_a_step_failure_not_a_zero_division():
+    y0 = torch.ones(2, 3)
+    with pytest.raises(StepFailure, match="non-finite values in the state or its derivative at the start"):
+        dopri5(_Huge(), y0, torch.tensor([0.0, 0.1]), 1e-6, 1e-8)

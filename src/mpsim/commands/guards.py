@@ -103,9 +103,10 @@ def check_training_memory(
         f"training ({batch} trajectories × {n_times} time points × {train.n_nodes:,} nodes × {width} features "
         f"per step, {rt.dtype})"
     )
-    check_fits(
-        need, what, str(rt.device), rt.memory_check, "trainer.batch_size; trainer.window; a smaller model or system"
-    )
+    fix = "trainer.batch_size; trainer.window; a smaller model or system"
+    if "segments" in train.meta:  # recordings: shorter segments or fewer samples shrink every step
+        fix = "data.segment=<shorter>; data.stride=<k> keeps every k-th sample; " + fix
+    check_fits(need, what, str(rt.device), rt.memory_check, fix)
 
 
 def noisy_train(

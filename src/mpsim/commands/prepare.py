@@ -246,7 +246,15 @@ def with_model_and_data(job: Job, ctx: DistContext, explicit_horizons: bool, tra
     if data.from_file:
         states, rates, inputs = spec_states(job.model_config)
         splits = load_splits(
-            data, rt.start_dir, dtype_name, need, system_graph=graph, states=states, rates=rates, inputs=inputs
+            data,
+            rt.start_dir,
+            dtype_name,
+            need,
+            system_graph=graph,
+            states=states,
+            rates=rates,
+            inputs=inputs,
+            memory_check=rt.memory_check,
         )
         _refuse_inputs_read_as_states(inputs, splits, data)
     horizons = job.horizons

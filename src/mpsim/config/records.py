@@ -48,5 +48,9 @@ def run_name(system_choice: str, data_path: Any = None) -> str:
         return system_choice
     path = Path(str(data_path))
     if any(c in path.name for c in "*?[") and not path.exists():  # a pattern: its fixed part, else its folder's name
-        return file_stem(path.name.split("*")[0].split("?")[0].split("[")[0]) or file_stem(path.parent.name + ".x") or "recordings"
+        return (
+            file_stem(path.name.split("*")[0].split("?")[0].split("[")[0])
+            or file_stem(path.parent.name + ".x")
+            or "recordings"
+        )
     return file_stem(path) or system_choice

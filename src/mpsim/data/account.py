@@ -23,7 +23,9 @@ def account_lines(account: Mapping[str, Any]) -> list[str]:
     lines = []
     if account.get("pattern"):
         names = [Path(f["file"]).name for f in files]
-        shown = ", ".join(names[:SHOWN_FILES]) + (f" and {len(names) - SHOWN_FILES} more" if len(names) > SHOWN_FILES else "")
+        shown = ", ".join(names[:SHOWN_FILES]) + (
+            f" and {len(names) - SHOWN_FILES} more" if len(names) > SHOWN_FILES else ""
+        )
         lines.append(f"data: pattern {account['path']} matched {len(files)} file{_s(len(files))}: {shown}")
     grid = _grid(account)
     if account.get("inputs_from_spec"):

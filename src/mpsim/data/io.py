@@ -20,6 +20,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from mpsim.data.table import TEXT_SUFFIXES, table_suffix
 from mpsim.data.trajectories import Trajectories, grid_step
 from mpsim.errors import DataError
 from mpsim.files import atomic_write, json_default
@@ -345,9 +346,12 @@ def load_trajectories(
     if path.suffix == ".npz":
         ei = load_edges(edges, _npz_nodes(path)) if edges else edge_index
         return load_npz(path, ei)
-    if path.suffix == ".csv":
+    if table_suffix(path) in TEXT_SUFFIXES:
         return load_csv(path, edges, edge_index, control_columns)
-    raise DataError(f"{path}: unknown data format {path.suffix!r}; use .npz or .csv (see docs/data_formats.md).")
+    raise DataError(
+        f"{path}: unknown data format {path.suffix!r}; mpsim reads .npz, .csv (also as .txt, .dat, .tsv, or any of "
+        "them .gz) and MATLAB .mat files (docs/data_formats.md). Export the data to one of these."
+    )
 
 
 # ---- helpers -------------------------------------------------------------------------------------------

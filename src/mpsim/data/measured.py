@@ -33,10 +33,11 @@ from mpsim.data.matfile import read_mat
 from mpsim.data.noise import noise_summary
 from mpsim.data.recording import to_recording
 from mpsim.data.segments import segment, stack_recordings
-from mpsim.data.table import Table
+from mpsim.data.table import TEXT_SUFFIXES, Table, table_suffix
 from mpsim.data.trajectories import Trajectories
 from mpsim.data.wide import read_wide_csv
 from mpsim.errors import ConfigError, DataError, did_you_mean
+from mpsim.memory import check_fits
 from mpsim.safeload import not_a_regular_file
 
 log = logging.getLogger(__name__)
@@ -46,8 +47,9 @@ LONG_COLUMNS = ("traj", "t", "node")
 #: bytes of a CSV's head looked at to tell the long format from a wide one
 HEAD_BYTES = 65536
 GLOB_CHARS = "*?["
-#: suffixes read as text tables (wide or long CSV); ".gz" of any of them is read decompressed
-TEXT_SUFFIXES = (".csv", ".txt", ".dat", ".tsv")
+#: memory that reading a text file takes, as a multiple of its size (text, parsed frame, float columns): a 160 MB
+#: CSV of four columns peaked at 1.0 GB above the interpreter's own
+READ_FACTOR = 8
 
 
 @dataclass(frozen=True)
@@ -65,6 +67,7 @@ class Recordings:
         resample, stride, segment, input_hold: `data.resample`, `data.stride`, `data.segment`, `data.input_hold`.
         inputs: the model's inputs when it states them (a spec's `inputs:`): read when `controls` is empty.
         dtype_name: the model's precision (a value it cannot hold is refused with its file row).
+        memory_check: refuse a file whose reading would not fit in memory (`memory_check`; `READ_FACTOR`).
     """
 
     time_column: str | None = "t"
@@ -80,6 +83,7 @@ class Recordings:
     input_hold: str = "linear"
     inputs: Sequence[str] | None = None
     dtype_name: str = "float64"
+    memory_check: bool = True
 
 
 def is_pattern(path: Path) -> bool:
@@ -107,14 +111,6 @@ def paths_of(path: Path) -> list[Path]:
     if not files:
         raise DataError(f"data.path={path}: the pattern matches no file{'' if not found else ' (only folders)'}.")
     return files
-
-
-def table_suffix(path: Path) -> str:
-    """The suffix that tells a file's format, past a ``.gz``: ``rec.csv.gz`` -> ``.csv``."""
-    suffixes = [s.lower() for s in path.suffixes]
-    if suffixes and suffixes[-1] == ".gz":
-        suffixes = suffixes[:-1]
-    return suffixes[-1] if suffixes else ""
 
 
 def is_recording(path: Path) -> bool:
@@ -149,9 +145,28 @@ def read_table(path: Path, how: Recordings) -> Table:
     why = not_a_regular_file(path)
     if why:
         raise DataError(f"data file {path} {why}.")
+    _check_read_memory(path, how.memory_check)
     if table_suffix(path) == ".mat":
         return read_mat(path, how.time_column, how.dt)
     return read_wide_csv(path, how.time_column, how.dt)
+
+
+def _check_read_memory(path: Path, enabled: bool) -> None:
+    """Refuse, before reading, a file whose reading would not fit in memory (about `READ_FACTOR` times its size;
+    a `.gz` file by the size it states for its content)."""
+    size = path.stat().st_size
+    if path.suffix.lower() == ".gz" and size >= 4:
+        with open(path, "rb") as f:  # gzip's trailer: the content's size modulo 4 GiB
+            f.seek(-4, 2)
+            size = max(size, int.from_bytes(f.read(4), "little"))
+    check_fits(
+        READ_FACTOR * size,
+        f"reading {path.name} ({size / 2**20:.0f} MB of text)",
+        "cpu",
+        enabled,
+        "split the recording into several files, which data.path reads as a pattern, or decimate it before "
+        "reading: data.stride thins the samples only once they are read",
+    )
 
 
 def _states_in_file(table: Table, how: Recordings) -> list[str]:

@@ -70,6 +70,7 @@ class DataOptions:
         rates: Mapping[str, str],
         inputs: Sequence[str] | None = None,
         dtype_name: str = "float64",
+        memory_check: bool = True,
     ) -> Recordings:
         """How recordings become a batch, for a model with `states` and `inputs` (None: the file's), `rates`
         ({s: o} for each equation o' = s: how a latent state is estimated) and precision `dtype_name`."""
@@ -94,6 +95,7 @@ class DataOptions:
             input_hold=self.input_hold,
             inputs=None if inputs is None else list(inputs),
             dtype_name=dtype_name,
+            memory_check=memory_check,
         )
 
     def dataset_spec(self, system_config: dict[str, Any]) -> DatasetSpec:
@@ -144,13 +146,14 @@ def read(
     rates: Mapping[str, str] | None = None,
     inputs: Sequence[str] | None = None,
     dtype_name: str = "float64",
+    memory_check: bool = True,
 ) -> Trajectories:
     """Read step: `data.path` by its extension, with its graph (an edge list, or the system's) and the columns
     that are controls (`data.control_columns`); recordings (`is_recordings`) through `mpsim.data.measured`, as
     the model's `states` and `inputs` (None: the file's), latent ones estimated by `rates`."""
     assert options.path is not None
     if is_recordings(options, start_dir):
-        how = options.recordings(states, rates or {}, inputs, dtype_name)
+        how = options.recordings(states, rates or {}, inputs, dtype_name, memory_check)
         return read_recordings(resolve(options.path, start_dir), how)
     _refuse_recording_keys(options)
     edges = resolve(options.edges, start_dir) if options.edges else None
@@ -194,6 +197,7 @@ def load_splits(
     states: Sequence[str] | None = None,
     rates: Mapping[str, str] | None = None,
     inputs: Sequence[str] | None = None,
+    memory_check: bool = True,
 ) -> Splits:
     """The data of a command, train/val/test: a file read and split by trajectory (the splits in `need` get a
     share > 0), or the system's three splits simulated (cached in `cache_dir`; None: no cache).
@@ -203,12 +207,13 @@ def load_splits(
         system, system_graph, system_config: the ground truth when simulating (its graph also serves a file
             given with `data.graph=system`); its config is part of the cache key.
         states, rates, inputs: the model's states and inputs and how its latent states are estimated (`read`).
+        memory_check: refuse a recording whose reading would not fit in memory (`memory_check=false`: try).
 
     Recordings are split into contiguous blocks in time order (`contiguous_split`); a batch file at random by
     trajectory (`data.seed`). What each split covers is logged (and kept in its ``meta['covers']``).
     """
     if options.from_file:
-        data = read(options, start_dir, system_graph, states, rates, inputs, dtype_name)
+        data = read(options, start_dir, system_graph, states, rates, inputs, dtype_name, memory_check)
         check_representable(data, dtype_name, str(options.path))
         if "segments" in data.meta:
             splits = contiguous_split(data, tuple(options.split), need)
@@ -226,4 +231,3 @@ def record_steps(options: DataOptions, system: Any) -> int:
     """Steps per trajectory of the data before they are loaded: a simulated record's horizon (a file's is known
     once read)."""
     return int(options.horizon or system.horizon)
-

@@ -20,7 +20,7 @@ from mpsim.data.table import Table
 from mpsim.data.trajectories import Trajectories
 from mpsim.errors import DataError, did_you_mean
 
-#: a value this many times a column's typical magnitude (its 99.9th percentile of |x|) is no reading: an overflow or
+#: a value this many times a column's typical magnitude (its 99th percentile of |x|) is no reading: an overflow or
 #: a missing-value code, refused with its row
 OUTLIER_FACTOR = 1e6
 #: the largest magnitude each precision holds (float64: normalisation squares values, so 1e150)
@@ -147,12 +147,12 @@ def _check_range(table: Table, name: str, column: str, values: np.ndarray, dtype
             f"{table.source}: {table.row(i)}, column '{column}' (for '{name}') holds {values[i]:.3g}, beyond what "
             f"dtype={dtype_name} holds (up to {limit:.3g}). Fix the row, or {fix}."
         )
-    typical = float(np.percentile(size, 99.9)) if len(size) >= 10 else 0.0
+    typical = float(np.percentile(size, 99)) if len(size) >= 10 else 0.0
     if typical > 0 and peak > OUTLIER_FACTOR * typical:
         many = int((size > OUTLIER_FACTOR * typical).sum())
         raise DataError(
             f"{table.source}: {table.row(i)}, column '{column}' (for '{name}') holds {values[i]:.3g}, "
-            f"{peak / typical:.2g} times the column's typical magnitude ({typical:.3g}, the 99.9th percentile of "
+            f"{peak / typical:.2g} times the column's typical magnitude ({typical:.3g}, the 99th percentile of "
             f"|{column}|; {many} such value{'s' if many != 1 else ''}): a sensor overflow or a missing-value code, "
             "not a reading. Delete or correct that row."
         )

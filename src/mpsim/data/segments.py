@@ -43,7 +43,11 @@ def segment(recs: Sequence[Trajectories], seconds: float) -> Trajectories:
         [S, L + 1, N, D] for the S segments of all recordings, in recording then time order.
     """
     dt = _common_step(recs)
-    if isinstance(seconds, bool) or not isinstance(seconds, int | float) or not (math.isfinite(seconds) and seconds > 0):
+    if (
+        isinstance(seconds, bool)
+        or not isinstance(seconds, int | float)
+        or not (math.isfinite(seconds) and seconds > 0)
+    ):
         raise ConfigError(f"data.segment must be a length in seconds > 0; got {seconds!r}.")
     longest = max(float(r.t[-1] - r.t[0]) for r in recs)
     if seconds > longest + 0.5 * dt:

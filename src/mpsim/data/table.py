@@ -10,11 +10,14 @@ from __future__ import annotations
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from mpsim.errors import DataError, did_you_mean
 
+#: suffixes read as text tables (wide or long CSV); ".gz" of any of them is read decompressed
+TEXT_SUFFIXES = (".csv", ".txt", ".dat", ".tsv")
 #: the largest data file (wide CSV or .mat) mpsim reads; far above a 131 072-row recording (about 15 MB as CSV)
 DATA_BYTES = 1 << 30
 
@@ -49,6 +52,14 @@ class Table:
     def row(self, i: int) -> str:
         """How a message names row `i` (0-based) of the file."""
         return self.where(i) if self.where is not None else f"row {i + 1}"
+
+
+def table_suffix(path: str | Path) -> str:
+    """The suffix that tells a file's format, past a ``.gz``: ``rec.csv.gz`` -> ``.csv``."""
+    suffixes = [s.lower() for s in Path(path).suffixes]
+    if suffixes and suffixes[-1] == ".gz":
+        suffixes = suffixes[:-1]
+    return suffixes[-1] if suffixes else ""
 
 
 def check_times(t: np.ndarray, source: str, column: str, where: Callable[[int], str]) -> None:  # t: [T] float64

@@ -90,7 +90,11 @@ def read_wide_csv(path: str | Path, time_column: str | None = "t", dt: float | N
 def _text(path: Path) -> str:
     fix = "Split the recording into several files (data.path takes a glob) or decimate it"
     try:
-        text = _gunzipped(path, fix) if path.suffix.lower() == ".gz" else read_text(path, DATA_BYTES, f"data file {path}", fix)
+        text = (
+            _gunzipped(path, fix)
+            if path.suffix.lower() == ".gz"
+            else read_text(path, DATA_BYTES, f"data file {path}", fix)
+        )
     except UnicodeDecodeError as err:
         raise DataError(
             f"{path}: not UTF-8 text (byte {err.start}: {err.reason}). Save the file as UTF-8 (plain ASCII is fine)."
@@ -111,7 +115,9 @@ def _gunzipped(path: Path, fix: str) -> str:
         with gzip.open(path, "rb") as handle:
             data = handle.read(DATA_BYTES + 1)
     except (OSError, EOFError) as err:
-        raise DataError(f"{path}: cannot decompress as gzip ({err}). Give the file uncompressed, or gzip it again.") from None
+        raise DataError(
+            f"{path}: cannot decompress as gzip ({err}). Give the file uncompressed, or gzip it again."
+        ) from None
     if len(data) > DATA_BYTES:
         raise DataError(
             f"data file {path} holds over {size_text(DATA_BYTES)} once decompressed, over mpsim's limit. {fix}."
@@ -257,6 +263,7 @@ def _numeric_columns(
     unusable: dict[str, str] = {}
     text_rows = np.ones(len(frame), dtype=bool)
     filled = np.zeros(len(frame), dtype=bool)
+    numeric = False  # some column holds numbers (in rows other than text ones)
     for name in frame.columns:  # a loop over the few columns, each converted whole
         raw = frame[name]
         present = np.asarray(raw.notna().to_numpy())
@@ -264,6 +271,7 @@ def _numeric_columns(
         if pd.api.types.is_numeric_dtype(raw.dtype) and not pd.api.types.is_bool_dtype(raw.dtype):
             columns[name] = raw.to_numpy(dtype=np.float64, na_value=np.nan)
             text_rows &= ~present
+            numeric |= bool(present.any())
             continue
         values = pd.to_numeric(raw.astype("string").str.strip(), errors="coerce").to_numpy(
             dtype=np.float64, na_value=np.nan
@@ -271,12 +279,13 @@ def _numeric_columns(
         text = present & np.isnan(values)
         text &= ~raw.astype("string").str.strip().str.lower().isin(["nan", "inf", "-inf", "+inf"]).to_numpy(bool)
         text_rows &= text | ~present
+        numeric |= bool((present & ~text).any())
         if text.any():
             i = int(np.nonzero(text)[0][0])
             unusable[name] = f"{where(i)} holds {str(raw.iloc[i])!r}, not a number ({int(text.sum())} such cells)"
         else:
             columns[name] = values
-    _refuse_text_rows(path, frame, np.nonzero(text_rows & filled)[0], where, names, len(columns) > 0)
+    _refuse_text_rows(path, frame, np.nonzero(text_rows & filled)[0], where, names, numeric)
     return columns, unusable
 
 

@@ -13,8 +13,8 @@ from typing import Any
 import torch
 
 from mpsim import plotting
-from mpsim.data.account import record_lines
 from mpsim.console import fmt
+from mpsim.data.account import record_lines
 from mpsim.diagnose.heldout import EFFECTS_NAMED, NOTHING_MISSING
 from mpsim.diagnose.loop import LoopResult
 

@@ -164,7 +164,11 @@ def _initial_step(func, t0: float, y0: torch.Tensor, f0: torch.Tensor, rtol: flo
     with torch.no_grad():
         scale = atol + y0.abs() * rtol
         d0, d1 = _rms(y0 / scale), _rms(f0 / scale)
+        if not (math.isfinite(d0) and math.isfinite(d1)):  # an input of 1e30 makes f0 overflow: no step can start
+            raise StepFailure(f"non-finite values in the state or its derivative at the start (t={t0:.4g})")
         h0 = 1e-6 if d0 < 1e-5 or d1 < 1e-5 else 0.01 * d0 / d1
+        if not h0 > 0:
+            raise StepFailure(f"underflow in the first step (derivative {d1:.3g} times the state's scale, t={t0:.4g})")
         f1 = func(at(t0 + h0), y0 + h0 * f0)
         d2 = _rms((f1 - f0) / scale) / h0
         if d1 <= 1e-15 and d2 <= 1e-15:
