@@ -22,7 +22,7 @@ from mpsim.training.checkpoint import load_checkpoint
 from mpsim.training.trainer import Trainer
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples" / "equations"
-FAST = ["kuramoto_frequencies", "lorenz_network", "pendulums_linear_spring"]
+FAST = ["kuramoto_frequencies", "lorenz96", "lorenz_network", "pendulums_linear_spring"]
 SLOW = ["driven_pendulum", "fitzhugh_nagumo", "pendulum_inertia", "pendulums_bob_spring"]
 
 
@@ -204,6 +204,40 @@ def test_command_line_round_trip_keeps_the_spec_in_the_checkpoint(cfg_factory, t
         output_dir=tmp_path / "eval",
     )
     assert out["test"]["rmse"] < 1e-2
+
+
+def test_lorenz96_on_a_chain_trains_on_the_command_line(cfg_factory, tmp_path):
+    """The ring example's file on a chain with zero padding (system.graph, system.shift_boundary and
+    model.shift_boundary on the command line): F is recovered from 10 % off, and the checkpoint keeps the boundary."""
+    spec = EXAMPLES / "lorenz96.yaml"
+    summary = run_train(
+        cfg_factory(
+            "train",
+            "system=equations",
+            f"system.spec={spec}",
+            "system.graph=chain",
+            "system.shift_boundary=0.0",
+            "model=equations",
+            f"model.spec={spec}",
+            "model.shift_boundary=0.0",
+            "model.init={F: 7.2}",
+            "data.n_train=6",
+            "data.n_val=2",
+            "data.n_test=2",
+            "data.horizon=20",
+            "eval.horizons=[1,10]",
+            "eval.plots=false",
+            "trainer=whitebox",
+            "trainer.max_epochs=6",
+            "trainer.progress=false",
+        ),
+        output_dir=tmp_path / "run",
+    )
+    assert summary["model"]["physical_parameters"]["F"] == pytest.approx(8.0, rel=1e-3)
+    ckpt = load_checkpoint(summary["exported"])
+    assert ckpt["model"]["config"]["shift_boundary"] == 0.0
+    with pytest.raises(ConfigError, match="not a ring"):
+        EquationsModel(1, spec={**load_spec_file(spec), "graph": "chain"})
 
 
 def test_batched_one_step_equals_step_by_step_with_time_and_effects():

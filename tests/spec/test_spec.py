@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import re
 
+import numpy as np
 import pytest
 import sympy
 import torch
@@ -267,3 +268,137 @@ def test_bad_inputs_get_one_clear_message(changes, message):
     with pytest.raises(ConfigError) as err:
         parse_spec({**DRIVEN, **changes})
     assert message in str(err.value)
+
+
+# ---- shift(x, k) (issue 72): x at node i + k in the node order; rings wrap, other graphs state a boundary -------
+LORENZ96 = {
+    "states": ["x"],
+    "equations": {"x": "(shift(x, 1) - shift(x, -2))*shift(x, -1) - x + F"},
+    "params": {"F": 8.0},
+}
+
+
+def _lorenz96_numpy(x, forcing, boundary=None):  # x: [B, N] -> [B, N]; boundary None: a ring (np.roll)
+    if boundary is None:
+        nxt, prev, prev2 = np.roll(x, -1, axis=1), np.roll(x, 1, axis=1), np.roll(x, 2, axis=1)
+    else:  # a chain: pad two nodes before and one after with the boundary value, then slice
+        padded = np.pad(x, ((0, 0), (2, 1)), constant_values=boundary)
+        nxt, prev, prev2 = padded[:, 3:], padded[:, 1:-2], padded[:, :-3]
+    return (nxt - prev2) * prev - x + forcing
+
+
+def _field(spec, x, u=None):  # x: [B, N, D], u: [B, N, C] or None
+    values = {k: v.to(x) for k, v in spec.params.items()}
+    return EquationField(spec)(torch.tensor(0.0, dtype=x.dtype), x, values, None, u)
+
+
+def test_shift_on_a_ring_is_lorenz96_as_numpy_rolls_it():
+    spec = parse_spec({**LORENZ96, "graph": "ring"}, extra_keys=["graph"])
+    assert spec.shift_boundary == "wrap" and not EquationField(spec).uses_graph  # node order, not edges
+    x = 4.0 * torch.randn(5, 10, 1, dtype=torch.float64) + 2.0
+    out = _field(spec, x)[..., 0].numpy()
+    assert np.abs(out - _lorenz96_numpy(x[..., 0].numpy(), 8.0)).max() < 1e-12
+    x32 = x.float()
+    assert np.abs(_field(spec, x32)[..., 0].numpy() - _lorenz96_numpy(x32[..., 0].numpy(), 8.0)).max() < 1e-4
+
+
+@pytest.mark.parametrize("boundary", [0.0, 2.5])
+def test_shift_on_a_chain_reads_the_stated_number_beyond_the_ends(boundary):
+    spec = parse_spec({**LORENZ96, "shift_boundary": boundary})
+    x = 4.0 * torch.randn(3, 7, 1, dtype=torch.float64)
+    out = _field(spec, x)[..., 0].numpy()
+    assert np.abs(out - _lorenz96_numpy(x[..., 0].numpy(), 8.0, boundary)).max() < 1e-12
+
+
+def test_shift_edge_wrap_and_steps_beyond_the_node_count():
+    x = torch.arange(5, dtype=torch.float64).reshape(1, 5, 1) + 1.0  # node i holds i + 1
+    cases = [
+        ("edge", "shift(x, 2)", [3, 4, 5, 5, 5]),
+        ("edge", "shift(x, -1)", [1, 1, 2, 3, 4]),
+        ("wrap", "shift(x, 7)", [3, 4, 5, 1, 2]),  # 7 ≡ 2 (mod 5)
+        ("wrap", "shift(x, -11)", [5, 1, 2, 3, 4]),
+        (-1, f"shift(x, {10**30})", [-1] * 5),  # far beyond the end: the boundary, no integer overflow
+        (-1, "shift(x, +1) + 0*shift(x, 0)", [2, 3, 4, 5, -1]),
+    ]
+    for boundary, eq, expected in cases:
+        spec = parse_spec({"states": ["x"], "equations": {"x": eq}, "shift_boundary": boundary})
+        assert _field(spec, x)[0, :, 0].tolist() == expected, (boundary, eq)
+
+
+def test_shift_reads_inputs_and_per_node_parameters_and_passes_gradients():
+    spec = parse_spec(
+        {
+            "states": ["x", "v"],
+            "inputs": ["u"],
+            "equations": {"x": "v", "v": "c*shift(u, -1) - shift(c, 1)*shift(v, 1)"},
+            "params": {"c": [1.0, 2.0, 3.0, 4.0]},
+            "shift_boundary": 0.0,
+        }
+    )
+    c = torch.tensor([1.0, 2.0, 3.0, 4.0], dtype=torch.float64, requires_grad=True)
+    x, u = torch.randn(2, 4, 2, dtype=torch.float64), torch.randn(2, 4, 1, dtype=torch.float64)
+    out = EquationField(spec)(torch.tensor(0.0), x, {"c": c}, None, u)[..., 1]
+    zero = torch.zeros(2, 1, dtype=torch.float64)
+    u_prev = torch.cat([zero, u[:, :-1, 0]], 1)
+    c_next, v_next = torch.cat([c[1:], zero[0]]), torch.cat([x[:, 1:, 1], zero], 1)
+    assert torch.allclose(out, c * u_prev - c_next * v_next, atol=1e-14)
+    out.sum().backward()
+    assert c.grad is not None and c.grad.abs().sum() > 0
+
+
+def test_shift_runs_batched_on_the_meta_device():
+    spec = parse_spec({**LORENZ96, "shift_boundary": 0.0})
+    x = torch.empty(4, 40, 1, device="meta")
+    out = EquationField(spec)(torch.tensor(0.0, device="meta"), x, {"F": torch.tensor(8.0, device="meta")})
+    assert out.shape == (4, 40, 1) and out.device.type == "meta"
+
+
+@pytest.mark.parametrize(
+    "equation, message",
+    [
+        ("shift(x)", "shift(...) takes two arguments, got 1: shift(x, k) is x at node i + k"),
+        ("shift(x, 1, 2)", "takes two arguments, got 3"),
+        ("shift(x, 1.5)", "shift's step must be a whole number, got '1.5'"),
+        ("shift(x, k)", "shift's step must be a whole number, got 'k'"),
+        ("shift(3, 1)", "shift's first argument must be a name, got '3'"),
+        ("shift(shift(x, 1), 1)", "write shift(x, 3) for shift(shift(x, 1), 2)"),
+        ("shift(y, 1)", "unknown name 'y'"),
+        ("shift(xx, 1)", "Did you mean 'x'"),
+        ("shift(F, 1)", "'F' is a scalar parameter, the same at every node"),
+        ("shift(t, 1)", "'t' is not a per-node value"),
+        ("sum_nbr(shift(x, 1) - x_j)", "shift(...) cannot be used inside a neighbour sum"),
+        ("shift(x_j, 1)", "only defined inside sum_nbr"),
+        ("shift", "'shift' is a function: call it"),
+        ("shift(x, k=1)", "takes two arguments"),
+    ],
+)
+def test_bad_shifts_get_one_clear_message(equation, message):
+    with pytest.raises(ConfigError, match=r"^model\.spec\.equations\.x: ") as err:
+        parse_spec({**LORENZ96, "equations": {"x": equation}, "params": {"F": 8.0, "k": 1.0}, "shift_boundary": 0})
+    assert message in str(err.value)
+
+
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        (
+            {},
+            "model.spec.equations.x uses shift(...), which reads the nodes in their order, but the spec names no "
+            "graph: ring: say what shift reads beyond the first and last node. Set shift_boundary: wrap (periodic), "
+            "edge (the end node's own value) or a number (e.g. 0.0) in the spec, or model.shift_boundary=0.0 on the "
+            "command line.",
+        ),
+        ({"graph": "chain"}, "but the spec's graph is 'chain', not a ring"),
+        ({"shift_boundary": "zero"}, "model.spec.shift_boundary must be wrap (node N−1's next node is node 0"),
+        ({"shift_boundary": float("nan")}, "or a finite number"),
+        ({"shift_boundary": True}, "got True"),
+    ],
+)
+def test_a_shift_without_a_boundary_is_refused_naming_the_key(changes, message):
+    with pytest.raises(ConfigError) as err:
+        parse_spec({**LORENZ96, **changes}, extra_keys=["graph"])
+    assert message in str(err.value)
+    assert parse_spec({**LORENZ96, "graph": "chain", "shift_boundary": "wrap"}, extra_keys=["graph"]).shift_boundary
+    assert parse_spec({"states": ["x"], "equations": {"x": "-x"}}).shift_boundary is None  # no shift: no boundary
+    with pytest.raises(ConfigError, match="state name 'shift' is reserved"):
+        parse_spec({"states": ["shift"], "equations": {"shift": "0"}})

@@ -87,8 +87,8 @@ class EquationsModel(Model):
         state_dim, control_dim: set from the data (the spec's states must match the data's, and its inputs the
             data's controls).
         spec: the spec as a mapping (`model.spec=<file>` is loaded by the command layer).
-        states, inputs, equations, params, learnable, kinematic, nodes: the same keys inline (they override
-            `spec`'s).
+        states, inputs, equations, params, learnable, kinematic, nodes, shift_boundary: the same keys inline (they
+            override `spec`'s).
         init: starting values {name: value} of learnable parameters (default: the spec's values).
         effects: extra named terms with learnable coefficients.
         solver: ODE solver of the rollouts.
@@ -106,6 +106,7 @@ class EquationsModel(Model):
         learnable: list[str] | None = None,
         kinematic: list[str] | None = None,
         nodes: int | None = None,
+        shift_boundary: str | float | None = None,
         init: dict[str, Any] | None = None,
         effects: Sequence[Effect] = (),
         solver: ODESolver | None = None,
@@ -119,6 +120,7 @@ class EquationsModel(Model):
             "learnable": learnable,
             "kinematic": kinematic,
             "nodes": nodes,
+            "shift_boundary": shift_boundary,
         }
         self.spec: Spec = parse_spec(merge_spec(spec, inline, "model"), "model.spec", extra_keys=SYSTEM_KEYS)
         if self.spec.state_dim != state_dim:

@@ -10,12 +10,16 @@ A spec is plain data (a YAML file or the same keys inline in a config)::
       omega: (tau - b*omega)/(m*l^2) - (g/l)*sin(theta) - k*sum_nbr(theta - theta_j)
     params: {g: 9.81, l: 1.5, k: 2.0, m: 1.0, b: 0.1}   # scalar, per-node list (length N), or matrix [N·D, N·D]
     learnable: [g, k]                      # what training fits (default: every parameter)
+    shift_boundary: 0.0                    # what shift(x, k) reads beyond the ends: wrap | edge | a number
 
 Expressions use + - * / ** (or ^), numbers, `pi`, the functions sin cos tan exp log sqrt abs sign tanh, `t`
 (absolute time), the node's own states, inputs and parameters by name, and neighbour terms over the data's graph:
 `sum_nbr(e)` / `mean_nbr(e)` evaluate `e` on every edge j → i, where `x_j` is the neighbour's value of state,
 input (or per-node parameter) `x` and a plain `x` the receiving node's own; `deg` is a node's in-degree; `lin(H)` is
-this node's and this state's entry of H·vec(X) with X the [N, D] node states flattened node-major.
+this node's and this state's entry of H·vec(X) with X the [N, D] node states flattened node-major; `shift(x, k)` is
+state, input or per-node parameter `x` at node i + k in the node order (k a whole number), beyond the ends as
+`shift_boundary` says: `wrap` (mod N; the default when the spec's graph is `ring`), `edge` (the end node's value) or
+a number.
 
 Nothing in a spec is executed: expressions are read with Python's `ast` parser, every node is checked against
 the grammar above and then rebuilt as a sympy expression, which is compiled once into a tree of torch

@@ -1,6 +1,6 @@
 """A parsed spec compiled once into a tree of vectorised torch operations over batch × nodes × edges
-(`EquationField`): recurring subexpressions are evaluated once per call, and a neighbour sum's sub-terms that read
-one end of the edge only are evaluated per node and gathered."""
+(`EquationField`): recurring subexpressions are evaluated once per call, a neighbour sum's sub-terms that read
+one end of the edge only are evaluated per node and gathered, and `shift(x, k)` gathers x along the node axis."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import torch
 
 from mpsim.errors import ConfigError
 from mpsim.graphs.batch import BatchedGraph, segment_sum
-from mpsim.spec.grammar import DEG, LIN, MEAN_NBR, NEIGHBOUR_SUFFIX, SUM_NBR, TORCH_FUNCS
+from mpsim.spec.grammar import DEG, LIN, MEAN_NBR, NEIGHBOUR_SUFFIX, SHIFT, SUM_NBR, TORCH_FUNCS
 from mpsim.spec.parse import Spec
 
 Value = Any  # torch.Tensor ([], [N], [B, N] or [E']) or a Python float
@@ -145,6 +145,8 @@ class EquationField:
                 return prod[..., state]
 
             return 3, lin
+        if expr.func == SHIFT:
+            return 3, self._shift(self.node(expr.args[0], state)[1], int(expr.args[1]))
         if expr.func in TORCH_FUNCS:
             rank, inner = self.node(expr.args[0], state)
             return rank, _apply(TORCH_FUNCS[expr.func], inner)
@@ -190,6 +192,22 @@ class EquationField:
         raise ConfigError(f"cannot compile {expr} inside a neighbour sum; please report it.")
 
     # ---- operations ------------------------------------------------------------------------------------------
+    def _shift(self, inner: Callable[[_Env], Value], k: int) -> Callable[[_Env], Value]:
+        """shift(x, k): x [B, N] (or [N], a per-node parameter) gathered at node i + k, beyond the ends as
+        `spec.shift_boundary` says (wrap: mod N; edge: the end node's value; a number: that value)."""
+        boundary = self.spec.shift_boundary
+        fill = boundary if isinstance(boundary, float) else 0.0  # read only where `inside` is given (a number)
+
+        def shift(env: _Env) -> torch.Tensor:
+            v = _as_tensor(inner(env), env.x)
+            index, inside = _shift_index(env, k, boundary)
+            out = v.index_select(-1, index)
+            if inside is None:
+                return out
+            return torch.where(inside, out, out.new_full((), fill))
+
+        return shift
+
     @staticmethod
     def _aggregate(edge_fn: Callable[[_Env], Value], mean: bool) -> Callable[[_Env], torch.Tensor]:
         def aggregate(env: _Env) -> torch.Tensor:
@@ -311,6 +329,25 @@ def _cached(fn: Callable[[_Env], Value], key: Any) -> Callable[[_Env], Value]:
         if hasattr(fn, attr):
             setattr(cached, attr, getattr(fn, attr))
     return cached
+
+
+def _shift_index(env: _Env, k: int, boundary: str | float | None) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """([N] the node each node reads, [N] bool whether it lies inside 0..N−1 (None: every one does)) for a step k."""
+    key = ("shift", k)
+    hit = env.cache.get(key)
+    if hit is None:
+        n = env.n
+        if boundary is None:  # parse_spec refuses shift without a boundary; a Spec built otherwise lands here
+            raise ConfigError("shift(...) needs the spec's shift_boundary (wrap, edge or a number).")
+        nodes = torch.arange(n, device=env.x.device)
+        if boundary == "wrap":
+            hit = ((nodes + k % n) % n, None)
+        else:
+            target = nodes + max(-n, min(n, k))  # a step beyond ±N reads what ±N reads (no integer overflow)
+            inside = None if boundary == "edge" else (target >= 0) & (target < n)
+            hit = (target.clamp(0, n - 1), inside)
+        env.cache[key] = hit
+    return hit
 
 
 def _degree(env: _Env) -> torch.Tensor:

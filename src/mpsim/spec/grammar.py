@@ -1,5 +1,5 @@
 """The expression grammar of specs: Python syntax read with `ast` through an allowlist of nodes and rebuilt as sympy
-(nothing is evaluated). Names, functions and neighbour terms are described in `mpsim.spec`."""
+(nothing is evaluated). Names, functions, neighbour terms and `shift` are described in `mpsim.spec`."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from mpsim.errors import ConfigError, did_you_mean
 SUM_NBR = sympy.Function("sum_nbr")
 MEAN_NBR = sympy.Function("mean_nbr")
 LIN = sympy.Function("lin")
+SHIFT = sympy.Function("shift")  # shift(x, k): x at node i + k in the node order (the boundary: `Spec.shift_boundary`)
 NEIGHBOUR_FUNCS = {"sum_nbr": SUM_NBR, "mean_nbr": MEAN_NBR}
 FUNCS: dict[str, Any] = {
     "sin": sympy.sin,
@@ -39,7 +40,12 @@ TORCH_FUNCS: dict[Any, Callable[[torch.Tensor], torch.Tensor]] = {
     sympy.tanh: torch.tanh,
 }
 T, DEG = sympy.Symbol("t"), sympy.Symbol("deg")
-RESERVED = {"t", "deg", "pi", *FUNCS, *NEIGHBOUR_FUNCS, "lin"}
+ORDER_FUNCS = ("lin", "shift")  # functions of the whole node vector, outside neighbour sums
+RESERVED = {"t", "deg", "pi", *FUNCS, *NEIGHBOUR_FUNCS, *ORDER_FUNCS}
+SHIFT_USAGE = (
+    "shift(x, k) is x at node i + k in the node order, x a state, input or per-node parameter and k a whole "
+    "number: shift(x, 1), shift(x, -2)"
+)
 NEIGHBOUR_SUFFIX = "_j"
 
 
@@ -73,7 +79,7 @@ class Parser:
             "pi",
             *FUNCS,
             *NEIGHBOUR_FUNCS,
-            "lin",
+            *ORDER_FUNCS,
         ]
 
     def parse(self, state: str, text: Any) -> sympy.Expr:
@@ -111,7 +117,7 @@ class Parser:
         raise self.fail(
             node,
             f"{what} is not allowed; use numbers, names, + - * / ** and the functions "
-            f"{', '.join(FUNCS)}, sum_nbr, mean_nbr, lin",
+            f"{', '.join(FUNCS)}, sum_nbr, mean_nbr, lin, shift",
         )
 
     def check_power(self, node: ast.BinOp, base: sympy.Expr, exponent: sympy.Expr) -> None:
@@ -146,7 +152,7 @@ class Parser:
             return self.neighbour[n]
         if n.endswith(NEIGHBOUR_SUFFIX) and n[: -len(NEIGHBOUR_SUFFIX)] in self.params:
             raise self.fail(node, f"{n!r}: only states, inputs and per-node parameters have a neighbour's value")
-        if n in FUNCS or n in NEIGHBOUR_FUNCS or n == "lin":
+        if n in FUNCS or n in NEIGHBOUR_FUNCS or n in ORDER_FUNCS:
             raise self.fail(node, f"{n!r} is a function: call it, e.g. {n}(...)")
         inputs = f"inputs {self.inputs}, " if self.inputs else ""
         raise self.fail(
@@ -160,6 +166,8 @@ class Parser:
         if not isinstance(node.func, ast.Name):
             raise self.fail(node, "only plain function names can be called")
         f = node.func.id
+        if f == "shift":
+            return self.shift(node, in_nbr)
         if node.keywords or len(node.args) != 1:
             raise self.fail(node, f"{f}(...) takes exactly one argument")
         arg = node.args[0]
@@ -178,6 +186,46 @@ class Parser:
             return LIN(sympy.Symbol(arg.id))
         raise self.fail(
             node,
-            f"unknown function {f!r}.{did_you_mean(f, [*FUNCS, *NEIGHBOUR_FUNCS, 'lin'])} "
-            f"Functions: {', '.join([*FUNCS, *NEIGHBOUR_FUNCS, 'lin'])}",
+            f"unknown function {f!r}.{did_you_mean(f, [*FUNCS, *NEIGHBOUR_FUNCS, *ORDER_FUNCS])} "
+            f"Functions: {', '.join([*FUNCS, *NEIGHBOUR_FUNCS, *ORDER_FUNCS])}",
         )
+
+    def shift(self, node: ast.Call, in_nbr: bool) -> sympy.Expr:
+        """shift(x, k) -> SHIFT(x, k) (shift(x, 0) is x), x a node's own state, input or per-node parameter."""
+        if in_nbr:
+            raise self.fail(
+                node,
+                "shift(...) cannot be used inside a neighbour sum (it reads the node order, not the graph's edges); "
+                "take it out of the sum, e.g. shift(x, 1)*sum_nbr(...)",
+            )
+        if node.keywords or len(node.args) != 2:
+            got = len(node.args) + len(node.keywords)
+            raise self.fail(node, f"shift(...) takes two arguments, got {got}: {SHIFT_USAGE}")
+        what, by = node.args
+        k = _whole_number(by)
+        if k is None:
+            raise self.fail(by, f"shift's step must be a whole number, got {ast.unparse(by)!r}: {SHIFT_USAGE}")
+        if not isinstance(what, ast.Name):
+            hint = " (write shift(x, 3) for shift(shift(x, 1), 2))" if isinstance(what, ast.Call) else ""
+            raise self.fail(
+                what,
+                f"shift's first argument must be a name, got {ast.unparse(what)!r}{hint}: {SHIFT_USAGE}; shift each "
+                "name of an expression, e.g. sin(shift(x, 1))",
+            )
+        symbol = self.name(what, in_nbr=False)  # unknown names, neighbour names, matrices: its own message
+        n = what.id
+        per_node = n in self.states or n in self.inputs or (n in self.params and self.params[n].dim() == 1)
+        if not per_node:
+            kind = "a scalar parameter, the same at every node" if n in self.params else "not a per-node value"
+            raise self.fail(what, f"shift({n}, ...): {n!r} is {kind}; {SHIFT_USAGE}")
+        return symbol if k == 0 else SHIFT(symbol, sympy.Integer(k))
+
+
+def _whole_number(node: ast.AST) -> int | None:
+    """The integer a literal such as 2, -1 or +3 writes (None for anything else: 1.5, 1.0, a name)."""
+    sign = 1
+    if isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.USub | ast.UAdd):
+        sign, node = (-1 if isinstance(node.op, ast.USub) else 1), node.operand
+    if isinstance(node, ast.Constant) and isinstance(node.value, int) and not isinstance(node.value, bool):
+        return sign * node.value
+    return None

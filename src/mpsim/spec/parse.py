@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import keyword
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -11,10 +12,22 @@ import sympy
 import torch
 
 from mpsim.errors import ConfigError, did_you_mean
-from mpsim.spec.grammar import NEIGHBOUR_SUFFIX, RESERVED, Parser, T
+from mpsim.spec.grammar import NEIGHBOUR_SUFFIX, RESERVED, SHIFT, Parser, T
 
 #: spec keys every spec may have; systems add their own (initial ranges, graph, ...)
-MODEL_KEYS = ("states", "inputs", "equations", "params", "learnable", "kinematic", "nodes", "description")
+MODEL_KEYS = (
+    "states",
+    "inputs",
+    "equations",
+    "params",
+    "learnable",
+    "kinematic",
+    "nodes",
+    "shift_boundary",
+    "description",
+)
+#: what `shift(x, k)` reads beyond the first and last node besides a number (`shift_boundary`)
+SHIFT_BOUNDARIES = ("wrap", "edge")
 #: what a simulation also needs (`system=equations`); a model reads the same file and ignores them
 SYSTEM_KEYS = (
     "name",
@@ -46,6 +59,9 @@ class Spec:
         where: the config key it was given as (messages name it).
         inputs: C input names per node (`inputs:`): values the data give (its controls, matched by name), used
             in the equations like states but with no equation of their own.
+        shift_boundary: what `shift(x, k)` reads at a node i + k beyond the ends (0..N−1): "wrap" (node
+            (i + k) mod N, a ring), "edge" (the nearest end node's value) or a number; the spec's `shift_boundary`,
+            else "wrap" when its graph is `ring`, else None (the spec uses no shift).
     """
 
     states: tuple[str, ...]
@@ -57,6 +73,7 @@ class Spec:
     raw: dict[str, Any] = field(repr=False)
     where: str = "model.spec"
     inputs: tuple[str, ...] = ()
+    shift_boundary: str | float | None = None
 
     @property
     def state_dim(self) -> int:
@@ -212,6 +229,7 @@ def parse_spec(spec: Mapping[str, Any], where: str = "model.spec", extra_keys: S
         raise ConfigError(f"{where}.equations has no equation for {missing}; give d/dt of every state.")
     parser = Parser(states, params, where, inputs)
     rhs = tuple(parser.parse(s, equations[s]) for s in states)
+    shift_boundary = _shift_boundary(spec, states, rhs, where)
 
     learnable = list(params) if spec.get("learnable") is None else _names(spec.get("learnable"), "learnable", where)
     for name in learnable:
@@ -226,7 +244,52 @@ def parse_spec(spec: Mapping[str, Any], where: str = "model.spec", extra_keys: S
         if name not in states:
             raise ConfigError(f"{where}.kinematic names {name!r}, which is not a state.{did_you_mean(name, states)}")
     plain = {k: _plain(v) for k, v in spec.items()}
-    return Spec(tuple(states), rhs, params, tuple(learnable), tuple(kinematic), n_nodes, plain, where, tuple(inputs))
+    return Spec(
+        tuple(states),
+        rhs,
+        params,
+        tuple(learnable),
+        tuple(kinematic),
+        n_nodes,
+        plain,
+        where,
+        tuple(inputs),
+        shift_boundary,
+    )
+
+
+def _shift_boundary(
+    spec: Mapping[str, Any], states: list[str], rhs: Sequence[sympy.Expr], where: str
+) -> str | float | None:
+    """What shift(x, k) reads beyond the first and last node: the spec's `shift_boundary`, else wrap on a ring.
+
+    Raises:
+        ConfigError: a value that is not wrap, edge or a finite number; or equations with shift and neither a
+            stated boundary nor `graph: ring`.
+    """
+    value = spec.get("shift_boundary")
+    if value is not None:
+        if value in SHIFT_BOUNDARIES:
+            return str(value)
+        if isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value):
+            return float(value)
+        raise ConfigError(
+            f"{where}.shift_boundary must be wrap (node N−1's next node is node 0, as on a ring), edge (beyond an "
+            f"end, the end node's own value) or a finite number (the value beyond the ends, e.g. 0.0); got {value!r}."
+        )
+    users = [s for s, e in zip(states, rhs, strict=True) if e.has(SHIFT)]
+    if not users:
+        return None
+    graph = spec.get("graph")
+    if graph == "ring":
+        return "wrap"
+    on = f"the spec's graph is {graph!r}, not a ring" if graph is not None else "the spec names no graph: ring"
+    command_line = where.removesuffix(".spec")  # model.spec -> model.shift_boundary=, as the other inline keys
+    raise ConfigError(
+        f"{where}.equations.{users[0]} uses shift(...), which reads the nodes in their order, but {on}: say what "
+        "shift reads beyond the first and last node. Set shift_boundary: wrap (periodic), edge (the end node's own "
+        f"value) or a number (e.g. 0.0) in the spec, or {command_line}.shift_boundary=0.0 on the command line."
+    )
 
 
 def _inputs(value: Any, states: list[str], where: str) -> list[str]:

@@ -12,6 +12,7 @@ Extra spec keys (each may also be given under `system.`, which wins):
     name: my_pendulums        # dataset/checkpoint name (default: the spec file's name)
     nodes: 2                  # N (or implied by per-node parameters or the edge list)
     graph: complete           # complete | chain | ring | grid | erdos_renyi | barabasi_albert | watts_strogatz
+                              # (ring: shift(x, k) wraps around unless the spec sets shift_boundary)
     graph_params: {p: 0.5}    # the family's parameters (seed, p, k, m, rows)
     edges: [[0, 1]]           # or an explicit edge list [sender, receiver]
     directed: false           # false: every listed edge also runs the other way
@@ -66,8 +67,9 @@ class EquationsSystem(System):
 
     Args:
         spec: the spec as a mapping (`system.spec=<file>` is loaded by the command layer).
-        name, n_nodes, graph, graph_params, edges, directed, init, dt, horizon, integrator, substep, input: as the
-            spec's keys of the same meaning (`n_nodes` is the spec's `nodes`); given here they win over the spec's.
+        name, n_nodes, graph, graph_params, edges, directed, init, dt, horizon, integrator, substep, input,
+            shift_boundary: as the spec's keys of the same meaning (`n_nodes` is the spec's `nodes`); given here they
+            win over the spec's.
         effects: extra terms added to the dynamics.
 
     Raises:
@@ -90,6 +92,7 @@ class EquationsSystem(System):
         integrator: str | None = None,
         substep: float | None = None,
         input: dict[str, Any] | None = None,
+        shift_boundary: str | float | None = None,
     ) -> None:
         over = {
             "name": name,
@@ -104,6 +107,7 @@ class EquationsSystem(System):
             "integrator": integrator,
             "substep": substep,
             "input": input,
+            "shift_boundary": shift_boundary,
         }
         raw = merge_spec(spec, over, "system")
         self.spec = parse_spec(raw, "system.spec", extra_keys=SYSTEM_KEYS)
