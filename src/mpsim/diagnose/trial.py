@@ -208,8 +208,8 @@ def _untested(finding: Finding, reason: str, e_current: torch.Tensor, failure: s
     with `reason`, errors unchanged."""
     before = float(e_current.mean())
     return Trial(
-        label=finding.label, kind=finding.kind, screened=finding.accepted, effect=finding.effect if failure else {}, values={},
-        interval={}, error_before=before, error_after=before, gain=0.0, gain_se=math.inf, null_gain=0.0,
+        label=finding.label, kind=finding.kind, screened=finding.accepted, effect=finding.effect if failure else {},
+        values={}, interval={}, error_before=before, error_after=before, gain=0.0, gain_se=math.inf, null_gain=0.0,
         accepted=False, reason=reason, failure=failure,
     )  # fmt: skip
 
