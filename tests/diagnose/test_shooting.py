@@ -7,7 +7,14 @@ import math
 import pytest
 import torch
 
-from mpsim.diagnose.shooting import horizon_from_data, null_data, shooting_fit, window_error, with_effect
+from mpsim.diagnose.shooting import (
+    horizon_from_data,
+    null_data,
+    sandwich_stderr,
+    shooting_fit,
+    window_error,
+    with_effect,
+)
 from mpsim.effects import CubicStiffness, LinearDamping
 from mpsim.models.equations import EquationsModel
 from mpsim.solvers.odeint import ODESolver
@@ -122,3 +129,51 @@ def test_a_fit_whose_values_are_never_reported_skips_its_standard_errors():
     fit = shooting_fit(trial, data, 10, [trial.effects[-1].coef], iters=10, stderr=False)
     assert fit.converged and fit.values[0] == pytest.approx(0.3, rel=0.01)
     assert all(math.isnan(v) for v in fit.stderr)
+
+
+# −c·x³ with c = −3.6e12 blows up within a microsecond: dopri5's step underflows (issue 71, item 5)
+RUN_OFF = -3.6e12
+
+
+def _run_off_trial(coef: float):
+    return with_effect(_model(), CubicStiffness(coef, target="v", source="x").bind(["x", "v"]))
+
+
+def test_a_fit_that_cannot_start_is_not_converged_and_says_why():
+    data = EquationsSystem(OSC).generate(4, seed=0, dt=0.1, horizon=30)
+    trial = _run_off_trial(RUN_OFF)  # the screen's coefficient, where every rollout fails
+    fit = shooting_fit(trial, data, 10, [trial.effects[-1].coef], iters=5)  # raised DivergenceError before
+    assert not fit.converged and fit.values == fit.stopped_at == [RUN_OFF]
+    assert fit.failure.startswith("ODE solver failed (") and " at t=" in fit.failure
+    assert all(math.isnan(v) for v in fit.stderr)
+
+
+def test_a_fit_that_ends_where_the_solver_fails_is_set_back_to_its_start(monkeypatch):
+    """An L-BFGS line search can stop on a point it never evaluated as a failure (unmeasured starts are estimated
+    afresh at the end): the fit goes back to where it started and says where it had run to."""
+    import mpsim.diagnose.shooting as shooting
+
+    lbfgs = shooting._lbfgs
+
+    def runs_off(model, *args, **kwargs):
+        loss = lbfgs(model, *args, **kwargs)
+        model.effects[-1].coef.data.fill_(RUN_OFF)
+        return loss
+
+    monkeypatch.setattr(shooting, "_lbfgs", runs_off)
+    data = EquationsSystem(OSC, effects=[CubicStiffness(0.5, target="v", source="x")]).generate(
+        4, seed=0, dt=0.1, horizon=30
+    )
+    trial = _run_off_trial(0.1)
+    fit = shooting_fit(trial, data, 10, [trial.effects[-1].coef], iters=5)  # raised DivergenceError before
+    assert not fit.converged and fit.values == [pytest.approx(0.1)] and fit.stopped_at == [RUN_OFF]
+    assert float(trial.effects[-1].coef.detach()[0]) == pytest.approx(0.1)
+    assert "ODE solver failed" in fit.failure
+
+
+def test_standard_errors_where_every_rollout_fails_are_nan():
+    data = EquationsSystem(OSC).generate(4, seed=0, dt=0.1, horizon=30)
+    trial = _run_off_trial(RUN_OFF)
+    coef = trial.effects[-1].coef
+    assert all(math.isnan(v) for v in sandwich_stderr(trial, data, 10, [coef]))  # raised DivergenceError before
+    assert float(coef.detach()[0]) == RUN_OFF  # no difference step left behind

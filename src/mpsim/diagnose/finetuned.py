@@ -31,12 +31,12 @@ import torch
 
 from mpsim.data.trajectories import Trajectories
 from mpsim.diagnose.findings import Diagnosis, Finding
-from mpsim.diagnose.heldout import EFFECTS_NAMED, UNEXPLAINED
+from mpsim.diagnose.heldout import EFFECTS_NAMED, UNEXPLAINED, failed_note
 from mpsim.diagnose.library import Candidate
 from mpsim.diagnose.params import DiagnoseParams
-from mpsim.diagnose.shooting import sandwich_stderr, window_error, with_effect
+from mpsim.diagnose.shooting import NUMERICAL_FAILURES, failure_text, sandwich_stderr, window_error, with_effect
 from mpsim.diagnose.stats import level_text, paired
-from mpsim.diagnose.trial import Trial, reported
+from mpsim.diagnose.trial import FAILED, Trial, diverged_heldout, ran_off, reported
 from mpsim.errors import DivergenceError
 from mpsim.models.base import Model
 
@@ -183,12 +183,21 @@ def judge_by_finetune(
     models: dict[int, tuple[Model, str]] = {}
     for (_, cand, _, label), effect, outcome in zip(candidates, effects, outcomes[1:], strict=True):
         if isinstance(outcome, DivergenceError):  # a wrong candidate can derail training: rejected, not an error
-            trials.append(_diverged(label, cand.kind, effect, err_control, str(outcome)))
+            trials.append(
+                _diverged(label, cand.kind, effect, err_control, f"the finetune with it diverged ({outcome})")
+            )
             continue
-        trials.append(
-            _finetuned_trial(label, cand.kind, outcome[0], e_control, train, test, horizon, error_null, excess, params)
-        )
+        try:
+            trial = _finetuned_trial(
+                label, cand.kind, outcome[0], e_control, train, test, horizon, error_null, excess, params
+            )
+        except NUMERICAL_FAILURES as exc:  # its failure is its own: the other candidates are judged
+            why = f"{FAILED} while judging the model finetuned with it: {failure_text(exc)}"
+            trials.append(_diverged(label, cand.kind, effect, err_control, why))
+            continue
+        trials.append(trial)
         models[len(trials) - 1] = outcome
+    notes += failed_note(trials)
     best = _best_of_round(trials)
     levels = (horizon, given, err_control, error_null)
     if best is None:
@@ -238,7 +247,9 @@ def _finetuned_trial(
             f"removes {share:.1%} of the control's held-out error above the null level, below {params.min_gain:.0%}",
         ),
     ]
-    failed = [why for ok, why in checks if not ok]
+    # rollouts that diverge with it (not in the control's) or values that ran off: the candidate's failure
+    failure = diverged_heldout(e_control, e_after) or ran_off(values)
+    failed = failure or [why for ok, why in checks if not ok]
     reason = "; ".join(failed) or (
         f"finetuned with it, held-out MSE {err_control:.3g} (control, finetuned without it) → "
         f"{float(e_after.mean()):.3g}"
@@ -263,6 +274,7 @@ def _finetuned_trial(
         null_log_ratio=0.0,
         n_heldout=p.n,
         bar_se=p.bar,
+        failure="; ".join(failure),
     )
 
 
@@ -318,6 +330,7 @@ def _check_named(
 
 
 def _diverged(label: str, kind: str, effect: Any, before: float, why: str) -> Trial:
+    """The trial of a candidate whose finetune diverged or whose judgement failed numerically (`why`)."""
     return Trial(
         label=label,
         kind=kind,
@@ -331,5 +344,6 @@ def _diverged(label: str, kind: str, effect: Any, before: float, why: str) -> Tr
         gain_se=math.inf,
         null_gain=0.0,
         accepted=False,
-        reason=f"the finetune with it diverged ({why})",
+        reason=why,
+        failure=why,
     )

@@ -19,7 +19,7 @@ Verdicts (each with its numbers; distinct exit codes):
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import torch
@@ -29,7 +29,7 @@ from mpsim.diagnose.findings import Diagnosis, Finding
 from mpsim.diagnose.library import Candidate
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.diagnose.shooting import horizon_from_data, null_data, own_parameters, shooting_fit, window_error
-from mpsim.diagnose.trial import NOT_TESTED, Trial, TrialSetting, try_candidate
+from mpsim.diagnose.trial import FAILED, NOT_TESTED, Trial, TrialSetting, try_candidate
 from mpsim.errors import ConfigError, did_you_mean
 from mpsim.models.base import Model
 
@@ -142,7 +142,20 @@ def _judge(
         note = "candidates are tested by finetuning the model with each one against the same finetune without it"
         return Judgement(UNEXPLAINED, horizon, given, e_base, e_null, e_base, 0.0, [], s.base, [note])
     current, e_current, trials = _add_greedily(s, _ranked(diag, library, params))
-    return _verdict(s, given, floor, current, e_current, trials)
+    out = _verdict(s, given, floor, current, e_current, trials)
+    return replace(out, notes=out.notes + failed_note(trials))
+
+
+def failed_note(trials: list[Trial]) -> list[str]:
+    """A note naming the candidates whose trial failed numerically (none: no note)."""
+    failed = [t for t in trials if t.failure]
+    if not failed:
+        return []
+    return [
+        f"{len(failed)} candidate{'s' if len(failed) > 1 else ''} failed and {'were' if len(failed) > 1 else 'was'} "
+        "rejected (a fit that diverges or a rollout the solver gives up on is the candidate's failure; the others "
+        "were judged without it): " + "; ".join(f"{t.label} — {t.failure.removeprefix(FAILED + ': ')}" for t in failed)
+    ]
 
 
 def _levels(
@@ -386,7 +399,7 @@ def _verdict(
 
 def _best_text(trials: list[Trial], refit: float, null: float) -> str:
     untested = [t for t in trials if t.reason.startswith(NOT_TESTED)]
-    tested = [t for t in trials if not t.reason.startswith(NOT_TESTED)]
+    tested = [t for t in trials if not t.reason.startswith(NOT_TESTED) and not t.failure]
     skipped = f"{', '.join(t.label for t in untested)} {untested[0].reason}" if untested else ""
     if not tested:
         return skipped or "no candidate was left to test"

@@ -13,7 +13,7 @@ import math
 import torch
 
 from mpsim.data.trajectories import Trajectories
-from mpsim.diagnose.findings import Diagnosis
+from mpsim.diagnose.findings import Diagnosis, Finding
 from mpsim.diagnose.library import Candidate
 from mpsim.diagnose.nuisance import project, target_rows
 from mpsim.diagnose.residual import Residual, one_step_residual
@@ -66,6 +66,8 @@ def confirm_by_integration(
         for _ in range(iterations):
             res = one_step_residual(trial, data)
             keep = torch.isfinite(res.r).flatten(1).all(dim=1)
+            if not bool(keep.any()):  # its failure is its own: the rest are refit and checked without it
+                return _step_fails(strong, coef)
             delta, _, _ = fit_one(cand, res, strong.target, keep, base)
             coef = [c + float(d) for c, d in zip(coef, delta, strict=True)]
             trial.effects[-1] = cand.make_effect(coef, strong.target, names).to(dtype)
@@ -76,6 +78,8 @@ def confirm_by_integration(
             break
         res = one_step_residual(trial, data)
         keep = torch.isfinite(res.r).flatten(1).all(dim=1)
+        if not bool(keep.any()):
+            return _step_fails(strong, coef)
         for f in order[i + 1 :]:
             sol, gain, part = fit_one(library[labels[f.label.split(": ", 1)[1]]], res, f.target, keep, base)
             before, after = math.hypot(*f.coef), float(sol.norm())
@@ -88,6 +92,17 @@ def confirm_by_integration(
                 )
                 return False
     return True
+
+
+def _step_fails(finding: Finding, coef: list[float]) -> bool:
+    """Reject `finding`, with whose coefficients `coef` the model's one-step integration fails: False (the caller
+    refits the rest and checks again, without it)."""
+    finding.accepted = False
+    finding.reason = (
+        f"failed: with its coefficients {', '.join(f'{c:.3g}' for c in coef)} the model's one-step integration "
+        "diverges on the held-in records (the ODE solver gives up): not an effect they show"
+    )
+    return False
 
 
 def joint_refit(

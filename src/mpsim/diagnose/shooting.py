@@ -17,7 +17,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, cast
 
 import torch
@@ -40,6 +40,23 @@ from mpsim.diagnose.windows import window_starts as _starts
 from mpsim.errors import DivergenceError
 from mpsim.models.base import Model
 from mpsim.models.capabilities import Interpretable
+
+#: how a fit, a rollout or the numbers reported from them fail numerically: a rollout that blew up or an ODE solver
+#: that gave up (`DivergenceError`), a float overflow (`math.exp` of a parameter fitted in log), a linear-algebra
+#: routine on non-finite values. Caught per candidate (`diagnose.trial`): one candidate's failure is its own.
+NUMERICAL_FAILURES: tuple[type[Exception], ...] = (
+    DivergenceError,
+    OverflowError,
+    FloatingPointError,
+    torch.linalg.LinAlgError,
+)
+
+
+def failure_text(exc: BaseException) -> str:
+    """A numerical failure in a few words: the error's first sentence (without the advice on training that an
+    ODE solver's failure carries), its kind named when it is not mpsim's own."""
+    text = str(exc).split(". ")[0].rstrip(".") or "no message"
+    return text if isinstance(exc, DivergenceError) else f"{type(exc).__name__}: {text}"
 
 
 def own_parameters(model: Model) -> list[nn.Parameter]:
@@ -104,6 +121,10 @@ class ShootingFit:
         converged: whether the fit ended with a finite loss.
         latent: [B, K, N, L] the fitted latent start of every window (raw units), None when every state is
             measured.
+        failure: why the fit did not converge ("" when it did): the rollout's failure where it stopped (the
+            ODE solver's message), or a non-finite loss. The parameters are then back at their starting values.
+        stopped_at: the free parameters' values where the fit failed (flattened as `values`; empty when it
+            converged or failed at its start).
     """
 
     loss: float
@@ -111,6 +132,8 @@ class ShootingFit:
     stderr: list[float]
     converged: bool
     latent: torch.Tensor | None = None
+    failure: str = ""
+    stopped_at: list[float] = field(default_factory=list)
 
 
 def shooting_fit(
@@ -137,9 +160,13 @@ def shooting_fit(
     if latent is not None:
         latent = fit_latent(model, data, latent)
     if not free:
-        with torch.no_grad():
-            loss = float(window_sq_error(model, data, length, latent).double().mean())
-        return ShootingFit(loss, [], [], math.isfinite(loss), None if latent is None else latent.raw(model))
+        try:
+            with torch.no_grad():
+                loss = float(window_sq_error(model, data, length, latent).double().mean())
+        except DivergenceError as exc:
+            return ShootingFit(math.inf, [], [], False, None, failure_text(exc))
+        why = "" if math.isfinite(loss) else "the window error is not finite"
+        return ShootingFit(loss, [], [], not why, None if latent is None else latent.raw(model), why)
     keep = {id(p): p.requires_grad for p in model.parameters()}
     for p in model.parameters():
         p.requires_grad_(False)
@@ -148,7 +175,7 @@ def shooting_fit(
     start = [p.detach().clone() for p in free]
     held = [latent]  # the latent starts of the last evaluation (warm start of the next)
     model.train()
-    ok = True
+    failed: tuple[str, list[float]] | None = None  # (why, where) when a rollout failed during the fit
     try:
         last = math.inf
         for k in range(max(restarts, 1)):  # a handful of L-BFGS runs
@@ -156,8 +183,8 @@ def shooting_fit(
             if not loss < 0.99 * last:
                 break
             last = loss
-    except DivergenceError:
-        ok = False
+    except DivergenceError as exc:
+        failed = (failure_text(exc), _flat(free))
         with torch.no_grad():  # back to where the fit started
             for p, v in zip(free, start, strict=True):
                 p.copy_(v)
@@ -165,7 +192,12 @@ def shooting_fit(
         for p in model.parameters():
             p.requires_grad_(keep.get(id(p), True))
     model.eval()
-    return _finish(model, data, length, free, start, ok, stderr)
+    return _finish(model, data, length, free, start, failed, stderr)
+
+
+def _flat(free: list[nn.Parameter]) -> list[float]:
+    """The free parameters' current values, flattened in order."""
+    return torch.cat([p.detach().reshape(-1).double().cpu() for p in free]).tolist()
 
 
 def _lbfgs(
@@ -249,21 +281,30 @@ def _finish(
     length: int,
     free: list[nn.Parameter],
     start: list[torch.Tensor],
-    ok: bool,
+    failed: tuple[str, list[float]] | None,
     stderr: bool = True,
 ) -> ShootingFit:
-    """The fit's final loss (back to where it started if it ended on a diverging point), values and intervals."""
+    """The fit's final loss, values and intervals; back where it started if it failed on the way (`failed`: why
+    and where) or ended on a point where the rollout fails or its error is not finite (an L-BFGS line search can
+    stop on a point it never evaluated as such: the unmeasured starts are estimated afresh here)."""
+    latent = None
     with torch.no_grad():
-        latent = fitted_latent(model, data, length)
-        loss = float(window_sq_error(model, data, length, latent).double().mean())
-        if not math.isfinite(loss):  # ended on a diverging point: back to where the fit started
-            ok = False
+        try:
+            latent = fitted_latent(model, data, length)
+            loss = float(window_sq_error(model, data, length, latent).double().mean())
+        except DivergenceError as exc:
+            loss = math.nan
+            failed = failed or (failure_text(exc), _flat(free))
+        if failed is None and not math.isfinite(loss):
+            failed = (f"the window error is {loss} there", _flat(free))
+        if failed is not None:  # ended on a diverging point: back to where the fit started
             for p, v in zip(free, start, strict=True):
                 p.copy_(v)
-    values = torch.cat([p.detach().reshape(-1).double().cpu() for p in free])
-    good = ok and math.isfinite(loss)
-    errors = sandwich_stderr(model, data, length, free, latent) if good and stderr else [math.nan] * len(values)
-    return ShootingFit(loss, values.tolist(), errors, good, None if latent is None else latent.raw(model))
+    values = _flat(free)
+    if failed is not None:
+        return ShootingFit(loss, values, [math.nan] * len(values), False, None, failed[0], failed[1])
+    errors = sandwich_stderr(model, data, length, free, latent) if stderr else [math.nan] * len(values)
+    return ShootingFit(loss, values, errors, True, None if latent is None else latent.raw(model))
 
 
 @torch.no_grad()
@@ -273,7 +314,17 @@ def sandwich_stderr(
     """Standard errors of the free parameters: Gauss–Newton with a sandwich over trajectories (window residuals
     within a trajectory are correlated), the Jacobian by central differences (a handful of parameters). With
     unmeasured states each window's latent start is fitted (`latent`, or here) and its directions are projected
-    out of the Jacobian (`diagnose.latent.profile_out`)."""
+    out of the Jacobian (`diagnose.latent.profile_out`). nan where they cannot be had: a rollout at the fitted
+    values or a difference step beside them fails, or the Jacobian is not finite."""
+    try:
+        return _sandwich(model, data, length, free, latent)
+    except NUMERICAL_FAILURES:
+        return [math.nan] * sum(p.numel() for p in free)
+
+
+def _sandwich(
+    model: Model, data: Trajectories, length: int, free: list[nn.Parameter], latent: LatentStarts | None
+) -> list[float]:
     if latent is None:
         latent = fitted_latent(model, data, length)
     starts = None if latent is None else latent.states(model, data)
@@ -289,15 +340,20 @@ def sandwich_stderr(
         view = p.data.view(-1)
         h = 1e-6 * max(abs(float(view[i])), 1.0)
         old = float(view[i])
-        view[i] = old + h
-        plus = residuals()
-        view[i] = old - h
-        minus = residuals()
-        view[i] = old
+        try:
+            view[i] = old + h
+            plus = residuals()
+            view[i] = old - h
+            minus = residuals()
+        finally:  # a failed rollout beside the fitted values leaves them as they were
+            view[i] = old
         cols.append((plus - minus) / (2 * h))
     jac = torch.stack(cols, dim=-1)  # [B, K, M, P]
     if latent is not None:
-        jac = profile_out(jac, latent_jacobian(model, data, latent).double().cpu())
+        jac_latent = latent_jacobian(model, data, latent).double().cpu()
+        if not torch.isfinite(jac_latent).all():  # a pseudo-inverse of non-finite values is no projection
+            return [math.nan] * len(flat)
+        jac = profile_out(jac, jac_latent)
     jac, r0 = jac.flatten(1, 2), r0.flatten(1)  # [B, K·M, P], [B, K·M]
     if not torch.isfinite(jac).all():
         return [math.nan] * len(flat)

@@ -17,7 +17,16 @@ from mpsim.diagnose.library import Candidate, PhasedDrive, evaluate_effect, step
 from mpsim.diagnose.nuisance import model_sensitivities
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.diagnose.residual import one_step_residual
-from mpsim.diagnose.shooting import ShootingFit, null_data, own_parameters, shooting_fit, window_error, with_effect
+from mpsim.diagnose.shooting import (
+    NUMERICAL_FAILURES,
+    ShootingFit,
+    failure_text,
+    null_data,
+    own_parameters,
+    shooting_fit,
+    window_error,
+    with_effect,
+)
 from mpsim.diagnose.stats import Paired, level_text, log_ratio, paired
 from mpsim.errors import DataError
 from mpsim.models.base import Model
@@ -28,6 +37,9 @@ from mpsim.models.capabilities import Interpretable
 DELAY_RESTARTS = 3
 #: how a candidate that could not be tested on these data begins its reason
 NOT_TESTED = "not tested"
+#: how a candidate whose fit or held-out rollouts failed numerically begins its reason (its failure is its own: the
+#: judgement goes on with the others)
+FAILED = "failed"
 
 
 @dataclass
@@ -55,6 +67,7 @@ class Trial:
     null_log_ratio: float = math.nan
     n_heldout: int = 0
     bar_se: float = math.nan
+    failure: str = ""  # the numerical failure that ended its trial ("" when it was judged): `FAILED` reasons
 
     def as_dict(self) -> dict[str, Any]:
         return {**self.__dict__, "test": self.test_text()}
@@ -91,7 +104,23 @@ def try_candidate(
     s: TrialSetting, current: Model, e_current: torch.Tensor, cand: Candidate, finding: Finding
 ) -> tuple[Trial, Model, torch.Tensor]:
     """Add `cand` (the screen's `finding`) to `current` ([B] held-out MSE `e_current`), fit it by multiple shooting
-    and judge it on held-out records: (the trial, the model with it, [B] its held-out MSE)."""
+    and judge it on held-out records: (the trial, the model with it, [B] its held-out MSE).
+
+    A candidate whose computation fails numerically (a rollout the ODE solver gives up on, a float overflow, a
+    linear-algebra routine on non-finite values: `NUMERICAL_FAILURES`) is rejected with that reason, and `current`
+    is handed back unchanged: one candidate's failure never ends the judgement of the others."""
+    stage = ["fitting it by multiple shooting on held-in records"]  # what it was doing, for a failure's reason
+    try:
+        return _try_candidate(s, current, e_current, cand, finding, stage)
+    except NUMERICAL_FAILURES as exc:
+        why = f"{FAILED} while {stage[0]}: {failure_text(exc)}"
+        return _untested(finding, why, e_current, failure=why), current, e_current
+
+
+def _try_candidate(
+    s: TrialSetting, current: Model, e_current: torch.Tensor, cand: Candidate, finding: Finding, stage: list[str]
+) -> tuple[Trial, Model, torch.Tensor]:
+    """`try_candidate` itself; `stage[0]` says what it is doing."""
     # the error the given model (own parameters refit) had above the null level: what effects may explain
     excess = max(float(s.e_base.mean()) - float(s.e_null.mean()), 0.0)
     phased = bool(cand.params.get("phased"))
@@ -105,6 +134,7 @@ def try_candidate(
     coef = list(finding.coef)[: 2 * len(s.train)] if phased else list(finding.coef)  # the fit's recordings only
     effect = cand.make_effect(coef, finding.target, s.names)
     trial, fit = fit_with(current, effect, s.train, min(s.horizon, s.params.fit_window), s.params.shooting_iters)
+    stage[0] = "rolling the model with it out over held-out records"
     if phased:  # phases belong to recordings: held-out ones get theirs from a warm-up window
         e_current, e_after, _ = phased_heldout(current, trial, s.test, s.horizon, s.params.shooting_iters)
     else:
@@ -113,12 +143,16 @@ def try_candidate(
     # recordings, a multiplicative improvement does not
     floor = max(float(s.e_null.mean()), 1e-14)
     p = paired(e_current, e_after, floor, s.params.margin)
-    # the null fit only raises the bar: a candidate that fails with it at zero is not fitted to null data too
-    failed = _failed_checks(fit, p, 0.0, excess, s.params) + _beyond_record(trial.effects[-1], s.train)
-    null_gain, null_log = (math.nan, math.nan) if failed else _null_gain(s, current, cand, finding, coef, floor)
+    stage[0] = "computing its reported values"
     values, interval, derived = _reported_values(cand, trial, fit, s.train, finding.target)
+    # a fit that failed or ran off is the candidate's failure, with where it went; the checks below are then moot
+    failure = _fit_failure(trial.effects[-1], fit, values) or diverged_heldout(e_current, e_after)
+    # the null fit only raises the bar: a candidate that fails with it at zero is not fitted to null data too
+    failed = failure or _failed_checks(p, 0.0, excess, s.params) + _beyond_record(trial.effects[-1], s.train)
+    stage[0] = "fitting it to null data"
+    null_gain, null_log = (math.nan, math.nan) if failed else _null_gain(s, current, cand, finding, coef, floor)
     if not failed:
-        failed = _failed_checks(fit, p, null_log, excess, s.params)
+        failed = _failed_checks(p, null_log, excess, s.params)
     reason = (
         "; ".join(failed)
         if failed
@@ -147,6 +181,7 @@ def try_candidate(
         null_log_ratio=null_log,
         n_heldout=p.n,
         bar_se=p.bar,
+        failure="; ".join(failure),
     )
     return out, trial, e_after
 
@@ -168,14 +203,57 @@ def _beyond_record(effect, train: Trajectories) -> list[str]:
     return [f"the fitted delay {effect.delay:.4g} is longer than the records ({span:.4g}): not a delay they can show"]
 
 
-def _untested(finding: Finding, reason: str, e_current: torch.Tensor) -> Trial:
-    """The trial of a candidate that cannot be tested on these records: rejected with `reason`, errors unchanged."""
+def _untested(finding: Finding, reason: str, e_current: torch.Tensor, failure: str = "") -> Trial:
+    """The trial of a candidate that cannot be tested on these records, or whose test failed (`failure`): rejected
+    with `reason`, errors unchanged."""
     before = float(e_current.mean())
     return Trial(
-        label=finding.label, kind=finding.kind, screened=finding.accepted, effect={}, values={}, interval={},
-        error_before=before, error_after=before, gain=0.0, gain_se=math.inf, null_gain=0.0, accepted=False,
-        reason=reason,
+        label=finding.label, kind=finding.kind, screened=finding.accepted, effect=finding.effect if failure else {},
+        values={}, interval={}, error_before=before, error_after=before, gain=0.0, gain_se=math.inf, null_gain=0.0,
+        accepted=False, reason=reason, failure=failure,
     )  # fmt: skip
+
+
+def _fit_failure(effect, fit: ShootingFit, values: dict[str, float]) -> list[str]:
+    """Why the multiple-shooting fit of `effect` is the candidate's failure (empty: it is not): it did not converge
+    (where it stopped and why), or a reported value ran off to infinity or nan (`values`: `reported`'s)."""
+    if not fit.converged:
+        why = fit.failure or "a non-finite loss"
+        if not fit.stopped_at:
+            return [f"{FAILED}: the multiple-shooting fit diverged ({why})"]
+        k = len(values_of(effect))  # the effect's come first, then the model's own parameters
+        at, _ = reported(effect, fit.stopped_at[:k], [math.nan] * k)
+        ran = ", ".join(f"{key} {v:.3g}" for key, v in at.items())
+        if fit.stopped_at == fit.values:  # failed where it started (the screen's coefficients)
+            return [f"{FAILED}: the multiple-shooting fit could not start from the screen's {ran}: {why}"]
+        return [f"{FAILED}: the multiple-shooting fit ran to {ran}, where {why}"]
+    return ran_off(values)
+
+
+def ran_off(values: dict[str, float]) -> list[str]:
+    """Why reported values that ran off to infinity or nan are the candidate's failure (empty: none did)."""
+    off = {key: v for key, v in values.items() if not math.isfinite(v)}
+    if not off:
+        return []
+    return [f"{FAILED}: the fit ran off ({', '.join(f'{key} {v}' for key, v in off.items())})"]
+
+
+def values_of(effect) -> list[float]:
+    """The effect's free parameters' values, flattened in the order a fit lists them."""
+    free = [p for p in effect.parameters() if p.requires_grad]
+    return torch.cat([p.detach().reshape(-1).double().cpu() for p in free]).tolist() if free else []
+
+
+def diverged_heldout(e_current: torch.Tensor, e_after: torch.Tensor) -> list[str]:
+    """Why held-out rollouts that diverge with the candidate and not without it are its failure (empty: none do).
+    ([B] held-out MSE per recording without and with it.)"""
+    lost = torch.isfinite(e_current) & ~torch.isfinite(e_after)
+    if not bool(lost.any()):
+        return []
+    return [
+        f"{FAILED}: with it the held-out rollouts of {int(lost.sum())} of {len(e_after)} recordings diverge "
+        "(they do not without it)"
+    ]
 
 
 def _null_gain(
@@ -218,10 +296,10 @@ def _reported_values(
     return values, interval, derived
 
 
-def _failed_checks(fit: ShootingFit, p: Paired, null_log: float, excess: float, params: DiagnoseParams) -> list[str]:
-    """Why a candidate is not named (empty: it passed)."""
+def _failed_checks(p: Paired, null_log: float, excess: float, params: DiagnoseParams) -> list[str]:
+    """Why a candidate whose fit converged is not named (empty: it passed)."""
     checks = [
-        (fit.converged and math.isfinite(p.gain), "the multiple-shooting fit diverged"),
+        (math.isfinite(p.gain), "its held-out rollouts diverged"),
         (
             p.log_ratio > max(null_log, 0.0) + p.bar * p.log_ratio_se,
             f"held-out error ratio e^{p.log_ratio:.3g} (± {p.log_ratio_se:.2g} in log) is not above the null fit's "
@@ -252,17 +330,17 @@ def reported(effect, values: list[float], stderr: list[float]) -> tuple[dict[str
     coefficient(s) (a parameter drift's rate `s`), for a delayed feedback c and its delay τ (fitted as log τ), or
     for a drive its amplitude, angular frequency and phase (delta method from a, b, log ω)."""
     if type(effect).__name__ == "PhasedDrive":  # amplitude, log ω, then one phase per recording
-        amp, omega = values[0], math.exp(values[1])
+        amp, omega = values[0], _exp(values[1])
         vals = {"amplitude": amp, "omega": omega}
         ses = {"amplitude": stderr[0], "omega": omega * stderr[1]}
     elif type(effect).__name__ == "DelayedFeedback" and len(values) == 2:  # c, then log τ
-        tau = math.exp(values[1])
+        tau = _exp(values[1])
         vals = {"coef": values[0], "delay": tau}
         ses = {"coef": stderr[0], "delay": tau * stderr[1]}
     elif type(effect).__name__ == "PeriodicForcing" and len(values) >= 3:
         a, b, log_w = values[:3]
         sa, sb, sw = stderr[:3]
-        amp, omega = math.hypot(a, b), math.exp(log_w)
+        amp, omega = math.hypot(a, b), _exp(log_w)
         se_amp = math.hypot(a * sa, b * sb) / max(amp, 1e-300)
         se_phase = math.hypot(b * sa, a * sb) / max(amp**2, 1e-300)
         vals = {"amplitude": amp, "omega": omega, "phase": math.atan2(b, a)}
@@ -280,6 +358,15 @@ def reported(effect, values: list[float], stderr: list[float]) -> tuple[dict[str
         vals = dict(zip(keys, values, strict=True))
         ses = dict(zip(keys, stderr, strict=True))
     return vals, {k: (v - 1.96 * ses[k], v + 1.96 * ses[k]) for k, v in vals.items()}
+
+
+def _exp(log_value: float) -> float:
+    """e^x of a parameter fitted as its log (a delay, a frequency): inf where a fit ran it past the floats (the
+    candidate then fails as run off, `_fit_failure`), not an OverflowError."""
+    try:
+        return math.exp(log_value)
+    except OverflowError:  # past e^709.78
+        return math.inf
 
 
 def phase_lag(

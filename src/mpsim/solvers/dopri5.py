@@ -114,15 +114,15 @@ def dopri5(
             f, step = func(at(t0), y), None
         while step is None or t_out > step[1]:
             if n_steps >= max_num_steps:
-                raise StepFailure(f"max_num_steps exceeded ({n_steps} steps for one output interval)")
+                raise StepFailure(f"max_num_steps exceeded ({n_steps} steps for one output interval) at t={t0:.4g}")
             n_steps += 1
             if not math.isfinite(dt):
-                raise StepFailure("non-finite values in the state or its derivative")
+                raise StepFailure(f"non-finite values in the state or its derivative at t={t0:.4g}")
             t1 = t0 + dt
             if restart and t1 >= t_out:  # end exactly on the output time, never beyond it
                 dt, t1 = t_out - t0, t_out
             if not t1 > t0:
-                raise StepFailure(f"underflow in dt ({dt})")
+                raise StepFailure(f"underflow in dt ({dt:.3g}) at t={t0:.4g}")
             ks = [f]
             for i in range(1, 7):
                 y_i = _combine(y, ks, A[i], dt)
@@ -132,7 +132,7 @@ def dopri5(
                 error = _combine(None, ks, ERROR, dt)
                 ratio = _rms(error / (atol + rtol * torch.maximum(y.abs(), y1.abs())))
             if not math.isfinite(ratio):
-                raise StepFailure("non-finite values in the state or its error estimate")
+                raise StepFailure(f"non-finite values in the state or its error estimate at t={t0:.4g}")
             if ratio <= 1:  # accepted
                 step = (t0, t1, y, ks)
                 t0, y, f = t1, y1, ks[6]
