@@ -211,22 +211,7 @@ def parse_spec(spec: Mapping[str, Any], where: str = "model.spec", extra_keys: S
         params[str(name)] = _param_value(str(name), value, where)
     n_nodes = _node_count(spec.get("nodes"), params, len(states), where)
 
-    equations = spec.get("equations")
-    if not isinstance(equations, Mapping):
-        raise ConfigError(f"{where}.equations is missing: give one expression per state, e.g. {{{states[0]}: ...}}.")
-    for key in equations:
-        if key in inputs:
-            raise ConfigError(
-                f"{where}.equations.{key}: {key!r} is an input (its values come from the data's controls), not a "
-                "state; inputs have no equation. Remove it, or list it under states."
-            )
-        if key not in states:
-            raise ConfigError(
-                f"{where}.equations.{key}: {key!r} is not a state.{did_you_mean(str(key), states)} States: {states}."
-            )
-    missing = [s for s in states if s not in equations]
-    if missing:
-        raise ConfigError(f"{where}.equations has no equation for {missing}; give d/dt of every state.")
+    equations = _equations(spec.get("equations"), states, inputs, where)
     parser = Parser(states, params, where, inputs)
     rhs = tuple(parser.parse(s, equations[s]) for s in states)
     shift_boundary = _shift_boundary(spec, states, rhs, where)
@@ -256,6 +241,26 @@ def parse_spec(spec: Mapping[str, Any], where: str = "model.spec", extra_keys: S
         tuple(inputs),
         shift_boundary,
     )
+
+
+def _equations(equations: Any, states: list[str], inputs: list[str], where: str) -> Mapping[str, Any]:
+    """The spec's `equations`: one per state, none for an input or an unknown name."""
+    if not isinstance(equations, Mapping):
+        raise ConfigError(f"{where}.equations is missing: give one expression per state, e.g. {{{states[0]}: ...}}.")
+    for key in equations:
+        if key in inputs:
+            raise ConfigError(
+                f"{where}.equations.{key}: {key!r} is an input (its values come from the data's controls), not a "
+                "state; inputs have no equation. Remove it, or list it under states."
+            )
+        if key not in states:
+            raise ConfigError(
+                f"{where}.equations.{key}: {key!r} is not a state.{did_you_mean(str(key), states)} States: {states}."
+            )
+    missing = [s for s in states if s not in equations]
+    if missing:
+        raise ConfigError(f"{where}.equations has no equation for {missing}; give d/dt of every state.")
+    return equations
 
 
 def _shift_boundary(
