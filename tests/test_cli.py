@@ -158,6 +158,8 @@ def test_sweep_gives_every_job_its_own_directory(lorenz_ws):
     assert sorted(p.name for p in sweep.iterdir()) == ["0", "1", "2", "3", "multirun.yaml"]
 
 
+@pytest.mark.slow
+@pytest.mark.scaling  # processes started: .ci/run's `-m scaling` step
 def test_joblib_launcher_runs_jobs_in_parallel_processes(tmp_path):
     # the launcher starts worker processes: a subprocess, so that they end with it
     proc = run_cli(

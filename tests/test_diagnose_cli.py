@@ -14,6 +14,7 @@ from tests.helpers import TINY_TRAIN, run_mpsim, run_mpsim_ok
 SMALL = ["data.n_train=32", "data.n_val=8", "data.n_test=16", "trainer.progress=false", "diagnose.n_boot=30"]
 
 
+@pytest.mark.slow  # a whole residual-loop run: `pytest -m slow` (.ci/run runs it)
 def test_hidden_damping_found_added_and_error_drops(tmp_path):
     run_mpsim_ok(["train", "experiment=pendulum_damped", "trainer.max_epochs=15", *SMALL[:-1]], tmp_path)
     proc = run_mpsim_ok(

@@ -241,6 +241,7 @@ def test_f_second_harmonic_leaves_the_nominal_model_and_keeps_slipping():
     assert torch.allclose(extra[..., 0], 0.25 * torch.sin(2 * pair).sum(-1))
 
 
+@pytest.mark.slow  # a whole residual-loop run: `pytest -m slow` (.ci/run runs it)
 def test_g_delay_sits_between_grid_points_and_is_resolvable():
     system, data = _data("g_delay")
     (effect,) = system.effects
@@ -322,6 +323,7 @@ def test_j_coarse_semi_implicit_euler_artefact_is_first_order_and_the_damping_ta
     assert float(((e - e[:, :1]).abs() / e[:, :1]).max()) < 0.05  # symplectic: bounded, no drift
 
 
+@pytest.mark.slow  # a whole residual-loop run: `pytest -m slow` (.ci/run runs it)
 def test_k_rossler_is_chaotic_and_the_drive_has_a_phase_per_recording():
     system, data = _data("k_chaos_drive")
     (effect,) = system.effects

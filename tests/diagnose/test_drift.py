@@ -124,6 +124,7 @@ def _loop(rate: float, sigma: float = 0.01):
     return diag, judge(model, diag, library, train, test, params)
 
 
+@pytest.mark.slow  # a whole residual-loop run: `pytest -m slow` (.ci/run runs it)
 def test_a_stiffness_that_grows_linearly_is_named_a_drift_with_its_rate():
     diag, j = _loop(RATE)
     assert j.verdict == EFFECTS_NAMED, (j.verdict, [(t.label, t.reason) for t in j.trials])

@@ -62,6 +62,7 @@ def nominal(train: Trajectories) -> EquationsModel:
     return nominal_model(NOMINAL, train)
 
 
+@pytest.mark.slow  # a whole residual-loop run: `pytest -m slow` (.ci/run runs it)
 def test_a_constant_force_on_an_always_positive_position_is_named_bias_not_dry_friction():
     data = hanging_mass(20, seed=0)
     assert float(data.x[..., 0].min()) > 1.0  # z never comes near zero, let alone changes sign

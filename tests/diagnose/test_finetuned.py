@@ -64,6 +64,7 @@ def test_names_what_the_control_finetune_cannot_learn(damped):
     assert float(window_error(fj.model, test, 20).mean()) == pytest.approx(fj.error_final)
 
 
+@pytest.mark.slow  # a whole residual-loop run: `pytest -m slow` (.ci/run runs it)
 def test_a_candidate_that_the_control_matches_is_not_named(damped):
     # the screen of damped data proposes damping; on clean data the finetune drives it to ~0 and the model with
     # it predicts no better than the control
@@ -113,6 +114,7 @@ def test_a_drive_with_agreeing_phases_is_tried_with_one_shared_phase():
         assert len(notes) == 1 and ("agree" in notes[0] if expected else "disagree" in notes[0])
 
 
+@pytest.mark.slow  # a whole residual-loop run: `pytest -m slow` (.ci/run runs it)
 def test_what_a_named_candidate_leaves_must_have_no_structure_the_screen_sees(damped):
     # a network's approximation error is invisible in null data (its own simulation), so a true effect can leave
     # more than 1 − min_explained of the control's excess; it is named only if the screen of its finetuned model

@@ -88,6 +88,7 @@ def _finding(label: str, share: float, selected: bool) -> Finding:
     )  # fmt: skip
 
 
+@pytest.mark.slow  # a whole residual-loop run: `pytest -m slow` (.ci/run runs it)
 def test_second_harmonic_of_the_coupling_is_named():
     diag, j = _judge(K2)
     assert j.verdict == EFFECTS_NAMED

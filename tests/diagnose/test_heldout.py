@@ -81,6 +81,7 @@ def _damping_is_named(kinds: list[str] | None) -> None:
     assert named.values["coef"] == pytest.approx(DAMPING, rel=0.1)
 
 
+@pytest.mark.slow  # a whole residual-loop run: `pytest -m slow` (.ci/run runs it)
 def test_damping_reaches_the_heldout_stage_though_a_delay_explains_more_of_the_one_step_residual():
     # a drive with a phase per recording in the library: its many columns lower the residual most after the delay
     _damping_is_named(["LinearDamping", "PeriodicForcing", "DelayedFeedback"])

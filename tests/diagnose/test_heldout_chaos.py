@@ -53,6 +53,7 @@ def nominal(train: Trajectories) -> EquationsModel:
     return nominal_model(spec, train)
 
 
+@pytest.mark.slow  # a whole residual-loop run: `pytest -m slow` (.ci/run runs it)
 def test_the_heldout_horizon_is_the_null_twins_tracking_time():
     train, _ = roessler(drive=False)
     model = nominal(train)

@@ -1,5 +1,6 @@
 """The loop's rounds: which path a model takes with fix=true, and what the result records."""
 
+import pytest
 import torch
 from torch import nn
 
@@ -20,6 +21,7 @@ def _model(train, extra: bool):
     return model
 
 
+@pytest.mark.slow  # a whole residual-loop run: `pytest -m slow` (.ci/run runs it)
 def test_a_model_with_unnamed_parameters_is_fixed_by_finetuning_against_a_control():
     data = CoupledPendulums(effects=[LinearDamping(0.2, target="omega")]).generate(32, seed=3, horizon=80)
     splits = Splits(data.subset(slice(0, 16)), data.subset(slice(16, 24)), data.subset(slice(24, 32)))

@@ -88,6 +88,7 @@ def _judge(damping: list[float]):
     return diag, judge(model, diag, library, splits.train, splits.test, params)
 
 
+@pytest.mark.slow  # a whole residual-loop run: `pytest -m slow` (.ci/run runs it)
 def test_damping_on_one_node_is_named_on_that_node():
     diag, j = _judge([0.0, 0.0, C, 0.0])
     assert j.verdict == EFFECTS_NAMED

@@ -71,6 +71,7 @@ def test_noise_estimate_and_valid_prediction_time():
     )
 
 
+@pytest.mark.slow  # a whole residual-loop run: `pytest -m slow` (.ci/run runs it)
 def test_names_a_hidden_drive_and_its_frequency():
     # Lorenz3 driven on x by 20·sin(20 t); the model knows the autonomous equations only (σ, ρ, β learnable)
     from mpsim.effects import PeriodicForcing

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from mpsim import effects as fx
@@ -53,6 +54,7 @@ def delayed_pendulum(n: int, seed: int, tau: float = TAU) -> Trajectories:
     )
 
 
+@pytest.mark.slow  # a whole residual-loop run: `pytest -m slow` (.ci/run runs it)
 def test_a_delay_between_grid_points_is_fitted_with_its_gain_and_interval():
     data = delayed_pendulum(6, seed=1)
     base = nominal_model(NOMINAL, data)

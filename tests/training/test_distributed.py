@@ -156,6 +156,8 @@ def _check_follows(ws, reference, one: dict, epochs: int, backend: str = "gloo")
     assert summary["test"]["rmse"] == pytest.approx(one["test"]["rmse"], rel=RTOL)
 
 
+@pytest.mark.slow
+@pytest.mark.scaling  # processes started: .ci/run's `-m scaling` step
 def test_two_processes_follow_the_one_process_loss_curve(cfg_factory, tmp_path):
     args = [*TINY_DDP, "trainer.max_epochs=4"]
     one = run_train(cfg_factory("train", *args), output_dir=tmp_path / "one")
