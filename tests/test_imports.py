@@ -14,7 +14,8 @@ graph must still be acyclic):
     0  base       errors, files, memory, conf, version, process   plain helpers: messages, atomic files, memory,
                                                                    the version, the entry points' process set-up
     1  numerics   periodic, polynomials, metrics, effects,        the maths: periodic geometry, monomials, losses
-                  equations, graphs, solvers                      and metrics, effects, topologies, integrators
+                  equations, graphs, solvers, estimate            and metrics, effects, topologies, integrators,
+                                                                   state estimators over a caller's step function
     2  data       data                                           trajectories, file IO, splits, cache
     3  systems    systems                                        ground-truth simulators (they make `Trajectories`)
     4  models     models                                         learnable simulators, `rollout`
@@ -82,6 +83,7 @@ LAYERS: list[tuple[str, list[str]]] = [
             "mpsim.spec",
             "mpsim.graphs",
             "mpsim.solvers",
+            "mpsim.estimate",
         ],
     ),
     ("data", ["mpsim.data"]),
