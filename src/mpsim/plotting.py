@@ -185,3 +185,45 @@ def error_curves(t: torch.Tensor, curves: dict[str, Sequence[float]], path: str 
     ax.set_yscale("symlog", linthresh=1e-3)
     ax.legend()
     return save_figure(fig, Path(path))
+
+
+def free_run(
+    t: torch.Tensor,  # [T] the record's times in its file's clock (s)
+    true: torch.Tensor,  # [T, P] the record's measured channels (its length, not padded)
+    pred: torch.Tensor,  # [T, P] the free run of the same channels
+    names: Sequence[str],
+    start: int,
+    path: str | Path,
+    title: str = "",
+    units: Sequence[str] = (),
+) -> Path:
+    """One test record simulated free: measured and simulated per channel over the whole record, a zoom on the
+    stretch of a tenth of the record where they differ most, and the error over time; the samples that started
+    the run shaded. `units`: each channel's unit (default: "as recorded")."""
+    n, p = true.shape
+    fig, axes = subplots(p + 1, 2, figsize=(11, 2.4 * (p + 1)), squeeze=False, layout="constrained")
+    err = pred - true
+    width = max(2, n // 10)
+    for c in range(p):  # a loop over the few channels
+        unit = units[c] if c < len(units) else "as recorded"
+        label = f"{names[c]} ({unit})"
+        worst = int(err[:, c].abs().nan_to_num(nan=0.0).unfold(0, width, 1).mean(-1).argmax()) if n > width else 0
+        for ax, (a, b) in ((axes[c, 0], (0, n)), (axes[c, 1], (worst, min(n, worst + width)))):
+            ax.plot(t[a:b], true[a:b, c], color="black", lw=0.9, label="measured")
+            ax.plot(t[a:b], pred[a:b, c], color="tab:red", lw=0.9, label="simulated (free run)")
+            if a < start:  # the samples that started the run
+                ax.axvspan(float(t[a]), float(t[min(start, b) - 1]), color="0.85", lw=0, label="start (not scored)")
+            ax.set(xlabel="time in the file (s)", ylabel=label)
+        axes[c, 0].set_title(f"{names[c]}: whole record" + (f" — {title}" if title and c == 0 else ""))
+        axes[c, 1].set_title(f"{names[c]}: zoom where they differ most")
+    axes[0, 0].legend(loc="upper right", fontsize=8)
+    for c in range(p):
+        unit = units[c] if c < len(units) else "as recorded"
+        axes[p, 0].plot(t, err[:, c], lw=0.8, label=f"{names[c]} ({unit})")
+        axes[p, 1].plot(t, err[:, c].abs().cummax(0).values if n else err[:, c], lw=0.8, label=names[c])
+    axes[p, 0].set(xlabel="time in the file (s)", ylabel="simulated − measured", title="free-run error")
+    axes[p, 1].set(
+        xlabel="time in the file (s)", ylabel="largest |error| so far", title="free-run error, running maximum"
+    )
+    axes[p, 0].legend(loc="upper right", fontsize=8)
+    return save_figure(fig, Path(path))

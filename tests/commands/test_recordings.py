@@ -105,7 +105,43 @@ def test_a_pattern_run_says_what_it_read_and_keeps_it(tmp_path):
     assert "inputs ['u'] read from the files' columns" in said  # the spec's inputs; data.control_columns not given
     (run,) = (tmp_path / "outputs" / "train").glob("*/*_recs")  # named after the pattern's folder
     data = json.loads((run / "summary.json").read_text())["data"]
-    assert data["covers"]["test"] == "long.csv 5–6 s" and len(data["account"]["files"]) == 2
+    assert data["covers"]["test"] == "long.csv 5–6 s" and len(data["accounts"][0]["files"]) == 2
     ckpt = tmp_path / "checkpoints" / "recordings.ckpt"
     res = run_mpsim_ok(["eval", f"init={ckpt}", *keys[2:], "data.split=[0,0,1]"], tmp_path)
     assert "fitted to inputs held 'zoh' between samples, but these data hold them 'linear'" in res.out + res.err
+
+
+def test_a_benchmark_split_is_scored_by_free_run_of_each_test_record(tmp_path):
+    """data.train_range / data.test_range as a benchmark states them; every test record simulated whole from its
+    first samples, scored in the signal's units, drawn; the summary says which samples were scored."""
+    for k in (1, 2):
+        _record(tmp_path / f"rec_{k}.csv", seconds=6.0, seed=k)
+    (tmp_path / "osc.yaml").write_text(SPEC)
+    keys = [
+        "model=equations",
+        "model.spec=osc.yaml",
+        "trainer=whitebox",
+        "data.path=rec_*.csv",
+        "data.time_column=time",
+        "data.columns={q: enc, u: drive}",
+        "data.observed=[q]",
+        "data.input_hold=zoh",
+        "data.train_range=[0,400]",
+        "data.test_range=[400,601]",
+        "data.segment=1.0",
+        "eval.init_samples=4",
+        "hydra.run.dir=run",
+    ]
+    res = run_mpsim_ok(["train", *keys], tmp_path)
+    said = res.out + res.err
+    assert "test: rec_1.csv rows 400–600 (4–6 s), rec_2.csv rows 400–600 (4–6 s)" in said
+    assert "each test record from its first 4 samples (eval.init_samples) to its end, open loop" in said
+    free = json.loads((tmp_path / "run" / "summary.json").read_text())["freerun"]
+    assert free["init_samples"] == 4 and [r["length"] for r in free["records"]] == [201, 201]
+    for rec in free["records"]:
+        q = rec["channels"]["q"]
+        assert q["samples"] == 197 and q["fit"] > 95 and q["rmse"] < 0.01, q  # the fitted model, run open loop
+    assert sorted(p.name for p in (tmp_path / "run" / "plots").glob("free_run_*.png")) == [
+        "free_run_0_rec_1.png",
+        "free_run_1_rec_2.png",
+    ]

@@ -86,7 +86,7 @@ def test_markdown_says_which_candidates_a_simpler_kind_stood_for():
 def test_markdown_says_what_was_read_from_the_files():
     s = _summary("nothing missing", 10)
     s["data"]["covers"] = {"train": "a.csv 0–20 s", "val": "a.csv 20–25 s", "test": "a.csv 25–30 s"}
-    s["data"]["account"] = {
+    s["data"]["accounts"] = [{
         "path": "recs/*.csv",
         "pattern": True,
         "segment": 1.0,
@@ -96,7 +96,7 @@ def test_markdown_says_what_was_read_from_the_files():
             {"file": "recs/b.csv", "rows": 6, "span": [0.0, 0.5], "gaps": [], "pieces": [
                 {"piece": 1, "rows": 6, "span": [0.0, 0.5], "samples": 6, "segments": 0, "used": 0}]},
         ],
-    }  # fmt: skip
+    }]  # fmt: skip
     text = markdown(s)
     assert "\n## Data\n\n- pattern recs/*.csv matched 2 files: a.csv, b.csv\n" in text
     assert "- b.csv: 6 rows, 0–0.5 s; not used: its 6 samples are shorter than one segment (1 s)\n" in text

@@ -8,7 +8,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from mpsim.commands.prepare import prepare
-from mpsim.commands.scoring import EvalOptions, evaluate_checkpoint
+from mpsim.commands.scoring import eval_options, evaluate_checkpoint
 from mpsim.errors import ConfigError
 
 
@@ -21,5 +21,5 @@ def run_eval(cfg: DictConfig, output_dir: str | Path | None = None, overrides: l
     if not cfg.init:
         raise ConfigError("mpsim eval needs init=<checkpoint> (a path, or a name in paths.ckpt_dir).")
     job = prepare(cfg, "eval", output_dir, overrides)
-    options = EvalOptions(cfg.eval.n_plot, cfg.eval.plots, cfg.eval.save_predictions)
+    options = eval_options(cfg.eval)
     return evaluate_checkpoint(job, options, task="eval", started=started)

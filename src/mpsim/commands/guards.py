@@ -6,6 +6,7 @@ and the training split's measurement noise (`data.noise_std`).
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from typing import Any
 
 import torch
@@ -124,4 +125,4 @@ def noisy_train(
             f"data.noise_std={scale:g} (times each feature's std) makes training states beyond the largest "
             f"{str(dtype).split('.')[-1]} ({torch.finfo(dtype).max:.2g}); give a noise level of the order of 0.01–1."
         )
-    return Splits(train=train, val=splits.val, test=splits.test)
+    return replace(splits, train=train)

@@ -19,6 +19,7 @@ from mpsim.data.trajectories import Trajectories
 from mpsim.files import write_json
 from mpsim.metrics import relative_energy_error, rollout_metrics
 from mpsim.models.base import Model
+from mpsim.models.freerun import free_run, summary_of
 from mpsim.models.rollout import rollout
 from mpsim.systems.base import System
 
@@ -97,6 +98,77 @@ class EvalOptions:
     n_plot: int = 2
     plots: bool = True
     save_predictions: bool = False
+    init_samples: int | None = None  # samples that start a free run (None: what the records' latent states need)
+    freerun_substeps: int | None = 4  # RK4 steps per sample of a free run (None: the model's own solver)
+
+
+def eval_options(node: Any) -> EvalOptions:
+    """`eval.*` (but `horizons`) as plain values."""
+    return EvalOptions(
+        int(node.n_plot),
+        bool(node.plots),
+        bool(node.save_predictions),
+        None if node.get("init_samples") is None else int(node.init_samples),
+        None if node.get("freerun_substeps") is None else int(node.freerun_substeps),
+    )
+
+
+def free_run_scores(
+    job: Job, model: Model, records: Trajectories | None, options: EvalOptions, title: str
+) -> dict[str, Any] | None:
+    """The free run of every whole test record (measured recordings; None for simulated data): scores per record
+    and channel, and a plot of each of the first `n_plot` records."""
+    if records is None or not records.observed_index:
+        return None
+    run = free_run(model, records, options.init_samples, substeps=options.freerun_substeps)
+    out = summary_of(run, records)
+    out["init_samples_given"] = options.init_samples is not None
+    out["substeps"] = options.freerun_substeps
+    if options.plots:
+        lengths = [r["length"] for r in out["records"]]
+        channels = records.observed_index
+        names = [records.state_names[d] for d in channels]
+        for r in range(min(options.n_plot, len(records))):  # a loop over the few plotted records
+            n = int(lengths[r])
+            name = Path(str(out["records"][r]["record"])).stem
+            t0 = float(out["records"][r].get("t0") or 0.0)
+            plotting.free_run(
+                records.t[:n] - records.t[0] + t0,
+                records.x[r, :n, 0][:, channels],
+                run.pred[r, :n, 0][:, channels],
+                names,
+                run.init_samples,
+                job.runtime.output_dir / "plots" / f"free_run_{r}_{name}.png",
+                title=f"{title}: {name}",
+            )
+    return out
+
+
+def free_run_rows(freerun: dict[str, Any] | None) -> list[tuple[str, str]]:
+    """The summary box's lines of a free run: one per record and channel, and how it started."""
+    if not freerun:
+        return []
+    given = "eval.init_samples" if freerun.get("init_samples_given") else "what the latent states need"
+    rows = [
+        (
+            "free run",
+            f"each test record from its first {freerun['init_samples']} samples ({given}) to its end, open loop",
+        )
+    ]
+    for rec in freerun["records"]:
+        name = Path(str(rec["record"])).name
+        if rec["diverged"]:
+            rows.append(("", f"{name}: diverged"))
+            continue
+        for channel, v in rec["channels"].items():
+            rows.append(
+                (
+                    "",
+                    f"{name} {channel}: RMSE {fmt(v['rmse'])}, NRMSE {fmt(v['nrmse'])}, fit {v['fit']:.1f} % "
+                    f"({v['samples']} samples)",
+                )
+            )
+    return rows
 
 
 def score(job: Job, model: Model, test: Trajectories, options: EvalOptions, title: str) -> dict[str, Any]:
@@ -137,6 +209,7 @@ def evaluate_checkpoint(job: Job, options: EvalOptions, task: str, started: floa
             **data_record(splits),
         },
         "test": metrics,
+        "freerun": free_run_scores(job, model, splits.records, options, title),
         "test_error": metrics["rmse"],
         "wall_time": time.perf_counter() - started,
         "run_dir": str(job.runtime.output_dir),
@@ -175,5 +248,6 @@ def _zero_shot_rows(summary: dict[str, Any], job: Job, model: Model) -> list[tup
         )
     if metrics.get("n_diverged"):
         rows.append(("diverged", f"{metrics['n_diverged']} of {len(test)} test trajectories"))
+    rows += free_run_rows(summary.get("freerun"))
     rows.append(("run dir", str(job.runtime.output_dir)))
     return rows

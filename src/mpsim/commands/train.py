@@ -20,7 +20,15 @@ from mpsim.commands.guards import check_training_memory, noisy_train
 from mpsim.commands.prepare import Job, prepare, resolve_mode
 from mpsim.commands.resumed import record_stopping
 from mpsim.commands.runtime import describe_device, is_multirun, resolve_path
-from mpsim.commands.scoring import EvalOptions, evaluate_checkpoint, horizon_rows, score
+from mpsim.commands.scoring import (
+    EvalOptions,
+    eval_options,
+    evaluate_checkpoint,
+    free_run_rows,
+    free_run_scores,
+    horizon_rows,
+    score,
+)
 from mpsim.config import check_target_node, plain_dict
 from mpsim.console import duration, fmt, print_summary
 from mpsim.data.account import data_record
@@ -76,7 +84,7 @@ def run_train(cfg: DictConfig, output_dir: str | Path | None = None, overrides: 
         bool(cfg.export),
         str(cfg.paths.ckpt_dir),
         str(cfg.objective),
-        EvalOptions(cfg.eval.n_plot, cfg.eval.plots, cfg.eval.save_predictions),
+        eval_options(cfg.eval),
     )
     done = False
     try:
@@ -178,6 +186,7 @@ def finish(job: Job, trainer: Trainer, loggers: LoggerGroup, outputs: Outputs, s
     except OutputError as err:
         export_error = err
     summary = summarise(job, trainer, metrics, started)
+    summary["freerun"] = free_run_scores(job, model, splits.records, outputs.eval, title)
     summary.update(
         {
             "checkpoint": str(best_path),
@@ -346,6 +355,7 @@ def _print(s: dict[str, Any], train, model_lines: list[tuple[str, str]]) -> None
         )
     if s["divergence"]:
         rows.append(("diverged", s["divergence"]))
+    rows += free_run_rows(s.get("freerun"))
     rows.append(("run dir", s["run_dir"]))
     if s["exported"]:
         rows.append(("checkpoint", f"{s['exported']}  (use init={Path(s['exported']).name})"))

@@ -17,6 +17,10 @@ from mpsim.diagnose.params import DiagnoseParams
 @dataclass
 class DataConf:
     path: str | None = None  # measured data: .npz, long or wide .csv, .mat; a glob ('rec/*.csv') reads several
+    test_path: str | None = None  # recordings to test on (file or glob); data.path then trains (and validates)
+    train_range: list[int] | None = None  # rows [start, stop) of every recording to train on, e.g. [0, 400]
+    val_range: list[int] | None = None  # rows to validate on (default: data.path's end with test_path, else train)
+    test_range: list[int] | None = None  # rows to test on, e.g. [400, 500]; the test records are kept whole
     edges: str | None = None  # edge-list CSV (src,dst) for CSV data; default <stem>_edges.csv
     graph: str | None = None  # "system": use system=<name>'s graph for a file without one
     control_columns: list[str] = field(default_factory=list)  # columns that are controls (the model's inputs)
@@ -83,6 +87,8 @@ class EvalConf:
     n_plot: int = 2  # test trajectories drawn in the trajectory plot
     plots: bool = True
     save_predictions: bool = False  # write the test split and the model's rollout of it (test.npz, test_model.npz)
+    init_samples: int | None = None  # measured data: samples that start each record's free run (null: as needed)
+    freerun_substeps: int | None = 4  # RK4 steps per sample of a free run (null: the model's own solver)
 
 
 @dataclass

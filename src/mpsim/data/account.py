@@ -21,20 +21,20 @@ def account_lines(account: Mapping[str, Any]) -> list[str]:
     """The account, one line per file (and one for the pattern): what was read, split, filled, left out."""
     files = list(account.get("files", []))
     lines = []
+    head = f"data ({account['part']})" if account.get("part") else "data"
     if account.get("pattern"):
         names = [Path(f["file"]).name for f in files]
-        shown = ", ".join(names[:SHOWN_FILES]) + (
-            f" and {len(names) - SHOWN_FILES} more" if len(names) > SHOWN_FILES else ""
-        )
-        lines.append(f"data: pattern {account['path']} matched {len(files)} file{_s(len(files))}: {shown}")
+        more = len(names) - SHOWN_FILES
+        shown = ", ".join(names[:SHOWN_FILES]) + (f" and {more} more" if more > 0 else "")
+        lines.append(f"{head}: pattern {account['path']} matched {len(files)} file{_s(len(files))}: {shown}")
     grid = _grid(account)
     if account.get("inputs_from_spec"):
         lines.append(
-            f"data: inputs {list(account.get('inputs', []))} read from the files' columns of those names (the model's "
-            "inputs; data.control_columns not given)"
+            f"{head}: inputs {list(account.get('inputs', []))} read from the files' columns of those names (the "
+            "model's inputs; data.control_columns not given)"
         )
     for f in files:
-        lines.append(f"data: {_file_line(f, account, grid)}")
+        lines.append(f"{head}: {_file_line(f, account, grid)}")
     return lines
 
 
@@ -60,7 +60,8 @@ def _file_line(f: Mapping[str, Any], account: Mapping[str, Any], grid: str) -> s
     name = Path(f["file"]).name
     origin = f["span"][0] if abs(f["span"][0]) >= 1e5 else 0.0  # a clock since 1970: from the first row
     since = " from its first row" if origin else ""
-    head = f"{name}: {f['rows']} rows, {_span(f['span'], origin)}{since}"
+    rows = f"rows {f['range'][0]}–{f['range'][1] - 1}, " if "range" in f else ""
+    head = f"{name}: {rows}{f['rows']} rows, {_span(f['span'], origin)}{since}"
     if f.get("time_origin"):
         head += f" (its times are ISO dates: seconds since {f['time_origin']})"
     texts = [head]
@@ -111,15 +112,19 @@ def data_record(splits: Any) -> dict[str, Any]:
     covers = split_covers(splits)
     if covers:
         out["covers"] = covers
-    account = next((p.meta["account"] for p in (splits.train, splits.val, splits.test) if "account" in p.meta), None)
-    if account is not None:
-        out["account"] = account
+    accounts: list[Any] = []
+    for part in (splits.train, splits.val, splits.test):  # one account, or one per part of a benchmark's split
+        account = part.meta.get("account")
+        if account is not None and account not in accounts:
+            accounts.append(account)
+    if accounts:
+        out["accounts"] = accounts
     return out
 
 
 def record_lines(record: Mapping[str, Any]) -> list[str]:
     """`data_record` as Markdown bullets (diagnosis.md's data section), without the "data: " prefix."""
-    lines = account_lines(record["account"]) if "account" in record else []
+    lines = [line for account in record.get("accounts", []) for line in account_lines(account)]
     lines += split_lines(record.get("covers", {}))
     return [f"- {line.removeprefix('data: ')}" for line in lines]
 

@@ -65,11 +65,14 @@ def generate(system: Simulator, n: int, seed: int, **kwargs: Any) -> Trajectorie
 
 @dataclass
 class Splits:
-    """The three splits of one dataset."""
+    """The three splits of one dataset; for measured recordings also the test records whole (`records`: [R,
+    T_max, N, D], each padded after its end, `mpsim.data.segments.whole_records`), which free-run evaluation
+    simulates from start to end."""
 
     train: Trajectories
     val: Trajectories
     test: Trajectories
+    records: Trajectories | None = None
 
     def sizes(self) -> dict[str, int]:
         return {"train": len(self.train), "val": len(self.val), "test": len(self.test)}

@@ -54,7 +54,7 @@ def split_at_gaps(rec: Trajectories, fill: bool) -> tuple[list[Trajectories], li
                 "t": origin + float(t[k]),
                 "seconds": float(steps[k]),
                 "steps": float(ratio[k]),
-                "row": k + 1,
+                "row": int(rec.meta.get("first_row", 0)) + k + 1,
                 "action": action,
             }
         )
@@ -66,7 +66,8 @@ def split_at_gaps(rec: Trajectories, fill: bool) -> tuple[list[Trajectories], li
     pieces = []
     for j in range(len(bounds) - 1):  # a loop over the few pieces
         start, stop = bounds[j], bounds[j + 1]
-        meta = {**rec.meta, "piece": j + 1, "pieces": len(bounds) - 1, "first_row": start}
+        first = int(rec.meta.get("first_row", 0)) + start
+        meta = {**rec.meta, "piece": j + 1, "pieces": len(bounds) - 1, "first_row": first}
         pieces.append(
             replace(
                 rec,

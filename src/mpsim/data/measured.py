@@ -189,22 +189,31 @@ def _controls(how: Recordings) -> list[str]:
     return list(how.controls) if how.controls else list(how.inputs or [])
 
 
-def one_recording(path: Path, how: Recordings) -> tuple[list[Trajectories], dict[str, Any]]:
+def one_recording(
+    path: Path, how: Recordings, rows: Sequence[int] | None = None
+) -> tuple[list[Trajectories], dict[str, Any]]:
     """One file as pieces of a recording on uniform grids (one piece unless its clock has gaps): read, columns
-    mapped, split at gaps, resampled or its clock checked, strided, its latent states estimated; and the file's
-    entry of the account (rows, gaps, pieces)."""
+    mapped, its rows `rows` = [start, stop) kept (`data.train_range`, ...; None: all), split at gaps, resampled or
+    its clock checked, strided, its latent states estimated; and the file's entry of the account (rows, gaps,
+    pieces)."""
     table = read_table(path, how)
     rec = to_recording(table, how.columns, _states_in_file(table, how), _controls(how), how.dtype_name)
     rec = replace(rec, meta={**rec.meta, "input_hold": how.input_hold, "noise": noise_summary(rec)})
+    digest = _digest(rec)
+    if rows is not None:
+        rec = take_rows(rec, rows)
     pieces, gaps = split_at_gaps(rec, fill=bool(how.resample))
+    origin = float(rec.meta["t0"][0])
     entry: dict[str, Any] = {
         "file": str(path),
         "rows": rec.n_times,
-        "span": [float(rec.meta["t0"][0]), float(rec.meta["t0"][0] + rec.t[-1])],
+        "span": [origin + float(rec.t[0]), origin + float(rec.t[-1])],
         "gaps": gaps,
         "pieces": [],
-        "digest": _digest(rec),
+        "digest": digest,
     }
+    if rows is not None:
+        entry["range"] = [int(rows[0]), int(rows[1])]
     if table.time_origin is not None:
         entry["time_origin"] = table.time_origin
     out = []
@@ -292,6 +301,15 @@ def read_recordings(path: Path, how: Recordings) -> Trajectories:
     """The batch of every recording `path` names (a file or a pattern): their segments of `data.segment`
     seconds, or the whole recordings (pieces between gaps) when they share one length. ``meta['account']`` says
     what became of every file's samples (`mpsim.data.account`); it is also logged."""
+    pieces, entries = read_pieces(path, how)
+    return batch_of(pieces, entries, path, how)
+
+
+def read_pieces(
+    path: Path, how: Recordings, rows: Sequence[int] | None = None
+) -> tuple[list[Trajectories], list[dict[str, Any]]]:
+    """Every recording `path` names (a file or a pattern), as pieces on uniform grids (`one_recording`; `rows`: the
+    rows of each file to keep), with each file's entry of the account; copies refused."""
     if how.input_hold not in HOLDS:
         raise ConfigError(f"data.input_hold must be one of {list(HOLDS)}; got {how.input_hold!r}.")
     if isinstance(how.stride, bool) or not isinstance(how.stride, int) or how.stride < 1:
@@ -308,31 +326,63 @@ def read_recordings(path: Path, how: Recordings) -> Trajectories:
     pieces: list[Trajectories] = []
     entries: list[dict[str, Any]] = []
     for p in files:  # a loop over the few files
-        got, entry = one_recording(p, how)
+        got, entry = one_recording(p, how, rows)
         pieces += got
         entries.append(entry)
     _refuse_copies(entries)
     if not pieces:
         raise DataError(f"{path}: no piece of any recording holds 2 samples or more between gaps in its clock.")
-    batch = stack_recordings(pieces) if how.segment is None else segment(pieces, how.segment)
-    batch.meta["input_hold"] = how.input_hold
     for entry in entries:
         entry.pop("digest")
+    return pieces, entries
+
+
+def batch_of(
+    pieces: list[Trajectories],
+    entries: list[dict[str, Any]],
+    path: Path,
+    how: Recordings,
+    label: str | None = None,
+    segment_s: float | None = None,
+    whole: bool = False,
+) -> Trajectories:
+    """The batch of `pieces`: segments of `data.segment` seconds (`segment_s`, default `how.segment`), or the whole
+    pieces (`whole`, or no segment length); its ``meta['account']`` (`label`: which part of the data, e.g.
+    "test", with `entries`' rows) is logged."""
+    seconds = how.segment if segment_s is None else segment_s
+    batch = stack_recordings(pieces) if whole or seconds is None else segment(pieces, seconds)
+    batch.meta["input_hold"] = how.input_hold
     account = {
         "path": str(path),
         "pattern": is_pattern(path),
-        "files": entries,
+        "files": [dict(e, pieces=[dict(p) for p in e["pieces"]]) for e in entries],
         "segment": batch.meta.get("segment"),
         "resample": how.resample,
         "stride": how.stride,
         "inputs_from_spec": bool(not how.controls and how.inputs),
         "inputs": _controls(how),
     }
+    if label is not None:
+        account["part"] = label
     _add_usage(account, batch.meta.get("usage", []))
     batch.meta["account"] = account
     for line in account_lines(account):
         log.info(line)
     return batch
+
+
+def take_rows(rec: Trajectories, rows: Sequence[int]) -> Trajectories:
+    """The rows [start, stop) of one recording as read (`data.train_range`, `data.test_range`, ...), named in
+    the file's terms when they are not there."""
+    start, stop = int(rows[0]), int(rows[1])
+    if not 0 <= start < stop or stop > rec.n_times:
+        raise DataError(
+            f"{rec.meta.get('source')}: rows [{start}, {stop}) asked for, but the recording has {rec.n_times} rows "
+            f"(0 to {rec.n_times - 1}); give a range within them, start < stop (Python's [start, stop))."
+        )
+    meta = {**rec.meta, "first_row": int(rec.meta.get("first_row", 0)) + start}
+    u = None if rec.u is None else rec.u[:, start:stop]
+    return replace(rec, t=rec.t[start:stop], x=rec.x[:, start:stop], u=u, meta=meta)
 
 
 def _add_usage(account: dict[str, Any], usage: list[dict[str, Any]]) -> None:

@@ -23,6 +23,7 @@ from mpsim.data.dataset import SPLITS, DatasetSpec, Simulator, Splits, simulate_
 from mpsim.data.io import load_trajectories
 from mpsim.data.keys import check_data_names
 from mpsim.data.measured import Recordings, is_recording, paths_of, read_recordings
+from mpsim.data.official import RANGE_KEYS, check_range, official_splits
 from mpsim.data.precision import check_representable
 from mpsim.data.segments import contiguous_split
 from mpsim.data.trajectories import Trajectories
@@ -37,6 +38,10 @@ class DataOptions:
     defaults and meanings: `mpsim.config`'s `DataConf`, which `tests/test_defaults.py` holds to these)."""
 
     path: str | None = None
+    test_path: str | None = None
+    train_range: list[int] | None = None
+    val_range: list[int] | None = None
+    test_range: list[int] | None = None
     edges: str | None = None
     graph: str | None = None
     control_columns: list[str] = field(default_factory=list)
@@ -63,6 +68,11 @@ class DataOptions:
     @property
     def from_file(self) -> bool:
         return bool(self.path)
+
+    @property
+    def official(self) -> bool:
+        """Whether the data come split by file or row range (`data.test_path`, `data.*_range`)."""
+        return bool(self.test_path) or any(getattr(self, k) is not None for k in RANGE_KEYS)
 
     def recordings(
         self,
@@ -212,6 +222,21 @@ def load_splits(
     Recordings are split into contiguous blocks in time order (`contiguous_split`); a batch file at random by
     trajectory (`data.seed`). What each split covers is logged (and kept in its ``meta['covers']``).
     """
+    if options.from_file and options.official:
+        assert options.path is not None
+        if not is_recordings(options, start_dir):
+            raise ConfigError(
+                f"data.test_path and data.train_range / val_range / test_range split recordings (wide CSV or .mat "
+                f"files); data.path={options.path} is a batch of trajectories, split by data.split. Drop them, or "
+                "give recordings."
+            )
+        how = options.recordings(states, rates or {}, inputs, dtype_name, memory_check)
+        ranges = {key: check_range(key, getattr(options, key)) for key in RANGE_KEYS}
+        test_path = resolve(options.test_path, start_dir) if options.test_path else None
+        splits = official_splits(resolve(options.path, start_dir), test_path, ranges, how, options.split, need)
+        for line in split_lines(split_covers(splits)):
+            log.info(line)
+        return splits
     if options.from_file:
         data = read(options, start_dir, system_graph, states, rates, inputs, dtype_name, memory_check)
         check_representable(data, dtype_name, str(options.path))

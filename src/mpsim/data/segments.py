@@ -237,7 +237,8 @@ def contiguous_split(data: Trajectories, fractions: Sequence[float], need: tuple
         )
     bounds = [0, sizes[0], sizes[0] + sizes[1], b]
     out = [_block(data, bounds[i], bounds[i + 1]) for i in range(3)]
-    return Splits(train=out[0], val=out[1], test=out[2])
+    records = whole_records(stitch(out[2])) if len(out[2]) else None
+    return Splits(train=out[0], val=out[1], test=out[2], records=records)
 
 
 def _block(data: Trajectories, start: int, stop: int) -> Trajectories:
@@ -274,3 +275,73 @@ def covers(entries: Sequence[dict[str, Any]], seconds: float, origins: Mapping[s
         else:
             parts.append(f"{name} {start:.4g}–{end:.4g} s")
     return ", ".join(parts) or "nothing"
+
+
+def whole_records(recs: Sequence[Trajectories]) -> Trajectories:
+    """The recordings (or pieces, or stitched test segments) as one batch of whole records for free-run
+    evaluation: [R, T_max, N, D], each padded after its end with its last sample (states and inputs: a rollout
+    past the end stays finite; scores read only the first `length` samples). ``meta['records']`` lists per record
+    its recording, piece, start time t0 in the file's clock and length in samples."""
+    dt = _common_step(recs)
+    length = max(r.n_times for r in recs)
+    xs, us, entries = [], [], []
+    for r in recs:  # a loop over the few records
+        pad = length - r.n_times
+        xs.append(torch.cat([r.x, r.x[:, -1:].expand(1, pad, *r.x.shape[2:])], dim=1))
+        if r.u is not None:
+            us.append(torch.cat([r.u, r.u[:, -1:].expand(1, pad, *r.u.shape[2:])], dim=1))
+        entries.append(
+            {
+                "recording": str(r.meta.get("source", r.system_name)),
+                "piece": int(r.meta.get("piece", 1)),
+                "t0": _origin(r) + float(r.t[0]),
+                "length": r.n_times,
+            }
+        )
+    meta = {**_batch_meta(recs, dt), "records": entries}
+    return Trajectories(
+        t=dt * torch.arange(length, dtype=recs[0].t.dtype),
+        x=torch.cat(xs).contiguous(),
+        edge_index=recs[0].edge_index,
+        u=torch.cat(us).contiguous() if us else None,
+        meta=meta,
+    )
+
+
+def stitch(part: Trajectories) -> list[Trajectories]:
+    """The records a split of segments holds: each run of consecutive segments of one recording (piece) joined
+    back into one trajectory (neighbours share their end sample), as [1, T_r, N, D] recordings whose times run from
+    their first sample and whose ``meta['t0']`` is its time in the file's clock."""
+    entries = list(part.meta.get("segments", []))
+    if not entries:
+        return []
+    runs: list[list[int]] = []
+    for i, e in enumerate(entries):
+        prev = entries[i - 1] if i else {}
+        same = bool(prev) and (prev["recording"], prev.get("piece", 1)) == (e["recording"], e.get("piece", 1))
+        if same and int(e["index"]) == int(prev["index"]) + 1:
+            runs[-1].append(i)
+        else:
+            runs.append([i])
+    out = []
+    length = part.n_times - 1
+    for run in runs:  # a loop over the few runs
+        idx = torch.as_tensor(run)
+        body = part.x[idx, :-1].reshape(1, -1, *part.x.shape[2:])
+        x = torch.cat([body, part.x[run[-1] : run[-1] + 1, -1:]], dim=1)
+        u = None
+        if part.u is not None:
+            ubody = part.u[idx, :-1].reshape(1, -1, *part.u.shape[2:])
+            u = torch.cat([ubody, part.u[run[-1] : run[-1] + 1, -1:]], dim=1)
+        first = entries[run[0]]
+        meta = {
+            **{k: v for k, v in part.meta.items() if k not in ("segments", "covers", "usage", "skipped")},
+            "source": first["recording"],
+            "piece": int(first.get("piece", 1)),
+            "t0": [float(first["t0"])],
+        }
+        t = float(part.meta.get("dt", float(part.t[1] - part.t[0]))) * torch.arange(
+            len(run) * length + 1, dtype=part.t.dtype
+        )
+        out.append(Trajectories(t=t, x=x, edge_index=part.edge_index, u=u, meta=meta))
+    return out
