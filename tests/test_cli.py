@@ -296,6 +296,8 @@ def _entry_points() -> list[list[str]]:
     return [[found], [sys.executable, "-m", "mpsim"]]
 
 
+@pytest.mark.slow
+@pytest.mark.scaling  # processes started: .ci/run's `-m scaling` step
 def test_entry_points_exit_codes_and_stderr(tmp_path):
     """The installed `mpsim` script and `python -m mpsim` as a user runs them: real exit codes, one error line on
     stderr, no traceback, no files; and Ctrl-C (SIGINT) in a training run exits 130 with the resume hint."""

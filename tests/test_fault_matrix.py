@@ -1114,6 +1114,7 @@ def test_a_run_moved_from_a_gpu_machine_resumes_on_the_cpu_when_told_to(ws, tmp_
     assert record.read_text().endswith("- device=cuda\n- threads=4\n")  # the record keeps what it was
 
 
+@pytest.mark.slow  # long; outside the default suite (<4 min on 2 cores), run by .ci/run's -m slow step
 def test_a_run_on_a_data_file_resumes_with_the_file_moved_along_only_if_it_holds_the_same_bytes(ws, tmp_path):
     """A results folder copied elsewhere carries its data file: `data.path` may then point at the copy, checked
     against the SHA-256 the run recorded (data.json); other bytes are refused, and so is a file that cannot be

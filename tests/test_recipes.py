@@ -105,6 +105,7 @@ def test_table2_parts_runs_only_the_columns_named(tmp_path, option):
     assert trains == [("kuramoto10_ba", "-"), ("kuramoto10_er", "kuramoto10_ba.ckpt"), ("kuramoto10_er", "null")]
 
 
+@pytest.mark.slow  # long; outside the default suite (<4 min on 2 cores), run by .ci/run's -m slow step
 def test_table2_starts_l2s_on_the_core_the_first_finished_mpnode_run_frees(tmp_path):
     """A column's finetune, scratch and L2S runs share one pool: L2S does not wait for the slowest MP-NODE run."""
     slow = "init=gene_ba_small.ckpt"  # the finetune
@@ -201,6 +202,7 @@ def test_diagnose_cases_refuses_an_unknown_case_before_simulating_anything(tmp_p
     assert "diagnose_cases.sh: unknown value 'b_vdpp' in CASES" in proc.stderr and calls == []
 
 
+@pytest.mark.slow  # long; outside the default suite (<4 min on 2 cores), run by .ci/run's -m slow step
 @pytest.mark.parametrize("jobs", [1, 3])
 def test_diagnose_cases_runs_jobs_at_once_each_run_in_its_own_checkpoint_folder(tmp_path, jobs):
     env = dict(CASES="a_damped case1 clean", SEEDS="0 1", NOISES="0", JOBS=str(jobs))

@@ -31,6 +31,7 @@ def test_submitit_local_runs_a_two_job_sweep(tmp_path):
     assert seeds == [0, 1]
 
 
+@pytest.mark.slow  # long; outside the default suite (<4 min on 2 cores), run by .ci/run's -m slow step
 def test_optuna_search_minimises_the_objective(tmp_path):
     # in this process: the Optuna sweeper runs its trials with Hydra's basic launcher, one after another
     pytest.importorskip("hydra_plugins.hydra_optuna_sweeper")

@@ -21,6 +21,7 @@ def _allocate(mb):
     return float(x.sum())
 
 
+@pytest.mark.slow  # long; outside the default suite (<4 min on 2 cores), run by .ci/run's -m slow step
 def test_peak_memory_sees_an_allocation():
     small = peak_memory_mb(functools.partial(_allocate, 1))
     big = peak_memory_mb(functools.partial(_allocate, 200))

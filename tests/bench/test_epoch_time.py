@@ -11,6 +11,7 @@ from mpsim.errors import ConfigError
 from tests.helpers import run_recipe
 
 
+@pytest.mark.slow  # long; outside the default suite (<4 min on 2 cores), run by .ci/run's -m slow step
 def test_epoch_time_rows_come_from_a_real_training_run():
     bench = EpochTimeBench(
         cases=[

@@ -56,6 +56,7 @@ def test_dense_is_refused_over_budget_not_crashed():
     assert any("refused" in line for line in suite.summarise(list(rows.values())))
 
 
+@pytest.mark.slow  # long; outside the default suite (<4 min on 2 cores), run by .ci/run's -m slow step
 def test_peak_memory_grows_with_the_dense_matrix():
     suite = SMNNBench(methods=["dense"], lhs_modes=["shared"], repeats=1)
     small = suite._measure("dense", 8, 50, "shared")["peak_mib"]

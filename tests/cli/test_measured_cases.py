@@ -73,6 +73,7 @@ def _rollout(spec: dict, effects: list, rec) -> np.ndarray:
     return out[0, :, 0].numpy()
 
 
+@pytest.mark.slow  # long; outside the default suite (<4 min on 2 cores), run by .ci/run's -m slow step
 @pytest.mark.parametrize("name", list(mc.CASES))
 def test_mpsim_with_the_true_parameters_follows_the_generator(name, tmp_path):
     truth = mc.write_case(tmp_path, name, seed=0, seconds=SECONDS[name])

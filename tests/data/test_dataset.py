@@ -94,6 +94,8 @@ def _worker(args):
     return cached(cache_dir, {"shared": True}, build).x.sum().item()
 
 
+@pytest.mark.slow
+@pytest.mark.scaling  # processes started: .ci/run's `-m scaling` step
 def test_concurrent_jobs_build_once_and_agree(tmp_path):
     markers = tmp_path / "markers"
     markers.mkdir()

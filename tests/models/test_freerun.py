@@ -66,14 +66,14 @@ def _positions_only(records: Trajectories) -> Trajectories:
 
 
 def test_the_chunked_run_is_the_whole_run_and_the_latent_start_is_found():
-    records = _positions_only(whole_records([_truth(3001, 0.05, 1.0, 0.3), _truth(2501, 0.05, 2.0, -0.5)]))
-    chunked = free_run(_model(), records, chunk=400)
+    records = _positions_only(whole_records([_truth(1201, 0.05, 1.0, 0.3), _truth(1001, 0.05, 2.0, -0.5)]))
+    chunked = free_run(_model(), records, chunk=200)
     whole = free_run(_model(), records, chunk=10**6)
     assert chunked.passes >= 2 and whole.passes == 0
     assert float((chunked.pred - whole.pred).abs().max()) < 1e-6
     assert chunked.init_samples == default_init_samples(records) == 3
-    truth = whole_records([_truth(3001, 0.05, 1.0, 0.3), _truth(2501, 0.05, 2.0, -0.5)])
-    for r, length in enumerate((3001, 2501)):  # the exact model, started from 3 samples: the record, throughout
+    truth = whole_records([_truth(1201, 0.05, 1.0, 0.3), _truth(1001, 0.05, 2.0, -0.5)])
+    for r, length in enumerate((1201, 1001)):  # the exact model, started from 3 samples: the record, throughout
         err = (chunked.pred[r, :length] - truth.x[r, :length]).abs().max()
         assert float(err) < 1e-4, (r, float(err))
         assert chunked.scores[r]["q"]["fit"] > 99.9 and chunked.scores[r]["q"]["samples"] == length - 3
