@@ -761,9 +761,6 @@ CASES: dict[str, Case] = {
     "recording_segment_too_long": Case(
         lambda w, d: _recording(d, "data.segment=100"), 2, "longer than every recording"
     ),
-    "recording_latent_state_without_a_rate": Case(
-        lambda w, d: _recording(d, "data.observed=[v]", "data.columns={v: q}"), 2, "cannot be estimated"
-    ),
     "recording_bad_input_hold": Case(
         lambda w, d: _recording(d, "data.input_hold=cubic"), 2, "data.input_hold must be one of"
     ),

@@ -262,12 +262,14 @@ def _check_data_names(cfg: Any) -> None:
     spec = spec if isinstance(spec, Mapping) else {}
     states = model.get("states") or spec.get("states")
     inputs = model.get("inputs") or spec.get("inputs") or []
+    outputs = model.get("outputs") or spec.get("outputs") or {}
     columns = OmegaConf.to_container(data.columns, resolve=True) if data.get("columns") is not None else {}
     if not _names(states) or not _names(inputs) or not isinstance(columns, Mapping):
         return
     mapped = {str(k): str(v) for k, v in columns.items()}
     observed, controls = list(data.observed or []), list(data.control_columns or [])
-    check_data_names(mapped, observed, controls, list(states or []), list(inputs))
+    names = [str(k) for k in outputs] if isinstance(outputs, Mapping) else []
+    check_data_names(mapped, observed, controls, [*list(states or []), *names], list(inputs), names)
 
 
 def _names(value: Any) -> bool:

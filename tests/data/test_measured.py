@@ -61,11 +61,12 @@ def test_a_latent_velocity_is_estimated_from_positions(tmp_path):
     assert batch.meta["observed"] == ["q"] and "v" in batch.meta["estimated"]
 
 
-def test_a_latent_state_without_a_measured_rate_is_refused(tmp_path):
+def test_a_latent_state_no_measured_state_is_the_rate_of_is_left_to_the_model(tmp_path):
     path = _wide(tmp_path / "r.csv", *_sine(50, 0.01))
     how = Recordings(time_column="time", columns={"q": "pos"}, observed=["q"], states=["q", "w"], rates={})
-    with pytest.raises(ConfigError, match=r"\['w'\].*cannot be estimated"):
-        read_recordings(path, how)
+    batch = read_recordings(path, how)
+    assert batch.meta["pending"] == ["w"] and float(batch.x[..., 1].abs().max()) == 0.0
+    assert batch.meta["estimated"]["w"] == "pending: the model-based estimate"
 
 
 def test_segments_split_into_contiguous_blocks_in_time_order(tmp_path):

@@ -465,3 +465,24 @@ def test_a_driven_twin_trains_on_the_command_line_and_its_checkpoint_round_trips
         output_dir=tmp_path / "eval",
     )
     assert out["test"]["rmse"] < 1e-2
+
+
+def test_a_spec_with_outputs_appends_what_its_sensors_read():
+    from mpsim.data.trajectories import Inputs
+
+    spec = {"states": ["d", "s", "r"], "inputs": ["u"], "outputs": {"y": "abs(s) + 0.5*u"},
+            "equations": {"d": "6.7*(1.8*u - d)", "s": "r", "r": "400*(d - s) - 13*r"}}  # fmt: skip
+    model = EquationsModel(4, control_dim=1, spec=spec).double()
+    model.bind_inputs(["u"])
+    model.bind_effects(["d", "s", "r", "y"])
+    t = 0.02 * torch.arange(40, dtype=torch.float64)
+    u = torch.sign(torch.sin(3 * t)).reshape(1, 40, 1, 1)
+    inputs = Inputs(torch.zeros(2, 0, dtype=torch.long), u=u, meta={"control_names": ["u"], "input_hold": "zoh"})
+    out = model.rollout(torch.zeros(1, 1, 4, dtype=torch.float64), t, inputs)
+    assert out.shape == (1, 40, 1, 4)
+    assert torch.allclose(out[..., 3], out[..., 1].abs() + 0.5 * u[..., 0])  # read at every sample, input included
+    step = model.one_step(out, t, inputs)  # from every sample: the states stepped, the outputs read at the end
+    assert torch.allclose(step[..., 3], step[..., 1].abs() + 0.5 * u[:, 1:, :, 0])
+    assert float((step - out[:, 1:]).abs().max()) < 1e-3
+    with pytest.raises(ConfigError, match=r"3 states \['d', 's', 'r'\] and 1 outputs \['y'\] but the data has 3"):
+        EquationsModel(3, control_dim=1, spec=spec)

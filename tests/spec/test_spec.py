@@ -402,3 +402,29 @@ def test_a_shift_without_a_boundary_is_refused_naming_the_key(changes, message):
     assert parse_spec({"states": ["x"], "equations": {"x": "-x"}}).shift_boundary is None  # no shift: no boundary
     with pytest.raises(ConfigError, match="state name 'shift' is reserved"):
         parse_spec({"states": ["shift"], "equations": {"shift": "0"}})
+
+
+def test_outputs_are_what_the_sensors_read_parsed_like_equations():
+    from mpsim.spec.parse import parse_spec
+
+    spec = parse_spec({"states": ["d", "s"], "equations": {"d": "-d", "s": "d - s"}, "params": {"h0": 0.1},
+                       "outputs": {"y": "abs(s)", "level": "h0 + 2*d"}})  # fmt: skip
+    assert spec.outputs == ("y", "level") and spec.columns == ("d", "s", "y", "level")
+    assert [str(e) for e in spec.output_exprs] == ["Abs(s)", "2*d + h0"]
+
+
+@pytest.mark.parametrize(
+    "outputs, match",
+    [
+        ({"s": "s"}, r"outputs.s: 's' is already a state, input or parameter"),
+        ({"y": "sum_nbr(s)"}, r"outputs.y: an output is what one node's sensor reads; neighbour terms"),
+        ({"y": "s +* 2"}, r"model.spec.outputs.y: cannot parse"),
+        ({"y": "w"}, r"model.spec.outputs.y"),
+        (["y"], r"outputs must map each measured name to what the sensor reads"),
+    ],
+)
+def test_a_bad_output_is_one_message_naming_its_key(outputs, match):
+    from mpsim.spec.parse import parse_spec
+
+    with pytest.raises(ConfigError, match=match):
+        parse_spec({"states": ["s"], "equations": {"s": "-s"}, "outputs": outputs})

@@ -27,6 +27,7 @@ from mpsim.data.pipeline import DataOptions, load_splits
 from mpsim.errors import ConfigError
 from mpsim.files import file_sha256
 from mpsim.models.base import Model
+from mpsim.models.latent import estimate_pending
 from mpsim.solvers.odeint import ODESolver
 from mpsim.spec import load_spec_file
 from mpsim.spec.parse import MODEL_KEYS, SYSTEM_KEYS, merge_spec, parse_spec
@@ -191,15 +192,25 @@ def prepare(
         raise
 
 
-def spec_states(model_cfg: dict[str, Any]) -> tuple[list[str] | None, dict[str, str], list[str] | None]:
-    """The states a model states by name, in its order, {s: o} for each equation o' = s (how a state the data
-    lack is estimated) and its inputs: a spec's (`model=equations`); (None, {}, None) for a model that takes the
-    data's."""
+@dataclass(frozen=True)
+class ModelNames:
+    """The names a model states (a spec's, `model=equations`): the data's columns (its states, then its
+    outputs), {s: o} for each equation o' = s (how a state the data lack is first estimated), its inputs and
+    outputs. All None/empty for a model that takes the data's names."""
+
+    columns: list[str] | None = None
+    rates: dict[str, str] = field(default_factory=dict)
+    inputs: list[str] | None = None
+    outputs: list[str] = field(default_factory=list)
+
+
+def spec_states(model_cfg: dict[str, Any]) -> ModelNames:
+    """The names `model_cfg`'s spec states (`ModelNames`)."""
     if not any(model_cfg.get(k) for k in ("spec", "states", "equations")):
-        return None, {}, None
+        return ModelNames()
     inline = {k: model_cfg.get(k) for k in MODEL_KEYS if k != "spec"}
     spec = parse_spec(merge_spec(model_cfg.get("spec"), inline, "model"), "model.spec", extra_keys=SYSTEM_KEYS)
-    return list(spec.states), spec.rates(), list(spec.inputs)
+    return ModelNames(list(spec.columns), spec.rates(), list(spec.inputs), list(spec.outputs))
 
 
 def _refuse_inputs_read_as_states(inputs: list[str] | None, splits: Splits, data: DataOptions) -> None:
@@ -212,6 +223,18 @@ def _refuse_inputs_read_as_states(inputs: list[str] | None, splits: Splits, data
             f"the model's inputs {inputs} are columns of {data.path}, read as states because data.control_columns "
             f"does not list them. Add data.control_columns={list(inputs or [])}."
         )
+
+
+def with_latent_estimates(model: Model, splits: Splits) -> Splits:
+    """`splits` with the latent states no measured state is the rate of (``meta['pending']``) estimated through
+    `model` (`mpsim.models.latent`) in every split. The whole test records are left to the free run, which
+    estimates their start from their first samples only (`mpsim.models.freerun`)."""
+    parts = {name: getattr(splits, name) for name in ("train", "val", "test")}
+    pending = next((p.meta["pending"] for p in parts.values() if p.meta.get("pending")), None)
+    if pending is None:
+        return splits
+    log.info(f"estimating {pending} through the model (unscented Kalman smoother)")
+    return replace(splits, **{name: estimate_pending(model, part) for name, part in parts.items()})
 
 
 def _warn_other_hold(ckpt: dict[str, Any] | None, splits: Splits) -> None:
@@ -244,19 +267,20 @@ def with_model_and_data(job: Job, ctx: DistContext, explicit_horizons: bool, tra
     graph = None if system is None else system.edge_index
     splits = None
     if data.from_file:
-        states, rates, inputs = spec_states(job.model_config)
+        names = spec_states(job.model_config)
         splits = load_splits(
             data,
             rt.start_dir,
             dtype_name,
             need,
             system_graph=graph,
-            states=states,
-            rates=rates,
-            inputs=inputs,
+            states=names.columns,
+            rates=names.rates,
+            inputs=names.inputs,
             memory_check=rt.memory_check,
+            outputs=names.outputs,
         )
-        _refuse_inputs_read_as_states(inputs, splits, data)
+        _refuse_inputs_read_as_states(names.inputs, splits, data)
     horizons = job.horizons
     if splits is not None:
         _warn_other_hold(job.start, splits)
@@ -275,6 +299,8 @@ def with_model_and_data(job: Job, ctx: DistContext, explicit_horizons: bool, tra
         splits = load_splits(
             data, rt.start_dir, dtype_name, system=system, system_config=job.system_config, cache_dir=job.cache_dir
         )
+    if data.from_file:
+        splits = with_latent_estimates(model, splits)
     if job.start is None or refit:
         model.set_normalisation(*fit_normalisation(splits.train))
     if ctx.is_main:

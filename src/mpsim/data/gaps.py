@@ -31,9 +31,10 @@ def split_at_gaps(rec: Trajectories, fill: bool) -> tuple[list[Trajectories], li
         fill: `data.resample` is on: gaps of at most `FILL_STEPS` median steps stay inside a piece (filled).
 
     Returns:
-        The pieces in time order (each with ``meta['piece']`` = k of ``meta['pieces']``, 1-based, when there are
-        several), and for each gap ``{"t": <file time of the sample before>, "seconds", "steps", "row", "action":
-        "split" | "filled"}`` (row: the 0-based index of the sample after the gap).
+        The pieces of 2 samples or more in time order (each with ``meta['piece']`` = k of ``meta['pieces']``,
+        1-based, when there are several), and for each gap ``{"t": <file time of the sample before>, "seconds",
+        "steps", "row", "action": "split" | "filled"}`` (row: the 0-based index of the sample after the gap); a
+        single sample between two gaps (or before the first, after the last) is listed under its gap's ``"alone"``.
     """
     t = rec.t.double()
     steps = t[1:] - t[:-1]  # [T - 1]
@@ -68,6 +69,11 @@ def split_at_gaps(rec: Trajectories, fill: bool) -> tuple[list[Trajectories], li
         start, stop = bounds[j], bounds[j + 1]
         first = int(rec.meta.get("first_row", 0)) + start
         meta = {**rec.meta, "piece": j + 1, "pieces": len(bounds) - 1, "first_row": first}
+        if stop - start < 2:  # a single sample between gaps: no trajectory, only its place in the account
+            gaps[j - 1 if j else 0].setdefault("alone", []).append(
+                {"piece": j + 1, "row": first, "t": origin + float(t[start])}
+            )
+            continue
         pieces.append(
             replace(
                 rec,

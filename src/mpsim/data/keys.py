@@ -19,6 +19,7 @@ def check_data_names(
     controls: Sequence[str],
     states: Sequence[str] | None,
     inputs: Sequence[str] | None,
+    outputs: Sequence[str] = (),
 ) -> None:
     """Refuse names the model does not have.
 
@@ -27,17 +28,21 @@ def check_data_names(
         observed: `data.observed`, the states the file holds.
         controls: `data.control_columns`, the model's inputs read from the file.
         states, inputs: the model's states and inputs when it states them (a spec); None: it takes the data's.
+        outputs: the spec's outputs (what its sensors read): measured names too.
     """
     observed, controls = list(observed), list(controls)
     if states is not None:
-        _each_in("data.observed", observed, list(states), "state", states, inputs)
+        states = [s for s in states if s not in outputs]
+        kind = "state or output" if outputs else "state"
+        _each_in("data.observed", observed, [*states, *outputs], kind, states, inputs, outputs=outputs)
     if inputs is not None and states is not None:
         _each_in("data.control_columns", controls, list(inputs), "input", states, inputs)
     keys = [str(k) for k in (columns or {})]
     if states is not None:
-        known = [*states, *(inputs or [])]
-        _each_in("data.columns", keys, known, "state or input", states, inputs, mapping=True)
-        left_out = [k for k in keys if observed and k in states and k not in observed]
+        known = [*states, *(inputs or []), *outputs]
+        kind = "state, input or output" if outputs else "state or input"
+        _each_in("data.columns", keys, known, kind, states, inputs, mapping=True, outputs=outputs)
+        left_out = [k for k in keys if observed and k in [*states, *outputs] and k not in observed]
         if left_out:
             k = left_out[0]
             raise ConfigError(
@@ -65,12 +70,14 @@ def _each_in(
     states: Sequence[str],
     inputs: Sequence[str] | None,
     mapping: bool = False,
+    outputs: Sequence[str] = (),
 ) -> None:
     unknown = [n for n in names if n not in known]
     if not unknown:
         return
     n = unknown[0]
     has = f"its states: {', '.join(states)}" + (f"; its inputs: {', '.join(inputs)}" if inputs else "; no inputs")
+    has += f"; its outputs: {', '.join(outputs)}" if outputs else ""
     given = "{" + ", ".join(f"{k}: ..." for k in names) + "}" if mapping else f"[{', '.join(names)}]"
     raise ConfigError(
         f"{key}={given}: '{n}' is not a{'n' if kind[0] in 'aeiou' else ''} {kind} of the model ({has})."

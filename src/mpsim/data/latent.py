@@ -28,6 +28,9 @@ POLYORDER = 2
 MIN_WINDOW = 5
 #: resolution steps that o moves within one window
 STEPS_PER_WINDOW = 10
+#: the least gain of the Savitzky–Golay derivative at the signal's dominant frequency for it to be the estimate
+#: (5 samples at 8.6 samples a period: 0.73; a model-based estimate takes over below this)
+MIN_GAIN = 0.9
 
 
 def estimate_latent(
@@ -35,6 +38,8 @@ def estimate_latent(
     derivative_of: Mapping[str, str],
     window_s: float | None = None,
     states: Sequence[str] | None = None,
+    pending: Sequence[str] = (),
+    model_based: bool = False,
 ) -> Trajectories:
     """`data` with every latent state filled by the smoothed derivative of the measured state it is the rate of.
 
@@ -43,7 +48,12 @@ def estimate_latent(
         derivative_of: {latent state s: measured o} for each equation ``o' = s`` of the model.
         window_s: the Savitzky–Golay window in seconds (None: `savgol_window`'s rule, per measured state).
         states: the model's states in its order (default: the measured ones, then the latent ones in the order of
-            `derivative_of`); each must be measured or a key of `derivative_of`.
+            `derivative_of`); each must be measured, a key of `derivative_of` or `pending`.
+        pending: latent states that no measured state is the rate of (an upper tank's level, a drive's current):
+            filled with zeros here and listed in ``meta['pending']``, for the model-based estimate that needs the
+            model (`mpsim.models.latent`).
+        model_based: a model can estimate latent states (a spec): a rate state whose Savitzky–Golay derivative
+            flattens the signal's dominant frequency (gain under `MIN_GAIN`) is left to it too (``meta['pending']``).
 
     Returns:
         [B, T, N, len(states)] states, with ``meta['observed']`` (the measured names), ``meta['estimated']``
@@ -55,8 +65,8 @@ def estimate_latent(
     """
     observed = data.state_names
     latent = [s for s in derivative_of if s not in observed]
-    order = list(states) if states is not None else observed + latent
-    _check_names(data, derivative_of, observed, order)
+    order = list(states) if states is not None else observed + latent + list(pending)
+    _check_names(data, {**derivative_of, **{s: "" for s in pending}}, [*observed, *pending], order)
     dt = grid_step(data.t)
     if latent and not np.isfinite(dt):
         raise DataError(
@@ -65,7 +75,9 @@ def estimate_latent(
         )
     x = data.x.double()
     filled: dict[str, torch.Tensor] = {name: x[..., k] for k, name in enumerate(observed)}
+    filled.update({name: torch.zeros_like(x[..., 0]) for name in pending})
     estimated: dict[str, str] = {}
+    narrow: dict[str, str] = {}  # latent states whose derivative's bandwidth does not fit: the model estimates them
     for s in latent:  # a loop over the few latent states
         o = filled[derivative_of[s]]
         width = savgol_window(o, dt) if window_s is None else _odd_window(round(window_s / dt), o.shape[1])
@@ -74,10 +86,56 @@ def estimate_latent(
             f"Savitzky–Golay derivative of {derivative_of[s]}, window {width} samples ({width * dt:.3g} s), "
             f"polyorder {POLYORDER}"
         )
+        freq = dominant_frequency(o, dt)
+        gain = savgol_gain(width, freq * dt) if freq > 0 else 1.0
+        if gain < MIN_GAIN and window_s is None:
+            narrow[s] = (
+                f"its Savitzky–Golay derivative of {derivative_of[s]} ({width} samples) has a gain of {gain:.2f} at "
+                f"the signal's dominant frequency {freq:.4g} Hz ({1 / (freq * dt):.3g} samples a period)"
+            )
+    if narrow and model_based:
+        pending = [*pending, *narrow]
+        latent = [s for s in latent if s not in narrow]
     new_x = torch.stack([filled[s] for s in order], dim=-1).to(data.x.dtype)
     derived = {s: derivative_of[s] for s in latent}
+    estimated.update({s: "pending: the model-based estimate" for s in pending})
+    for s, why in narrow.items():
+        estimated[s] = f"{estimated[s]}; {why}" if s in pending else f"{estimated[s]} ({why}: biased)"
     meta = {**data.meta, "state_names": order, "observed": observed, "estimated": estimated, "derived_from": derived}
+    if pending:
+        meta["pending"] = list(pending)
+        meta["pending_why"] = {s: narrow.get(s, "no measured state is its rate") for s in pending}
     return replace(data, x=new_x, meta=meta)
+
+
+def dominant_frequency(o: torch.Tensor, dt: float) -> float:  # o: [B, T, N] a measured state
+    """The frequency (Hz) of the largest peak of `o`'s periodogram (each trajectory and node detrended, their
+    spectra summed), or 0 for a record too short to have one."""
+    x = o.double().movedim(1, -1)  # [B, N, T]
+    n = x.shape[-1]
+    if n < 8:
+        return 0.0
+    t = torch.arange(n, dtype=x.dtype)
+    slope = ((t - t.mean()) * (x - x.mean(-1, keepdim=True))).sum(-1, keepdim=True) / ((t - t.mean()) ** 2).sum()
+    detrended = x - x.mean(-1, keepdim=True) - slope * (t - t.mean())
+    power = torch.fft.rfft(detrended * torch.hann_window(n, periodic=False, dtype=x.dtype)).abs().pow(2)
+    spectrum = power.reshape(-1, power.shape[-1]).sum(0)
+    k = int(spectrum[1:].argmax()) + 1
+    return k / (n * dt)
+
+
+def savgol_gain(width: int, cycles_per_sample: float) -> float:
+    """The gain of the Savitzky–Golay derivative (order `POLYORDER`, `width` samples) at a sine of
+    `cycles_per_sample` (f·dt): the amplitude it gives over the true derivative's (1: exact, < 1: it flattens)."""
+    from scipy.signal import savgol_coeffs
+
+    if width < 3 or cycles_per_sample <= 0:
+        return 1.0
+    coeffs = savgol_coeffs(width, min(POLYORDER, width - 1), deriv=1, delta=1.0, use="dot")
+    k = np.arange(width) - width // 2
+    w = 2 * np.pi * cycles_per_sample
+    response = np.abs(np.sum(coeffs * np.exp(1j * w * k)))
+    return float(response / w)
 
 
 def _check_names(data: Trajectories, derivative_of: Mapping[str, str], observed: list[str], order: list[str]) -> None:

@@ -68,6 +68,8 @@ class Recordings:
         inputs: the model's inputs when it states them (a spec's `inputs:`): read when `controls` is empty.
         dtype_name: the model's precision (a value it cannot hold is refused with its file row).
         memory_check: refuse a file whose reading would not fit in memory (`memory_check`; `READ_FACTOR`).
+        outputs: the spec's outputs (what its sensors read); `states` then lists the states and the outputs, and
+            the file holds the outputs unless `data.observed` says otherwise.
     """
 
     time_column: str | None = "t"
@@ -84,6 +86,7 @@ class Recordings:
     inputs: Sequence[str] | None = None
     dtype_name: str = "float64"
     memory_check: bool = True
+    outputs: Sequence[str] = ()
 
 
 def is_pattern(path: Path) -> bool:
@@ -174,6 +177,8 @@ def _states_in_file(table: Table, how: Recordings) -> list[str]:
     names `data.columns` maps (its controls apart); else every numeric column but the time and the controls."""
     if how.observed:
         return list(how.observed)
+    if how.outputs:
+        return list(how.outputs)  # a spec with outputs: the sensors' readings are what the file holds
     if how.states is not None:
         return list(how.states)
     mapped = [name for name in how.columns if name not in how.controls]
@@ -216,6 +221,10 @@ def one_recording(
         entry["range"] = [int(rows[0]), int(rows[1])]
     if table.time_origin is not None:
         entry["time_origin"] = table.time_origin
+    for alone in (a for g in gaps for a in g.get("alone", [])):  # a sample alone between gaps: named, not used
+        entry["pieces"].append(
+            {"piece": alone["piece"], "rows": 1, "span": [alone["t"], alone["t"]], "skipped": "a single sample"}
+        )
     out = []
     for piece in pieces:  # a loop over the few pieces of one file
         origin = float(piece.meta["t0"][0])
@@ -234,6 +243,7 @@ def one_recording(
             piece = stride(piece, how.stride)
         part["samples"] = piece.n_times
         out.append(_with_latent(piece, how))
+    entry["pieces"].sort(key=lambda part: part["piece"])
     return out, entry
 
 
@@ -257,7 +267,9 @@ def _too_short(piece: Trajectories, how: Recordings) -> str | None:
 
 
 def _observed_names(how: Recordings) -> list[str]:
-    return list(how.observed) if how.observed else list(how.states or [])
+    if how.observed:
+        return list(how.observed)
+    return list(how.outputs) if how.outputs else list(how.states or [])
 
 
 def _digest(rec: Trajectories) -> str:
@@ -274,14 +286,9 @@ def _with_latent(rec: Trajectories, how: Recordings) -> Trajectories:
     if how.states is None or list(how.states) == rec.state_names:
         return rec
     missing = [s for s in how.states if s not in rec.state_names]
-    cannot = [s for s in missing if how.rates.get(s) not in rec.state_names]
-    if cannot:
-        raise ConfigError(
-            f"data.observed={list(how.observed)}: the model's state(s) {cannot} are not measured and no measured "
-            "state's equation is that state (o' = s), so they cannot be estimated. Add their columns to the data "
-            "(data.columns) or to data.observed."
-        )
-    return estimate_latent(rec, {s: how.rates[s] for s in missing}, states=list(how.states))
+    pending = [s for s in missing if how.rates.get(s) not in rec.state_names]  # no rate: the model estimates them
+    rated = {s: how.rates[s] for s in missing if s not in pending}
+    return estimate_latent(rec, rated, states=list(how.states), pending=pending, model_based=True)
 
 
 def _refuse_copies(entries: list[dict[str, Any]]) -> None:

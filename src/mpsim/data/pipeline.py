@@ -81,6 +81,7 @@ class DataOptions:
         inputs: Sequence[str] | None = None,
         dtype_name: str = "float64",
         memory_check: bool = True,
+        outputs: Sequence[str] = (),
     ) -> Recordings:
         """How recordings become a batch, for a model with `states` and `inputs` (None: the file's), `rates`
         ({s: o} for each equation o' = s: how a latent state is estimated) and precision `dtype_name`."""
@@ -90,7 +91,7 @@ class DataOptions:
                 f"data.columns must map model names to file columns, e.g. data.columns='{{q: position, u: torque}}'; "
                 f"got {columns!r}."
             )
-        check_data_names(columns, self.observed, self.control_columns, states, inputs)
+        check_data_names(columns, self.observed, self.control_columns, states, inputs, outputs)
         return Recordings(
             time_column=self.time_column,
             dt=self.dt,
@@ -106,6 +107,7 @@ class DataOptions:
             inputs=None if inputs is None else list(inputs),
             dtype_name=dtype_name,
             memory_check=memory_check,
+            outputs=tuple(outputs),
         )
 
     def dataset_spec(self, system_config: dict[str, Any]) -> DatasetSpec:
@@ -157,13 +159,14 @@ def read(
     inputs: Sequence[str] | None = None,
     dtype_name: str = "float64",
     memory_check: bool = True,
+    outputs: Sequence[str] = (),
 ) -> Trajectories:
     """Read step: `data.path` by its extension, with its graph (an edge list, or the system's) and the columns
     that are controls (`data.control_columns`); recordings (`is_recordings`) through `mpsim.data.measured`, as
     the model's `states` and `inputs` (None: the file's), latent ones estimated by `rates`."""
     assert options.path is not None
     if is_recordings(options, start_dir):
-        how = options.recordings(states, rates or {}, inputs, dtype_name, memory_check)
+        how = options.recordings(states, rates or {}, inputs, dtype_name, memory_check, outputs)
         return read_recordings(resolve(options.path, start_dir), how)
     _refuse_recording_keys(options)
     edges = resolve(options.edges, start_dir) if options.edges else None
@@ -208,6 +211,7 @@ def load_splits(
     rates: Mapping[str, str] | None = None,
     inputs: Sequence[str] | None = None,
     memory_check: bool = True,
+    outputs: Sequence[str] = (),
 ) -> Splits:
     """The data of a command, train/val/test: a file read and split by trajectory (the splits in `need` get a
     share > 0), or the system's three splits simulated (cached in `cache_dir`; None: no cache).
@@ -218,6 +222,7 @@ def load_splits(
             given with `data.graph=system`); its config is part of the cache key.
         states, rates, inputs: the model's states and inputs and how its latent states are estimated (`read`).
         memory_check: refuse a recording whose reading would not fit in memory (`memory_check=false`: try).
+        outputs: the model's outputs (a spec's `outputs:`): `states` lists its states, then these.
 
     Recordings are split into contiguous blocks in time order (`contiguous_split`); a batch file at random by
     trajectory (`data.seed`). What each split covers is logged (and kept in its ``meta['covers']``).
@@ -230,7 +235,7 @@ def load_splits(
                 f"files); data.path={options.path} is a batch of trajectories, split by data.split. Drop them, or "
                 "give recordings."
             )
-        how = options.recordings(states, rates or {}, inputs, dtype_name, memory_check)
+        how = options.recordings(states, rates or {}, inputs, dtype_name, memory_check, outputs)
         ranges = {key: check_range(key, getattr(options, key)) for key in RANGE_KEYS}
         test_path = resolve(options.test_path, start_dir) if options.test_path else None
         splits = official_splits(resolve(options.path, start_dir), test_path, ranges, how, options.split, need)
@@ -238,7 +243,7 @@ def load_splits(
             log.info(line)
         return splits
     if options.from_file:
-        data = read(options, start_dir, system_graph, states, rates, inputs, dtype_name, memory_check)
+        data = read(options, start_dir, system_graph, states, rates, inputs, dtype_name, memory_check, outputs)
         check_representable(data, dtype_name, str(options.path))
         if "segments" in data.meta:
             splits = contiguous_split(data, tuple(options.split), need)

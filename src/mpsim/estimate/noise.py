@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from mpsim.errors import DataError
+from mpsim.errors import DataError, DivergenceError
 from mpsim.estimate.kalman import Smoothed, kalman_smoother
 from mpsim.estimate.linearise import Map
 
@@ -64,7 +64,8 @@ def choose_process_noise(
     Runs `kalman_smoother` once per grid value (default: the decades 1e-4 … 1e4); then `refine` times twice more, at
     the geometric midpoints between the best scale so far and its two neighbours (each round halves the spacing in
     log10 s: ±0.5, then ±0.25 decade); then once at the maximum of the parabola in log10 s through the best scale and
-    its neighbours. It keeps the best of all (9 + 2·2 + 1 = 14 runs by default). A best grid value at the grid's edge
+    its neighbours. It keeps the best of all (9 + 2·2 + 1 = 14 runs by default). A scale whose run fails (a sigma point
+    outside the model's domain, NaN) is skipped, and only if all fail is the error raised. A best grid value at the grid's edge
     is not refined and sets `at_edge`. The arguments are those of `kalman_smoother`; `Q: [D, D] or [B, D, D]` gives
     the shape (the relative sizes and correlations of the process noise), the grid its scale.
 
@@ -81,9 +82,14 @@ def choose_process_noise(
         raise DataError(f"grid must hold positive scales (got {list(grid)}).")
     Q = torch.as_tensor(Q)
     runs: dict[float, tuple[Smoothed, float]] = {}
+    failed: dict[float, str] = {}
 
     def run(scale: float) -> None:
-        smoothed = kalman_smoother(step, output, y, x0, P0, scale * Q, R, method, iterations)
+        try:
+            smoothed = kalman_smoother(step, output, y, x0, P0, scale * Q, R, method, iterations)
+        except DivergenceError as err:  # e.g. sigma points outside the model's domain (sqrt of a level below 0)
+            failed[scale] = str(err)
+            return
         runs[scale] = (smoothed, float(smoothed.log_likelihood.sum()))
 
     def best_three() -> tuple[list[float], int]:
@@ -93,6 +99,10 @@ def choose_process_noise(
 
     for scale in values:
         run(scale)
+    if not runs:
+        first = next(iter(failed.values()))
+        raise DivergenceError(f"the smoother failed at every process-noise scale tried ({first})")
+    values = [v for v in values if v in runs]
     _, best = best_three()
     at_edge = len(values) > 1 and best in (0, len(values) - 1)
     for _ in range(refine if not at_edge and len(values) > 2 else 0):

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Any, cast
 
 import torch
@@ -123,13 +124,15 @@ class EquationsModel(Model):
             "shift_boundary": shift_boundary,
         }
         self.spec: Spec = parse_spec(merge_spec(spec, inline, "model"), "model.spec", extra_keys=SYSTEM_KEYS)
-        if self.spec.state_dim != state_dim:
+        if len(self.spec.columns) != state_dim:
+            outputs = f" and {len(self.spec.outputs)} outputs {list(self.spec.outputs)}" if self.spec.outputs else ""
             raise ConfigError(
-                f"model.spec has {self.spec.state_dim} states {list(self.spec.states)} but the data "
+                f"model.spec has {self.spec.state_dim} states {list(self.spec.states)}{outputs} but the data "
                 f"has {state_dim} per node."
             )
         check_input_count(self.spec.inputs, control_dim)
         self.field = EquationField(self.spec)
+        self.output_field = EquationField(self.spec, outputs=True) if self.spec.outputs else None
         self.solver = solver or ODESolver()
         values = dict(self.spec.params)
         for name, value in (init or {}).items():
@@ -229,12 +232,43 @@ class EquationsModel(Model):
     # ---- rollout ------------------------------------------------------------------------------------------
     def rollout(
         self,
-        x0: torch.Tensor,  # [B, N, D] initial states (raw units)
+        x0: torch.Tensor,  # [B, N, D] initial states (raw units; with outputs, D = states + outputs)
         t: torch.Tensor,  # [T] times
         inputs: Inputs,  # the data's graph [2, E] or [B, 2, E], controls [B, T, N, C] on the grid t, meta
     ) -> torch.Tensor:
         """[B, T, N, D] the spec integrated from x0; a driven spec reads `inputs.u` held as
-        `inputs.meta["input_hold"]` says (zoh: no solver step straddles a sample time, see `mpsim.models.driving`)."""
+        `inputs.meta["input_hold"]` says (zoh: no solver step straddles a sample time, see `mpsim.models.driving`).
+        A spec with `outputs:` integrates its states and appends what its sensors read at every time."""
+        if self.output_field is None:
+            return self._rollout(x0, t, inputs)
+        xs = self._rollout(x0[..., : self.spec.state_dim], t, inputs)
+        return torch.cat([xs, self.outputs_of(xs, t, inputs)], dim=-1)
+
+    def outputs_of(
+        self,
+        xs: torch.Tensor,  # [B, T, N, D_s] states (raw units), the spec's states only
+        t: torch.Tensor,  # [T] their times
+        inputs: Inputs,  # controls [B, T, N, C] on the grid t
+    ) -> torch.Tensor:
+        """[B, T, N, P] what the spec's sensors read (`outputs:`) at each time, from the states and the inputs
+        at the samples."""
+        assert self.output_field is not None
+        b, n_t, n, d = xs.shape
+        values = {k: v.to(xs) for k, v in self.parameters_now().items()}
+        u = None
+        if self.spec.inputs:
+            u = self._signal(xs[:, 0], t, inputs).u.reshape(b * n_t, n, -1)  # type: ignore[union-attr]
+        tt = t.to(xs).repeat(b)[:, None]  # [B·T, 1] each row's time
+        out = self.output_field(tt, xs.reshape(b * n_t, n, d), values, None, u)
+        return out.reshape(b, n_t, n, -1)
+
+    def _rollout(
+        self,
+        x0: torch.Tensor,  # [B, N, D_s] initial states (raw units), the spec's states only
+        t: torch.Tensor,  # [T] times
+        inputs: Inputs,  # the data's graph [2, E] or [B, 2, E], controls [B, T, N, C] on the grid t, meta
+    ) -> torch.Tensor:
+        """[B, T, N, D_s] the spec's states integrated from x0 (`rollout`)."""
         check_nodes(self.spec, x0.shape[1], "model.spec")
         values = {k: v.to(x0) for k, v in self.parameters_now().items()}
         signal = self._signal(x0, t, inputs)
@@ -272,14 +306,33 @@ class EquationsModel(Model):
     ) -> torch.Tensor:
         """[B, T−1, N, D] one step from every observed state, all steps in one batched integration (the
         equations have no latent state; each sample keeps its absolute start time and its own input interval).
-        Falls back to one step at a time for delayed effects (they read a history) and per-recording drives."""
-        b, n_t, n, d = x.shape
+        Falls back to one step at a time for delayed effects (they read a history) and per-recording drives. With
+        `outputs:`, the step is of the states and the outputs are read at each step's end."""
+        if self._by_rollouts(t):
+            return one_step_by_rollouts(self, x, t, inputs)
+        if self.output_field is not None:
+            xs = self._one_step(x[..., : self.spec.state_dim], t, inputs)
+            return torch.cat([xs, self.outputs_of(xs, t[1:], _after_first(inputs))], dim=-1)
+        return self._one_step(x, t, inputs)
+
+    def _by_rollouts(self, t: torch.Tensor) -> bool:  # t: [T] times
+        """Whether one steps are taken one at a time (a grid that is not uniform, delayed effects: they read a
+        history, per-recording drives, a drifting parameter in a neighbour sum) rather than in one batch."""
         dts = t[1:] - t[:-1]
-        uniform = n_t > 1 and bool((dts - dts[0]).abs().max() <= 1e-9 * dts[0].abs().clamp(min=1e-300))
+        uniform = t.numel() > 1 and bool((dts - dts[0]).abs().max() <= 1e-9 * dts[0].abs().clamp(min=1e-300))
         special = min_delay(self.effects) > 0 or any(type(e).__name__ == "PhasedDrive" for e in self.effects)
         special = special or bool(self.drifts() and self.field.uses_graph)  # a [M, 1] parameter in a neighbour sum
-        if not uniform or special:
-            return one_step_by_rollouts(self, x, t, inputs)
+        return not uniform or special
+
+    def _one_step(
+        self,
+        x: torch.Tensor,  # [B, T, N, D_s] states (raw units)
+        t: torch.Tensor,  # [T] times
+        inputs: Inputs,  # the data's graph, controls [B, T, N, C] on the grid t, meta
+    ) -> torch.Tensor:
+        """[B, T−1, N, D_s] `one_step` of the spec's states."""
+        b, n_t, n, d = x.shape
+        dts = t[1:] - t[:-1]
         x0 = x[:, :-1].reshape(b * (n_t - 1), n, d)
         offset = t[:-1].to(x).repeat(b)[:, None]  # [B·(T−1), 1]
         edge_index = inputs.edge_index
@@ -396,3 +449,8 @@ def _short(v: torch.Tensor) -> str:
     flat = v.detach().flatten().tolist()
     body = ", ".join(f"{x:.4g}" for x in flat[:8]) + (", ..." if len(flat) > 8 else "")
     return f"[{body}]"
+
+
+def _after_first(inputs: Inputs) -> Inputs:
+    """`inputs` without their first sample (the controls at the ends of one-step intervals)."""
+    return replace(inputs, u=None if inputs.u is None else inputs.u[:, 1:])

@@ -5,8 +5,9 @@ started it (RMSE in the signal's units, NRMSE, fit %).
 Two steps, both batched over the records:
 
 - **The start.** The measured states come from the first sample; the latent ones (``Trajectories.latent_index``)
-  start at the data's estimate and are then fitted to the first `init_samples` samples of the measured channels
-  (Levenberg–Marquardt, the model fixed: a state estimate, not a parameter fit). The default `init_samples` is
+  start at the data's estimate (those only the model can estimate, ``meta['pending']``: its smoother over the first
+  `init_samples` samples alone, `mpsim.models.latent`) and are then fitted to the first `init_samples` samples of
+  the measured channels (Levenberg–Marquardt, the model fixed: a state estimate, not a parameter fit). The default `init_samples` is
   what the latent states need, 1 + 2·(latent states per node), at least 3 (1 when every state is measured), and
   the summary states it.
 - **The run.** Simulated in chunks of `chunk` samples, all chunks of all records in one batched rollout, each from
@@ -31,6 +32,7 @@ from mpsim.data.trajectories import Inputs, Trajectories
 from mpsim.errors import ConfigError, DivergenceError
 from mpsim.models.base import Model
 from mpsim.models.capabilities import LatentState
+from mpsim.models.latent import estimate_pending
 from mpsim.solvers.odeint import ODESolver
 
 #: samples per chunk of a chunked free run
@@ -126,6 +128,11 @@ def score_record(
 def _start(model: Model, data: Trajectories, n: int) -> torch.Tensor:  # -> [R, N, D]
     """Every record's initial state: measured states from its first sample, latent ones fitted to its first `n`
     samples by Levenberg–Marquardt (batched over records; finite differences, one rollout per iteration)."""
+    if data.meta.get("pending"):  # latent states only the model can estimate: from the first n samples alone
+        first = replace(
+            data, t=data.t[: max(n, 2)], x=data.x[:, : max(n, 2)], u=None if data.u is None else data.u[:, : max(n, 2)]
+        )
+        data = replace(data, x=torch.cat([estimate_pending(model, first).x.to(data.x), data.x[:, max(n, 2) :]], dim=1))
     x0 = data.x[:, 0].clone()
     latent, observed = data.latent_index, data.observed_index
     if not latent or n < 2:

@@ -27,6 +27,12 @@ NUMERIC = (
 )
 
 
+def numeric_columns(frame: pd.DataFrame) -> list[str]:
+    """The metrics a report averages: `NUMERIC`, then the free-run scores of measured test records
+    (`freerun_<record>_<channel>_rmse` / `_fit`, `mpsim.report.runs.free_run_columns`)."""
+    return [c for c in NUMERIC if c in frame.columns] + [c for c in frame.columns if str(c).startswith("freerun_")]
+
+
 def add_epochs_to_target(frame: pd.DataFrame, target: str | float) -> float:
     """Add `epochs_to_target`: the first epoch (≥ 1) whose test error is at or below `target`.
 
@@ -64,7 +70,7 @@ def _sort_key(value: Any) -> tuple[int, float, str]:
 def aggregate(frame: pd.DataFrame, group_by: list[str]) -> pd.DataFrame:
     """Mean ± std of the numeric metrics over rows that share `group_by`, groups in the order of their values
     (numbers as numbers)."""
-    numeric = [c for c in NUMERIC if c in frame.columns]
+    numeric = numeric_columns(frame)
     rows = sorted(range(len(frame)), key=lambda i: [_sort_key(frame[c].iloc[i]) for c in group_by])
     grouped = frame.iloc[rows].groupby(group_by, dropna=False, sort=False)[numeric]
     mean, std = grouped.mean(), grouped.std()
@@ -84,7 +90,7 @@ def _pm(m: float, s: float) -> str:
 def plain_table(frame: pd.DataFrame, group_by: list[str], columns: list[str]) -> pd.DataFrame:
     """The plain report's table of `frame` (one row per run): rows grouped by `group_by` (default: every
     override that varies), metrics as mean ± std, only `columns` of them if given."""
-    fixed = {"run", "seed", "target_error", "status", *NUMERIC}
+    fixed = {"run", "seed", "target_error", "status", *numeric_columns(frame)}
     varying = [c for c in frame.columns if c not in fixed and not output_only(c) and frame[c].astype(str).nunique() > 1]
     group_by = group_by or varying
     if group_by:

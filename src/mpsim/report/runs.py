@@ -185,10 +185,28 @@ def _row(run: Path, facts: bool = False) -> dict[str, Any]:
         row["test_error"] = summary["test"].get("rmse")
     if isinstance(summary.get("test"), dict):
         row["test_error"] = summary["test"].get("rmse", row.get("test_error"))
+    row |= free_run_columns(summary.get("freerun"))
     if facts:
         row.update(run_facts(run, summary))
         row["settings"] = run_settings(run, summary)
     return row
+
+
+def free_run_columns(freerun: Any) -> dict[str, Any]:
+    """A run's free run of its test records (measured data), as report columns: per record and channel its RMSE
+    (raw units) and fit %, `freerun_<file stem>_<channel>_rmse` / `_fit`; none for a run without one."""
+    out: dict[str, Any] = {}
+    if not isinstance(freerun, dict) or not isinstance(freerun.get("records"), list):
+        return out
+    for rec in freerun["records"]:
+        if not isinstance(rec, dict) or not isinstance(rec.get("channels"), dict):
+            continue
+        stem = Path(str(rec.get("record", "record"))).stem
+        for channel, v in rec["channels"].items():
+            if isinstance(v, dict):
+                out[f"freerun_{stem}_{channel}_rmse"] = v.get("rmse")
+                out[f"freerun_{stem}_{channel}_fit"] = v.get("fit")
+    return out
 
 
 # ---- what a run is and what it ran with --------------------------------------------------------------------

@@ -46,24 +46,28 @@ class EquationField:
         spec: the parsed spec.
     """
 
-    def __init__(self, spec: Spec) -> None:
+    def __init__(self, spec: Spec, outputs: bool = False) -> None:
+        """`outputs`: compile the spec's `outputs` (what the sensors read) instead of its equations."""
         self.spec = spec
+        exprs, names, key = (
+            (spec.output_exprs, spec.outputs, "outputs") if outputs else (spec.rhs, spec.states, "equations")
+        )
         self.index = {s: i for i, s in enumerate(spec.states)}
         self.input_index = {s: i for i, s in enumerate(spec.inputs)}
         self.node_memo: dict[Any, tuple[int, Callable]] = {}
         self.edge_memo: dict[Any, Callable] = {}
         self.counts: dict[Any, int] = {}
-        for expr in spec.rhs:
+        for expr in exprs:
             for sub in sympy.preorder_traversal(expr):
                 self.counts[sub] = self.counts.get(sub, 0) + 1
-        self.uses_graph = any(e.has(SUM_NBR) or e.has(MEAN_NBR) or e.has(DEG) for e in spec.rhs)
-        self.matrices = sorted({str(a.args[0]) for e in spec.rhs for a in e.atoms(LIN)})
+        self.uses_graph = any(e.has(SUM_NBR) or e.has(MEAN_NBR) or e.has(DEG) for e in exprs)
+        self.matrices = sorted({str(a.args[0]) for e in exprs for a in e.atoms(LIN)})
         self.columns = []
-        for i, e in enumerate(spec.rhs):
+        for i, e in enumerate(exprs):
             try:
                 self.columns.append(self.node(e, i)[1])
             except ConfigError as err:
-                raise ConfigError(f"{spec.where}.equations.{spec.states[i]}: {err}") from None
+                raise ConfigError(f"{spec.where}.{key}.{names[i]}: {err}") from None
 
     def __call__(
         self,
@@ -73,7 +77,7 @@ class EquationField:
         graph: BatchedGraph | None = None,  # the B graphs flattened (needed for neighbour terms and deg)
         u: torch.Tensor | None = None,  # [B, N, C] the spec's inputs at time t (None: the spec has none)
     ) -> torch.Tensor:
-        """[B, N, D] dx/dt."""
+        """[B, N, D] dx/dt (or [B, N, P] the outputs, for a field of a spec's outputs)."""
         if self.uses_graph and graph is None:
             raise ConfigError("these equations have neighbour terms (sum_nbr, mean_nbr, deg) but no graph was given.")
         c = len(self.spec.inputs)

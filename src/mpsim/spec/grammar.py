@@ -82,8 +82,9 @@ class Parser:
             *ORDER_FUNCS,
         ]
 
-    def parse(self, state: str, text: Any) -> sympy.Expr:
-        self.at = f"{self.where}.equations.{state}"
+    def parse(self, state: str, text: Any, key: str = "equations") -> sympy.Expr:
+        """The expression `text` of `<where>.<key>.<state>` (messages name that key)."""
+        self.at = f"{self.where}.{key}.{state}"
         if isinstance(text, int | float) and not isinstance(text, bool):
             return sympy.Float(text) if isinstance(text, float) else sympy.Integer(text)
         if not isinstance(text, str) or not text.strip():

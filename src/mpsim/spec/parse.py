@@ -12,12 +12,13 @@ import sympy
 import torch
 
 from mpsim.errors import ConfigError, did_you_mean
-from mpsim.spec.grammar import NEIGHBOUR_SUFFIX, RESERVED, SHIFT, Parser, T
+from mpsim.spec.grammar import DEG, LIN, MEAN_NBR, NEIGHBOUR_SUFFIX, RESERVED, SHIFT, SUM_NBR, Parser, T
 
 #: spec keys every spec may have; systems add their own (initial ranges, graph, ...)
 MODEL_KEYS = (
     "states",
     "inputs",
+    "outputs",
     "equations",
     "params",
     "learnable",
@@ -62,6 +63,10 @@ class Spec:
         shift_boundary: what `shift(x, k)` reads at a node i + k beyond the ends (0..N−1): "wrap" (node
             (i + k) mod N, a ring), "edge" (the nearest end node's value) or a number; the spec's `shift_boundary`,
             else "wrap" when its graph is `ring`, else None (the spec uses no shift).
+        outputs: P names of what the sensors read (`outputs: {y: abs(s)}`), in the spec's order; the data's
+            measured columns of those names are compared with them, and a model's rollout appends them to its
+            states (the data's columns are the states, then the outputs).
+        output_exprs: one sympy expression per output, of the states, inputs, parameters and t.
     """
 
     states: tuple[str, ...]
@@ -74,10 +79,17 @@ class Spec:
     where: str = "model.spec"
     inputs: tuple[str, ...] = ()
     shift_boundary: str | float | None = None
+    outputs: tuple[str, ...] = ()
+    output_exprs: tuple[sympy.Expr, ...] = ()
 
     @property
     def state_dim(self) -> int:
         return len(self.states)
+
+    @property
+    def columns(self) -> tuple[str, ...]:
+        """The data's columns for this spec: its states, then its outputs."""
+        return (*self.states, *self.outputs)
 
     @property
     def input_dim(self) -> int:
@@ -85,8 +97,8 @@ class Spec:
 
     @property
     def uses_time(self) -> bool:
-        """Whether an equation reads the time `t` (a drive written into the spec)."""
-        return any(T in rhs.free_symbols for rhs in self.rhs)
+        """Whether an equation or an output reads the time `t` (a drive written into the spec)."""
+        return any(T in e.free_symbols for e in (*self.rhs, *self.output_exprs))
 
     def rates(self) -> dict[str, str]:
         """{s: o} for every equation ``o' = s`` that is another state (a velocity is the rate of a position):
@@ -214,7 +226,8 @@ def parse_spec(spec: Mapping[str, Any], where: str = "model.spec", extra_keys: S
     equations = _equations(spec.get("equations"), states, inputs, where)
     parser = Parser(states, params, where, inputs)
     rhs = tuple(parser.parse(s, equations[s]) for s in states)
-    shift_boundary = _shift_boundary(spec, states, rhs, where)
+    outputs, output_exprs = _outputs(spec.get("outputs"), parser, [*states, *inputs, *params], where)
+    shift_boundary = _shift_boundary(spec, [*states, *outputs], (*rhs, *output_exprs), where)
 
     learnable = list(params) if spec.get("learnable") is None else _names(spec.get("learnable"), "learnable", where)
     for name in learnable:
@@ -240,7 +253,38 @@ def parse_spec(spec: Mapping[str, Any], where: str = "model.spec", extra_keys: S
         where,
         tuple(inputs),
         shift_boundary,
+        tuple(outputs),
+        tuple(output_exprs),
     )
+
+
+def _outputs(outputs: Any, parser: Parser, taken: list[str], where: str) -> tuple[list[str], list[sympy.Expr]]:
+    """The spec's `outputs: {name: expression}`: what the sensors read, as expressions of the states, inputs,
+    parameters and t (neighbour sums are not allowed: an output is read at one node)."""
+    if outputs is None:
+        return [], []
+    if not isinstance(outputs, Mapping) or not outputs:
+        raise ConfigError(
+            f"{where}.outputs must map each measured name to what the sensor reads, e.g. outputs: {{y: abs(s)}}; got "
+            f"{outputs!r}."
+        )
+    names, exprs = [], []
+    for name, text in outputs.items():
+        _check_name(str(name), where, "output")
+        if name in taken:
+            raise ConfigError(
+                f"{where}.outputs.{name}: {name!r} is already a state, input or parameter; give the output a name "
+                "of its own (the file's column is mapped to it with data.columns)."
+            )
+        expr = parser.parse(str(name), text, key="outputs")
+        if any(expr.has(f) for f in (SUM_NBR, MEAN_NBR, DEG, LIN)):
+            raise ConfigError(
+                f"{where}.outputs.{name}: an output is what one node's sensor reads; neighbour terms (sum_nbr, "
+                "mean_nbr, deg, lin) are not allowed in it."
+            )
+        names.append(str(name))
+        exprs.append(expr)
+    return names, exprs
 
 
 def _equations(equations: Any, states: list[str], inputs: list[str], where: str) -> Mapping[str, Any]:
@@ -357,10 +401,13 @@ def check_nodes(spec: Spec, n_nodes: int, where: str) -> None:
 
 def check_states(spec: Spec, state_names: Sequence[str], where: str) -> None:
     """Refuse data whose per-node state names differ from the spec's (same names, same order)."""
-    names = list(state_names)
-    if names != list(spec.states):
-        if sorted(names) == sorted(spec.states):
+    names, want = list(state_names), list(spec.columns)
+    if names != want:
+        if sorted(names) == sorted(want):
             why = "the same names in another order; list states in the data's column order"
         else:
-            why = f"missing {[s for s in spec.states if s not in names]}, extra {[s for s in names if s not in spec.states]}"
-        raise ConfigError(f"{where}.states {list(spec.states)} do not match the data's states {names} ({why}).")
+            why = f"missing {[s for s in want if s not in names]}, extra {[s for s in names if s not in want]}"
+        if spec.outputs:
+            what = f"{where} states {list(spec.states)} and outputs {list(spec.outputs)}"
+            raise ConfigError(f"{what} do not match the data's columns {names} ({why}).")
+        raise ConfigError(f"{where}.states {want} do not match the data's states {names} ({why}).")
