@@ -198,3 +198,18 @@ def test_reading_a_file_too_large_for_memory_is_refused_with_the_advice_that_hel
     with pytest.raises(ResourceError, match=r"reading r.csv .*split the recording into several files.*data.stride"):
         read_recordings(tmp_path / "r.csv", Recordings(controls=["u"], segment=1.0))
     assert len(read_recordings(tmp_path / "r.csv", Recordings(controls=["u"], segment=1.0, memory_check=False))) == 30
+
+
+def test_an_input_held_otherwise_than_it_looks_is_warned_about(tmp_path, caplog):
+    t = 0.01 * np.arange(400)
+    staircase = np.repeat(np.sign(np.sin(np.arange(40))), 10)
+    _wide(tmp_path / "stairs.csv", t, np.sin(t), staircase, names=("t", "q", "u"))
+    _wide(tmp_path / "smooth.csv", t, np.sin(t), np.sin(20 * t), names=("t", "q", "u"))  # 31 samples a period
+    cases = [("stairs.csv", "linear", "is a staircase"), ("smooth.csv", "zoh", "changes smoothly at every sample"),
+             ("stairs.csv", "zoh", None), ("smooth.csv", "linear", None)]  # fmt: skip
+    for name, hold, said in cases:
+        caplog.clear()
+        with caplog.at_level("WARNING"):
+            read_recordings(tmp_path / name, Recordings(controls=["u"], segment=1.0, input_hold=hold))
+        warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+        assert (said is None and not warned) or (len(warned) == 1 and said in warned[0]), (name, hold, warned)

@@ -48,7 +48,7 @@ def test_a_test_file_trains_on_the_others_and_validates_on_their_end(tmp_path):
     )
     splits = load_splits(options, tmp_path, "float64")
     assert splits.records is not None and splits.records.meta["records"][0]["recording"].endswith("b.csv")
-    assert (len(splits.train), len(splits.val), len(splits.test)) == (8, 2, 1)  # a.csv's 10 segments: 0.7/0.15
+    assert (len(splits.train), len(splits.val), len(splits.test)) == (8, 2, 6)  # a.csv: 10 segments; b.csv: 6
     assert splits.test.meta["covers"] == "b.csv (0–6 s)"
 
 

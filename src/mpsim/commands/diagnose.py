@@ -79,7 +79,10 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
     job = prepare(cfg, "diagnose", output_dir, overrides, training=bool(cfg.fix))
     model, splits, ckpt = job.model, job.splits, job.checkpoint
     assert model is not None and splits is not None and ckpt is not None  # prepared with init= and data
-    check_heldout(len(splits.test), sum(splits.sizes().values()), list(cfg.data.split) if cfg.data.path else None)
+    if job.data.official:  # a benchmark's split: its test part is what it is
+        check_heldout_records(len(splits.test))
+    else:
+        check_heldout(len(splits.test), sum(splits.sizes().values()), list(cfg.data.split) if cfg.data.path else None)
     if isinstance(model, LatentState):
         model.latent_reset = cfg.trainer.window  # latent states (messages) were trained over windows this long
     log.info(
@@ -268,6 +271,18 @@ def check_heldout(n: int, total: int = 0, split: list[float] | None = None) -> N
         f"diagnose judges each candidate by its error gain on held-out trajectories, with a standard error taken "
         f"across them, and needs at least {MIN_HELDOUT}; {where}. {fix[0].upper() + fix[1:]}."
     )
+
+
+def check_heldout_records(n: int) -> None:
+    """Refuse a benchmark's test part (`data.test_path`, `data.test_range`) of fewer than `MIN_HELDOUT`
+    trajectories: diagnose judges on them and needs a spread."""
+    if n < MIN_HELDOUT:
+        raise DataError(
+            f"diagnose judges each candidate by its error gain on held-out trajectories, with a standard error taken "
+            f"across them, and needs at least {MIN_HELDOUT}; the test part (data.test_path / data.test_range) holds "
+            f"{n}. Give more test records or a shorter data.segment (the test records are cut into segments of "
+            "it), or diagnose with data.split instead."
+        )
 
 
 def summarise(job: Job, result: LoopResult, truths: list[dict[str, Any]], fix: bool) -> dict[str, Any]:

@@ -204,6 +204,8 @@ def one_recording(
     table = read_table(path, how)
     rec = to_recording(table, how.columns, _states_in_file(table, how), _controls(how), how.dtype_name)
     rec = replace(rec, meta={**rec.meta, "input_hold": how.input_hold, "noise": noise_summary(rec)})
+    for warning in hold_warnings(rec, how.input_hold):
+        log.warning(warning)
     digest = _digest(rec)
     if rows is not None:
         rec = take_rows(rec, rows)
@@ -270,6 +272,45 @@ def _observed_names(how: Recordings) -> list[str]:
     if how.observed:
         return list(how.observed)
     return list(how.outputs) if how.outputs else list(how.states or [])
+
+
+#: an input whose samples repeat the one before this often is a staircase (a DAC's held output)
+STAIRCASE_REPEATS = 0.5
+#: an input that repeats this seldom and whose second differences are under this share of its first is smooth;
+#: held zoh, its steps matter when one sample's change is over `COARSE` of its spread (under ~60 samples a period)
+SMOOTH_REPEATS, SMOOTH_RATIO, COARSE = 0.02, 0.5, 0.1
+
+
+def hold_warnings(rec: Trajectories, hold: str) -> list[str]:
+    """What the inputs of one recording as read say against `data.input_hold`: a staircase held `linear`
+    (interpolated across every step), or a smooth, band-limited signal sampled coarsely held `zoh` (a step at every
+    sample that a fast-sampled signal would not notice)."""
+    if rec.u is None or rec.n_times < 4:
+        return []
+    out = []
+    u = rec.u[0, :, 0].double()  # [T, C]
+    d1 = u[1:] - u[:-1]
+    repeats = (d1 == 0).double().mean(0)  # [C]
+    d2 = d1[1:] - d1[:-1]
+    step = d1.pow(2).mean(0).sqrt()
+    ratio = d2.pow(2).mean(0).sqrt() / step.clamp_min(1e-300)
+    coarse = step / u.std(0).clamp_min(1e-300)
+    source = Path(str(rec.meta.get("source"))).name
+    for c, name in enumerate(rec.control_names):  # a loop over the few inputs
+        if hold == "linear" and float(repeats[c]) > STAIRCASE_REPEATS:
+            out.append(
+                f"{source}: input '{name}' is a staircase ({100 * float(repeats[c]):.0f} % of its samples repeat the "
+                "one before), but data.input_hold=linear interpolates across every step. A held (DAC) output is "
+                "data.input_hold=zoh."
+            )
+        smooth = float(repeats[c]) < SMOOTH_REPEATS and float(ratio[c]) < SMOOTH_RATIO
+        if hold == "zoh" and smooth and float(coarse[c]) > COARSE:
+            out.append(
+                f"{source}: input '{name}' changes smoothly at every sample (band-limited: second differences "
+                f"{float(ratio[c]):.2f} of its first), but data.input_hold=zoh makes it a step at every sample. A "
+                "sampled smooth signal is data.input_hold=linear."
+            )
+    return out
 
 
 def _digest(rec: Trajectories) -> str:

@@ -3,8 +3,9 @@ range within the records (`data.train_range`, `data.val_range`, `data.test_range
 as the file has them, before `data.resample` / `data.stride`).
 
 Training data are cut into segments (`data.segment`) as usual. The test records are kept whole
-(`Splits.records`), for free-run evaluation from their first samples to their end; the test split the trainer
-scores every epoch holds the same records whole when they share a length, else their segments. Validation comes
+(`Splits.records`), for free-run evaluation from their first samples to their end; the test split scored every
+epoch (and held out by `mpsim diagnose`) holds their segments, or the records whole when they are shorter than a
+segment and share a length. Validation comes
 from `data.val_range`; else, with `data.test_path` and no ranges, from the end of `data.path`'s segments
 (`data.split`'s first two shares); else it is the training data itself, and the summary says so.
 """
@@ -87,15 +88,17 @@ def official_splits(
 
 
 def _test_batch(pieces: list[Trajectories], entries: list[dict[str, Any]], path: Path, how: Recordings) -> Trajectories:
-    """The test split the trainer scores: the test records whole when they share a length, else their segments."""
+    """The test split scored every epoch (and held out by `mpsim diagnose`): the test records' segments of
+    `data.segment`; the records whole when they are shorter than a segment (or none is given) and share a length."""
     same = len({p.n_times for p in pieces}) == 1
-    if not same and how.segment is None:
+    fits = how.segment is not None and any(float(p.t[-1] - p.t[0]) >= how.segment for p in pieces)
+    if not same and not fits:
         lengths = {Path(str(p.meta.get("source"))).name: p.n_times for p in pieces}
         raise DataError(
             f"the test records differ in length {lengths} (samples); give data.segment=<seconds> so that their "
             "windows can be scored every epoch (free-run evaluation still simulates each record whole)."
         )
-    return batch_of(pieces, entries, path, how, "test", whole=same)
+    return batch_of(pieces, entries, path, how, "test", whole=not fits)
 
 
 def records_covers(entries: Sequence[dict[str, Any]]) -> str:
