@@ -11,8 +11,8 @@ model is built, `estimate_pending` runs the smoother on every trajectory (segmen
   show (``meta['noise']``: level and quantisation step) as R;
 - the process noise Q is diagonal, each state's share scaled by its spread in a nominal run of the model, and its
   overall scale chosen by the measurements' likelihood (`choose_process_noise`);
-- a record longer than `MAX_SAMPLES` is smoothed over its first `MAX_SAMPLES` samples (what starts a free run),
-  its other samples keeping the nominal run from there.
+- a trajectory longer than `MAX_SAMPLES` is smoothed over its first `MAX_SAMPLES` samples, its other samples
+  taking the nominal run from there (a window of a long record is fitted on its own measured samples later).
 
 The estimate replaces the zeros, and ``meta['estimated']`` says how, with the smoother's mean spread (1σ) per state.
 """
@@ -24,7 +24,7 @@ from typing import Any
 
 import torch
 
-from mpsim.data.trajectories import Inputs, Trajectories
+from mpsim.data.trajectories import Trajectories
 from mpsim.errors import ConfigError, DivergenceError
 from mpsim.estimate import choose_process_noise
 from mpsim.models.base import Model
@@ -64,7 +64,7 @@ def estimate_pending(model: Model, data: Trajectories, iterations: int = 2) -> T
         start = x[:, length - 1].clone()
         start[..., cols] = mean[:, -1]
         with torch.no_grad():
-            tail = model.rollout(start, part.t[length - 1 :] - part.t[length - 1], _inputs(part, length - 1))
+            tail = model.rollout(start, part.t[length - 1 :] - part.t[length - 1], part.inputs(length - 1))
         x[:, length:, :, index] = tail[:, 1:, :, index]
     spread = {s: float(std[..., spec.states.index(s)].mean()) for s in pending}
     how = {
@@ -75,10 +75,6 @@ def estimate_pending(model: Model, data: Trajectories, iterations: int = 2) -> T
     meta = {**data.meta, "estimated": {**data.meta.get("estimated", {}), **how}, "spread": spread}
     meta.pop("pending", None)
     return replace(data, x=x.to(data.x.dtype).cpu(), meta=meta)
-
-
-def _inputs(data: Trajectories, start: int, stop: int | None = None) -> Inputs:
-    return data.inputs(start, stop)
 
 
 def _smooth(model: Model, data: Trajectories, length: int, n_states: int, iterations: int) -> tuple[Any, float]:
