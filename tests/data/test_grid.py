@@ -85,3 +85,16 @@ def test_uniform_or_refuse_snaps_small_jitter_and_refuses_a_gap():
         r"data.resample=<dt>, e.g. data.resample=0.002 \(the median step\)\.",
     ):
         uniform_or_refuse(_rec(gap, np.arange(100.0)))
+
+
+def test_stride_averages_an_input_held_zoh_over_the_samples_each_kept_one_stands_for():
+    # a closed-loop input that changes every sample: picking every 3rd value would replay another input than the
+    # one applied; the mean over each block of 3 applies the same impulse over the coarse step
+    u = np.array([1.0, 2.0, 6.0, 0.0, 3.0, 3.0, -3.0, 0.0, 0.0, 9.0])
+    rec = _rec(np.arange(10) * 0.1, np.arange(10.0), u=u)
+    out = stride(rec, 3, hold="zoh")
+    assert out.u[0, :, 0, 0].tolist() == pytest.approx([3.0, 2.0, -1.0, 9.0])  # the last block holds one sample
+    assert out.x[0, :, 0, 0].tolist() == [0.0, 3.0, 6.0, 9.0] and out.meta["input_averaged"] == 3
+    # the impulse over every whole block is the fine input's
+    assert float(out.u[0, :3, 0, 0].sum() * 0.3) == pytest.approx(float(u[:9].sum() * 0.1))
+    assert stride(rec, 3, hold="linear").u[0, :, 0, 0].tolist() == [1.0, 0.0, -3.0, 9.0]  # band-limited: picked

@@ -20,9 +20,11 @@ from typing import Any
 import torch
 from omegaconf import DictConfig
 
+from mpsim import plotting
 from mpsim.commands.building import Shape, build, build_model_for
 from mpsim.commands.prepare import Job, prepare
 from mpsim.commands.runtime import Runtime
+from mpsim.commands.scoring import EvalOptions, eval_options
 from mpsim.config import plain_dict
 from mpsim.console import print_summary
 from mpsim.data.account import data_record
@@ -36,6 +38,7 @@ from mpsim.errors import ConfigError, DataError, DivergenceError
 from mpsim.files import atomic_write, write_json
 from mpsim.models.base import Model
 from mpsim.models.capabilities import LatentState
+from mpsim.models.freerun import free_run, summary_of
 from mpsim.solvers.odeint import ODESolver
 from mpsim.training.checkpoint import checkpoint_base, save_checkpoint
 
@@ -107,14 +110,15 @@ def run_diagnose(cfg: DictConfig, output_dir: str | Path | None = None, override
             job.runtime.output_dir / "diagnosis.json", {"task": "diagnose", "init": ckpt["path"], "error": str(err)}
         )
         raise
-    return write_diagnosis(job, result, bool(cfg.fix))
+    return write_diagnosis(job, result, bool(cfg.fix), eval_options(cfg.eval))
 
 
-def write_diagnosis(job: Job, result: LoopResult, fix: bool) -> dict[str, Any]:
+def write_diagnosis(job: Job, result: LoopResult, fix: bool, options: EvalOptions | None = None) -> dict[str, Any]:
     """diagnosis.json, diagnosis.md and plots/ of a finished loop, and the summary box."""
     splits, out_dir = job.splits, job.runtime.output_dir
     assert splits is not None
     out = summarise(job, result, true_effects(job), fix)
+    out["freerun"] = free_run_before_after(job, result, options or EvalOptions())
     report.plots(result, splits.test.t, out_dir)
     write_json(out_dir / "diagnosis.json", out)
     atomic_write(out_dir / "diagnosis.md", lambda f: f.write(report.markdown(out)), mode="w")
@@ -283,6 +287,59 @@ def check_heldout_records(n: int) -> None:
             f"{n}. Give more test records or a shorter data.segment (the test records are cut into segments of "
             "it), or diagnose with data.split instead."
         )
+
+
+def free_run_before_after(job: Job, result: LoopResult, options: EvalOptions) -> dict[str, Any] | None:
+    """The field's yardstick on the held-out records (measured data; None for simulated data): each whole held-out
+    record free-run from its first samples to its end, open loop with its measured input, by the model as given
+    and by the model handed back (when the loop returned another): RMSE in the signal's units and fit % per record
+    and measured channel, and a plot of the first record's two runs."""
+    records = job.splits.records if job.splits is not None else None
+    if records is None or not records.observed_index or job.model is None:
+        return None
+    models = {"before": job.model}
+    if result.model is not None and result.model is not job.model and result.after is not None:
+        models["after"] = result.model
+    runs = {}
+    for key, model in models.items():  # the two models
+        try:
+            runs[key] = free_run(model, records, options.init_samples, substeps=options.freerun_substeps)
+        except DivergenceError as err:
+            log.warning(f"the free run of the model {key} the fix failed: {err}")
+    if not runs:
+        return None
+    summaries = {key: summary_of(run, records) for key, run in runs.items()}
+    first = summaries[next(iter(summaries))]
+    rows = []
+    for r, rec in enumerate(first["records"]):  # a loop over the few held-out records
+        for channel in rec["channels"]:
+            row: dict[str, Any] = {"record": rec["record"], "t0": rec.get("t0"), "channel": channel}
+            for key, summ in summaries.items():
+                scores = summ["records"][r]
+                row[f"{key}_rmse"] = math.nan if scores["diverged"] else scores["channels"][channel]["rmse"]
+                row[f"{key}_fit"] = math.nan if scores["diverged"] else scores["channels"][channel]["fit"]
+            rows.append(row)
+    if options.plots:
+        lengths = [int(r["length"]) for r in first["records"]]
+        channels = records.observed_index
+        n, names = lengths[0], [records.state_names[d] for d in channels]
+        t0 = float(first["records"][0].get("t0") or 0.0)
+        for key, run in runs.items():  # before and after
+            plotting.free_run(
+                records.t[:n] - records.t[0] + t0,
+                records.x[0, :n, 0][:, channels],
+                run.pred[0, :n, 0][:, channels],
+                names,
+                run.init_samples,
+                job.runtime.output_dir / "plots" / f"free_run_{key}.png",
+                title=f"free run of the held-out record, model {'as given' if key == 'before' else 'with the fix'}",
+            )
+    return {
+        "init_samples": first["init_samples"],
+        "init_samples_given": options.init_samples is not None,
+        "substeps": options.freerun_substeps,
+        "rows": rows,
+    }
 
 
 def summarise(job: Job, result: LoopResult, truths: list[dict[str, Any]], fix: bool) -> dict[str, Any]:

@@ -48,6 +48,10 @@ def _grid(account: Mapping[str, Any]) -> str:
         parts.append(f"resampled every {account['resample']:g} s")
     if int(account.get("stride") or 1) > 1:
         parts.append(f"every {account['stride']}th sample kept (data.stride)")
+        if account.get("inputs") and account.get("input_hold") == "zoh":
+            parts.append(
+                f"the input{_s(len(account['inputs']))} averaged over each {account['stride']} samples (held zoh)"
+            )
     return ", ".join(parts)
 
 

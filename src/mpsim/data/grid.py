@@ -71,8 +71,14 @@ def _linear(a: torch.Tensor, left: torch.Tensor, right: torch.Tensor, weight: to
     return a[:, left] * (1 - w) + a[:, right] * w
 
 
-def stride(rec: Trajectories, k: int) -> Trajectories:
-    """Every `k`-th sample of `rec`, the first kept (`data.stride=<k>`); `meta['dt']` becomes k times the step."""
+def stride(rec: Trajectories, k: int, hold: str = "linear") -> Trajectories:
+    """Every `k`-th sample of `rec`, the first kept (`data.stride=<k>`); `meta['dt']` becomes k times the step.
+
+    An input held zero-order (`hold="zoh"`, as a DAC holds it) is not picked but averaged over the k samples each
+    kept one stands for: the plant felt every one of them, and the mean over [t_j, t_j+k) held for the coarse step
+    applies the same impulse. Picking every k-th value of a closed-loop input that changes every sample would
+    replay another input than the one applied (a 1 kHz positioning axis at data.stride=10: the right model left
+    a held-out error 10⁴× its null level). An input held `linear` (band-limited, sampled finely) is picked."""
     if isinstance(k, bool) or not isinstance(k, int) or k < 1:
         raise ConfigError(f"data.stride must be a whole number >= 1 (keep every k-th sample); got {k!r}.")
     if k == 1:
@@ -85,7 +91,14 @@ def stride(rec: Trajectories, k: int) -> Trajectories:
     t = rec.t[::k]
     dt = float(torch.median(t[1:] - t[:-1]))
     meta = {**rec.meta, "dt": dt, "stride": k * int(rec.meta.get("stride", 1))}
-    return replace(rec, t=t, x=rec.x[:, ::k], u=None if rec.u is None else rec.u[:, ::k], meta=meta)
+    fine = rec.u
+    u = None if fine is None else fine[:, ::k]
+    if fine is not None and u is not None and hold == "zoh":
+        block = torch.arange(fine.shape[1]) // k  # the kept sample each fine sample belongs to
+        total = torch.zeros_like(u).index_add_(1, block, fine)
+        u = total / torch.bincount(block, minlength=u.shape[1]).to(u.dtype)[None, :, None, None]
+        meta["input_averaged"] = k
+    return replace(rec, t=t, x=rec.x[:, ::k], u=u, meta=meta)
 
 
 def uniform_fit(t: torch.Tensor) -> tuple[torch.Tensor, float, int]:  # t: [T] strictly increasing times

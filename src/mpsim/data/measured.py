@@ -242,7 +242,7 @@ def one_recording(
             continue
         piece = resample(piece, how.resample, how.input_hold) if how.resample else uniform_or_refuse(piece)
         if how.stride != 1:
-            piece = stride(piece, how.stride)
+            piece = stride(piece, how.stride, how.input_hold)
         part["samples"] = piece.n_times
         out.append(_with_latent(piece, how))
     entry["pieces"].sort(key=lambda part: part["piece"])
@@ -407,6 +407,7 @@ def batch_of(
         "segment": batch.meta.get("segment"),
         "resample": how.resample,
         "stride": how.stride,
+        "input_hold": how.input_hold,
         "inputs_from_spec": bool(not how.controls and how.inputs),
         "inputs": _controls(how),
     }

@@ -19,6 +19,7 @@ Verdicts (each with its numbers; distinct exit codes):
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -28,7 +29,14 @@ from mpsim.data.trajectories import Trajectories
 from mpsim.diagnose.findings import Diagnosis, Finding
 from mpsim.diagnose.library import Candidate
 from mpsim.diagnose.params import DiagnoseParams
-from mpsim.diagnose.shooting import horizon_from_data, null_data, own_parameters, shooting_fit, window_error
+from mpsim.diagnose.shooting import (
+    heldout_errors,
+    horizon_from_data,
+    null_data,
+    own_parameters,
+    shooting_fit,
+    window_error,
+)
 from mpsim.diagnose.trial import FAILED, NOT_TESTED, Trial, TrialSetting, try_candidate
 from mpsim.errors import ConfigError, did_you_mean
 from mpsim.models.base import Model
@@ -136,14 +144,51 @@ def _judge(
     horizon = s.horizon  # no longer than the refit model tracks its own noisy data (`_null_twin`)
     e_base, e_null = float(s.e_base.mean()), float(s.e_null.mean())
     floor = null_floor(s)
-    if e_base <= floor:  # at the null level: nothing to test
+    inflated = inflated_null(s, diag.noise_std)
+    if e_base <= floor and not inflated:  # at the null level: nothing to test
         return Judgement(NOTHING_MISSING, horizon, given, e_base, e_null, e_base, 0.0, [], s.base, [])
     if not test_candidates:
         note = "candidates are tested by finetuning the model with each one against the same finetune without it"
         return Judgement(UNEXPLAINED, horizon, given, e_base, e_null, e_base, 0.0, [], s.base, [note])
     current, e_current, trials = _add_greedily(s, _ranked(diag, library, params))
     out = _verdict(s, given, floor, current, e_current, trials)
+    if out.verdict == NOTHING_MISSING and inflated:  # complete only where the sensor's noise would allow it
+        out = replace(out, verdict=UNEXPLAINED, notes=[*out.notes, inflated])
     return replace(out, notes=out.notes + failed_note(trials))
+
+
+#: *nothing missing* with unmeasured states needs the held-out MSE within this factor of what the measured channels'
+#: noise allows (their noise variance, normalised), unless the null level itself is that low
+NOISE_FLOOR_FACTOR = 4.0
+
+
+def inflated_null(s: TrialSetting, noise_std: list[float]) -> str:
+    """Why the null level cannot back a claim of completeness ("" when it can). With unmeasured states every window's
+    latent start is estimated from its own samples, on the null data as on the data: the null level then holds the
+    estimator's error too, and a missing effect smaller than that error hides under it (an oscillator at 8.5
+    samples a period: a missing cubic that changes the output 30× the noise, held-out MSE 8.4e-4 against a null
+    level of 4.3e-4). *Nothing missing* then needs the refit model's held-out MSE within `NOISE_FLOOR_FACTOR` of the
+    measured channels' noise variance (normalised; the data's estimate) or below `tolerance`; fully measured data
+    keep the null level (there it is the noise, or a chaotic system's own divergence)."""
+    observed = s.test.observed_index
+    if len(observed) == s.test.state_dim or not noise_std:
+        return ""
+    std = s.base.state_std.detach().double().cpu().reshape(-1)
+    parts = [(noise_std[d] / float(std[d])) ** 2 for d in observed if d < len(noise_std) and d < len(std)]
+    if not parts:
+        return ""
+    noise = sum(parts) / len(parts)
+    e_base, e_null = float(s.e_base.mean()), float(s.e_null.mean())
+    bar = max(NOISE_FLOOR_FACTOR * noise, s.params.tolerance**2)
+    if e_null <= bar or e_base <= bar:
+        return ""
+    return (
+        f"not *nothing missing*: the refit model's held-out MSE {e_base:.3g} is near the null level {e_null:.3g}, but "
+        f"that level is {e_null / max(noise, 1e-300):.3g}× the measured channels' noise ({noise:.3g}, normalised): "
+        "each window's unmeasured start is estimated from its own samples, and that estimate's error sets the null "
+        "level here, so an effect smaller than it cannot be seen. Nothing is claimed; longer windows "
+        "(diagnose.horizon) or a better-sampled record would tell"
+    )
 
 
 def failed_note(trials: list[Trial]) -> list[str]:
@@ -176,12 +221,12 @@ def _levels(
     shooting_fit(base, train, min(horizon, params.fit_window), own_parameters(base), params.shooting_iters, False)
     horizon, null_train = _null_twin(base, train, noise, horizon, params, seed + 11)
     given = float(window_error(model, test, horizon).mean())
-    e_base = window_error(base, test, horizon)
+    e_base = heldout_errors(base, test, horizon)
     if not float(e_base.mean()) <= given:  # the refit never makes the starting point worse
-        base, e_base = copy.deepcopy(model), window_error(model, test, horizon)
+        base, e_base = copy.deepcopy(model), heldout_errors(model, test, horizon)
         null_train = null_data(base, train, noise, seed + 11, segment=horizon)
     null_test = null_data(base, test, noise, seed + 12, segment=horizon)
-    e_null = window_error(base, null_test, horizon)
+    e_null = heldout_errors(base, null_test, horizon)
     setting = TrialSetting(base, e_base, e_null, train, test, null_train, null_test, horizon, params, diag.state_names)
     return setting, given
 
@@ -226,18 +271,46 @@ def _ranked(diag: Diagnosis, library: list[Candidate], params: DiagnoseParams) -
     × searched rows. Each harmonic k of a phase coupling counts as a kind of its own (`Candidate.family`): the
     second harmonic of a sin coupling gets its trial even where the first explains more of the one-step
     residual. A delayed copy of a state imitates many terms within a step and needs the slow delay
-    integrator: delayed candidates are tried only when none of the others passes."""
+    integrator: delayed candidates are tried only when none of the others passes. On a row whose one-step residual
+    is noise-dominated (`noise_dominated`: a differentiated residual of sparse or noisy samples, where a missing
+    term explains a few percent) every kind's best candidate is tried, whatever share it explains: multiple
+    shooting on held-in windows and the held-out error see what the differentiated residual hides."""
     labels = {c.label(diag.state_names): c for c in library}
     best: dict[tuple[tuple[str, int], int], Finding] = {}  # one per (kind and harmonic, row)
+    noisy = noise_dominated(diag)
     for f in sorted(diag.findings, key=lambda f: (not f.accepted, not f.selected, -f.gain)):
         cand = labels.get(f.label.split(": ", 1)[1])
-        if cand is not None and (f.selected or f.alone >= params.min_gain):
+        if cand is not None and (f.selected or f.alone >= params.min_gain or (f.target in noisy and f.alone > 0)):
+            if (cand.family, f.target) not in best and not f.selected and f.alone < params.min_gain:
+                f.reason = f.reason.replace(
+                    ": not tested on held-out data",
+                    ": tested on held-out data all the same, as its row's one-step residual is noise-dominated "
+                    f"(RMS within {NOISE_DOMINATED:g}× the null data's)",
+                )
             best.setdefault((cand.family, f.target), f)
     plain = [f for f in best.values() if f.kind != "DelayedFeedback"]
     delayed = [f for f in best.values() if f.kind == "DelayedFeedback"]
     pending = [(f, labels[f.label.split(": ", 1)[1]]) for f in plain]
     later = [(f, labels[f.label.split(": ", 1)[1]]) for f in delayed]
     return (later, []) if not pending else (pending, later)
+
+
+#: a row's one-step residual is noise-dominated when its RMS is at most this many times the null data's (the
+#: model's own simulation with the data's noise, differenced the same way): what the residual shows there is noise
+NOISE_DOMINATED = 1.5
+
+
+def noise_dominated(diag: Diagnosis) -> set[int]:
+    """The searched rows whose one-step residual is noise-dominated (`NOISE_DOMINATED`)."""
+    names = list(diag.state_names)
+    rows = [names.index(n) for n in diag.searched] if diag.searched else range(len(names))
+    return {
+        d
+        for d in rows
+        if d < len(diag.residual_rms)
+        and d < len(diag.null_rms)
+        and diag.residual_rms[d] <= NOISE_DOMINATED * diag.null_rms[d]
+    }
 
 
 def _add_greedily(s: TrialSetting, ranked: Ranked) -> tuple[Model, torch.Tensor, list[Trial]]:
@@ -278,21 +351,29 @@ def _add_greedily(s: TrialSetting, ranked: Ranked) -> tuple[Model, torch.Tensor,
 def _greedy(
     s: TrialSetting, pending: list[tuple[Finding, Candidate]], later: list[tuple[Finding, Candidate]]
 ) -> tuple[Model, torch.Tensor, list[Trial]]:
-    """Each candidate is first tried alone on the refit model; the best passing one is added — the simplest kind
-    among those within `SIMPLER_WITHIN` of the best held-out error or at the null level (`null_floor`: below it
-    the difference between them is noise) — and the rest are tried again on top of it, unless it brought the
-    error to the null level: (the model with the added candidates, [B] its held-out MSE, every trial). A more
-    complex kind set aside so is reported as indistinguishable from the simpler one on these data."""
-    current, e_current, trials = s.base, s.e_base, []
+    """Forward selection on held-out data: each candidate is first tried alone on the refit model; the best passing
+    one is added — the simplest kind among those within `SIMPLER_WITHIN` of the best held-out error or at the null
+    level (`null_floor`: below it the difference between them is noise) — and every other candidate that was
+    tested (passing or not: a second effect can be invisible until the first is in, an output offset under a
+    cubic stiffness) is tried again on top of it, until none passes or the error is at the null level: (the model
+    with the added candidates, its held-out errors, every candidate's last trial, the added ones in the order
+    they were added). A candidate whose trial failed numerically, or that could not be tested, is not tried
+    again. A more complex kind set aside for an equivalent simpler one is reported as indistinguishable from it
+    on these data."""
+    current, e_current = s.base, s.e_base
     floor = null_floor(s)
     aside: dict[int, str] = {}  # id of a finding -> why its kind was set aside for a simpler, equivalent one
+    last: dict[int, Trial] = {}  # id of a finding -> its latest trial (not added)
+    added: list[Trial] = []
     while pending:
         tried = [(f, c, *try_candidate(s, current, e_current, c, f)) for f, c in pending]
         passing = [t for t in tried if t[2].accepted]
-        for t in tried:  # tried again on top of the simpler kind it was indistinguishable from, and failed
-            if not t[2].accepted and id(t[0]) in aside:
+        for t in tried:
+            if not t[2].accepted and id(t[0]) in aside:  # tried again on top of its simpler equivalent, and failed
                 t[2].reason = aside[id(t[0])] + "; on top of it: " + t[2].reason
-        trials += [t[2] for t in tried if not t[2].accepted]
+            elif not t[2].accepted and added and id(t[0]) in last:
+                t[2].reason = f"tried again on top of {', '.join(a.label for a in added)}: " + t[2].reason
+            last[id(t[0])] = t[2]
         if not passing and later and current is s.base:
             pending, later = later, []
             continue
@@ -301,11 +382,13 @@ def _greedy(
         best_err = min(t[2].error_after for t in passing)
         close = [t for t in passing if t[2].error_after <= max(SIMPLER_WITHIN * best_err, floor)]
         chosen = min(close, key=lambda t: (t[1].complexity, t[2].error_after))  # k = 1 before higher harmonics
-        trials.append(chosen[2])
+        added.append(chosen[2])
+        last.pop(id(chosen[0]))
         for t in close:  # a more complex kind that predicts as well: the two are indistinguishable on these data
             if t[1].complexity > chosen[1].complexity:
                 aside[id(t[0])] = _indistinguishable_text(t[2], chosen[2], best_err, floor)
         current, e_current = chosen[3], chosen[4]
+        chosen[2].reason += f" (added {len(added)}{'st' if len(added) == 1 else 'nd' if len(added) == 2 else 'th'})"
         if chosen[2].kind == "PeriodicForcing" and "phases" in chosen[2].effect:
             e_current = torch.full_like(s.e_base, chosen[2].error_after)  # measured after the warm-up window
             break  # its phases belong to the held-in recordings: nothing more is added on top of it
@@ -317,16 +400,25 @@ def _greedy(
                         aside[id(t[0])]
                         if id(t[0]) in aside
                         else (
-                            f"passes alone, but {chosen[2].label} (the simplest kind at the null level or the best) "
+                            f"passes, but {chosen[2].label} (the simplest kind at the null level or the best) "
                             f"already brings the held-out MSE to {float(e_current.mean()):.3g}, at the null level "
                             f"(≤ {floor:.3g}): " + t[2].reason
                         )
                     )
-                    trials.append(t[2])
             break
-        # the others that passed alone are tried again on top of the chosen one
-        pending = [(t[0], t[1]) for t in passing if t is not chosen]
-    return current, e_current, trials
+        # every other tested candidate is tried again on top of the chosen one
+        pending = [(t[0], t[1]) for t in tried if t is not chosen and _retry(t[2])]
+    for rest in last.values():  # whatever was not added is not named, however its last trial scored
+        if rest.accepted:
+            rest.accepted = False
+            rest.reason = f"passes, but the selection stopped at {added[-1].label}: " + rest.reason
+    return current, e_current, added + list(last.values())
+
+
+def _retry(t: Trial) -> bool:
+    """Whether a candidate that was not added is tried again on top of the one that was: not when its trial failed
+    numerically or could not be run on these records."""
+    return not t.failure and not t.reason.startswith(NOT_TESTED) and not math.isnan(t.error_after)
 
 
 def _indistinguishable_text(other: Trial, chosen: Trial, best: float, floor: float) -> str:

@@ -47,7 +47,7 @@ def truth_text(truth: dict[str, Any]) -> str:
 
 def markdown(s: dict[str, Any]) -> str:
     """diagnosis.md from the summary dict `s` (diagnosis.json's content)."""
-    lines = _verdict_section(s) + _heldout_section(s["judgement"])
+    lines = _verdict_section(s) + _free_run_section(s.get("freerun")) + _heldout_section(s["judgement"])
     for k, f in enumerate(s["finetuned"], start=1):
         lines += _finetuned_section(k, f)
     lines += _screen_section(s["screen"]) + _fix_section(s) + _error_table(s["before"], s["after"] or {})
@@ -84,6 +84,36 @@ def _verdict_section(s: dict[str, Any]) -> list[str]:
         "",
     ]
     return lines + [f"- {n}" for n in j["notes"]] + _data_section(s["data"])
+
+
+def _free_run_section(free: dict[str, Any] | None) -> list[str]:
+    """The held-out records free-run by the model as given and by the model handed back (raw units)."""
+    if not free or not free.get("rows"):
+        return []
+    after = any("after_rmse" in r for r in free["rows"])
+    start = "eval.init_samples" if free.get("init_samples_given") else "what the latent states need"
+    lines = [
+        "",
+        "## Free run of the held-out records (RMSE in the signal's units)",
+        "",
+        f"Each held-out record simulated whole from its first {free['init_samples']} samples ({start}), open loop "
+        "with its measured input; scored after those samples. "
+        + (
+            "Before: the model as given; after: the model handed back with the named effects."
+            if after
+            else "The model as given (no fix was returned)."
+        ),
+        "",
+        "| record | channel | RMSE before | fit before | " + ("RMSE after | fit after |" if after else ""),
+        "|---|---|---|---|" + ("---|---|" if after else ""),
+    ]
+    for r in free["rows"]:
+        name = Path(str(r["record"])).name + (f" from {r['t0']:.4g} s" if isinstance(r.get("t0"), int | float) else "")
+        cells = [name, r["channel"], fmt(r["before_rmse"]), f"{r['before_fit']:.1f} %"]
+        if after:
+            cells += [fmt(r.get("after_rmse", math.nan)), f"{r.get('after_fit', math.nan):.1f} %"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
 
 
 def _data_section(data: dict[str, Any]) -> list[str]:
@@ -242,6 +272,9 @@ def summary_rows(s: dict[str, Any], out: Path) -> list[tuple[str, str]]:
             rows.append(("", t["test"]))
         if t.get("derived"):
             rows.append(("", t["derived"]))
+    for r in (s.get("freerun") or {}).get("rows", []):
+        after = f" → {fmt(r['after_rmse'])}" if "after_rmse" in r else ""
+        rows.append(("free run", f"{Path(str(r['record'])).name} {r['channel']}: RMSE {fmt(r['before_rmse'])}{after}"))
     rows += _level_rows(s)
     if s["verdict"] != EFFECTS_NAMED and s["verdict"] != NOTHING_MISSING:
         rows.append(("claim", "none: no candidate explains the structured residual"))

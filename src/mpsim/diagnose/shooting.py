@@ -93,6 +93,36 @@ def window_error(model: Model, data: Trajectories, length: int) -> torch.Tensor:
     return torch.where(torch.isfinite(err), err, torch.full_like(err, math.inf))
 
 
+@torch.no_grad()
+def window_errors(model: Model, data: Trajectories, length: int) -> torch.Tensor:
+    """[B, K] mean squared normalised error of every window of every trajectory on the measured states (inf for a
+    trajectory whose rollout failed): the units of the held-out test (`diagnose.stats.paired`), which weighs
+    windows of one record as dependent (`hac_mean`). Latent starts as `window_error`."""
+    model.eval()
+    try:
+        latent = fitted_latent(model, data, length)
+        res, mask = window_residuals(model, data, length, None if latent is None else latent.states(model, data))
+    except DivergenceError:
+        return torch.full((len(data), len(_starts(data.n_times, length))), math.inf, dtype=torch.float64)
+    sq = res.double().pow(2).mean(dim=(3, 4)) * mask.to(res.device)  # [B, K, L]
+    err = (sq.sum(dim=2) / mask.sum(dim=1).clamp(min=1).to(sq)).cpu()  # [B, K]
+    bad = ~torch.isfinite(err).all(dim=1, keepdim=True)  # a record whose rollout failed anywhere: inf throughout
+    return torch.where(bad, torch.full_like(err, math.inf), err)
+
+
+#: held-out records fewer than this are tested window by window (`window_errors`, the windows of a record dependent:
+#: `stats.hac_mean`); from this many on, one error per record (Student's t over them is already near the normal's)
+PER_WINDOW_BELOW = 8
+
+
+def heldout_errors(model: Model, data: Trajectories, length: int) -> torch.Tensor:
+    """The held-out test's errors: [B, K] per window (`window_errors`) when there are fewer than
+    `PER_WINDOW_BELOW` records, else [B] per record (`window_error`)."""
+    if len(data) < PER_WINDOW_BELOW:
+        return window_errors(model, data, length)
+    return window_error(model, data, length)
+
+
 def horizon_from_data(model: Model, data: Trajectories, threshold: float, above_first: float = 0.0) -> int:
     """Steps the model tracks the held-in data from their first states before its normalised rollout error
     exceeds `threshold`, or `above_first` × its error at the first step if that is larger (at least 2; the whole

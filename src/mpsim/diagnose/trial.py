@@ -21,13 +21,14 @@ from mpsim.diagnose.shooting import (
     NUMERICAL_FAILURES,
     ShootingFit,
     failure_text,
+    heldout_errors,
     null_data,
     own_parameters,
     shooting_fit,
     window_error,
     with_effect,
 )
-from mpsim.diagnose.stats import Paired, level_text, log_ratio, paired
+from mpsim.diagnose.stats import Paired, level_text, log_ratio, paired, units_text
 from mpsim.errors import DataError
 from mpsim.models.base import Model
 from mpsim.models.capabilities import Interpretable
@@ -68,6 +69,7 @@ class Trial:
     n_heldout: int = 0
     bar_se: float = math.nan
     failure: str = ""  # the numerical failure that ended its trial ("" when it was judged): `FAILED` reasons
+    heldout_over: str = ""  # what `n_heldout` counts, in words (recordings, or effective windows)
 
     def as_dict(self) -> dict[str, Any]:
         return {**self.__dict__, "test": self.test_text()}
@@ -79,8 +81,9 @@ class Trial:
         null = self.null_log_ratio if math.isfinite(self.null_log_ratio) else 0.0  # nan: not fitted to null data
         above = (self.log_ratio - max(null, 0.0)) / self.log_ratio_se
         return (
-            f"log error ratio {self.log_ratio:.3g} ± {self.log_ratio_se:.2g} over {self.n_heldout} held-out "
-            f"recordings: {above:.3g} standard errors above {max(null, 0.0):.3g} (bar {self.bar_se:.3g})"
+            f"log error ratio {self.log_ratio:.3g} ± {self.log_ratio_se:.2g} over "
+            f"{self.heldout_over or units_text(self.n_heldout)}: {above:.3g} standard errors above "
+            f"{max(null, 0.0):.3g} (bar {self.bar_se:.3g})"
         )
 
 
@@ -138,7 +141,7 @@ def _try_candidate(
     if phased:  # phases belong to recordings: held-out ones get theirs from a warm-up window
         e_current, e_after, _ = phased_heldout(current, trial, s.test, s.horizon, s.params.shooting_iters)
     else:
-        e_after = window_error(trial, s.test, s.horizon)
+        e_after = heldout_errors(trial, s.test, s.horizon)
     # the test is on log error ratios per held-out recording: errors differ by orders of magnitude between
     # recordings, a multiplicative improvement does not
     floor = max(float(s.e_null.mean()), 1e-14)
@@ -182,6 +185,7 @@ def _try_candidate(
         n_heldout=p.n,
         bar_se=p.bar,
         failure="; ".join(failure),
+        heldout_over=p.over,
     )
     return out, trial, e_after
 
@@ -248,10 +252,12 @@ def diverged_heldout(e_current: torch.Tensor, e_after: torch.Tensor) -> list[str
     """Why held-out rollouts that diverge with the candidate and not without it are its failure (empty: none do).
     ([B] held-out MSE per recording without and with it.)"""
     lost = torch.isfinite(e_current) & ~torch.isfinite(e_after)
+    if lost.dim() == 2:  # per window: a record is lost when any of its windows is
+        lost = lost.any(dim=1)
     if not bool(lost.any()):
         return []
     return [
-        f"{FAILED}: with it the held-out rollouts of {int(lost.sum())} of {len(e_after)} recordings diverge "
+        f"{FAILED}: with it the held-out rollouts of {int(lost.sum())} of {len(lost)} recordings diverge "
         "(they do not without it)"
     ]
 
@@ -265,7 +271,7 @@ def _null_gain(
     if current is not s.base:  # null data of the model the candidate is added to (its integrator included)
         noise = (null_train.x - null_train.x).new_zeros(null_train.state_dim)  # clean: the comparison is paired
         null_train, null_test = null_data(current, null_train, noise, 21), null_data(current, null_test, noise, 22)
-        e_null = window_error(current, null_test, s.horizon)
+        e_null = heldout_errors(current, null_test, s.horizon)
     # a phased drive carries one phase per fitted recording: the null records (window by window for short
     # horizons) get theirs from the same starting pairs, repeated
     null_coef = (coef * math.ceil(2 * len(null_train) / len(coef)))[: 2 * len(null_train)] if phased else coef
@@ -275,7 +281,7 @@ def _null_gain(
     if phased:
         before, after, _ = phased_heldout(current, null_trial, null_test, s.horizon, iters)
         return float((before - after).mean()), log_ratio(before, after, floor)[0]
-    null_after = window_error(null_trial, null_test, s.horizon)
+    null_after = heldout_errors(null_trial, null_test, s.horizon)
     return float((e_null - null_after).mean()), log_ratio(e_null, null_after, floor)[0]
 
 
@@ -303,7 +309,7 @@ def _failed_checks(p: Paired, null_log: float, excess: float, params: DiagnosePa
         (
             p.log_ratio > max(null_log, 0.0) + p.bar * p.log_ratio_se,
             f"held-out error ratio e^{p.log_ratio:.3g} (± {p.log_ratio_se:.2g} in log) is not above the null fit's "
-            f"e^{max(null_log, 0):.3g} + {p.bar:.3g} standard errors ({level_text(params.margin, p.n)})",
+            f"e^{max(null_log, 0):.3g} + {p.bar:.3g} standard errors ({level_text(params.margin, p.n, p.over)})",
         ),
         (
             p.gain >= params.min_gain * excess,
