@@ -227,3 +227,38 @@ def free_run(
     )
     axes[p, 0].legend(loc="upper right", fontsize=8)
     return save_figure(fig, Path(path))
+
+
+def effect_against_feature(
+    source: torch.Tensor,  # [S] the named effect's source state at each sample (raw units)
+    residual: torch.Tensor,  # [S] the model's one-step residual on the effect's row at those samples
+    term: torch.Tensor,  # [S] the fitted effect's term at those samples
+    xlabel: str,
+    ylabel: str,
+    path: str | Path,
+    title: str = "",
+    bins: int = 30,
+) -> Path:
+    """The residual against the named effect's own feature (force against position shows a cubic, against velocity
+    a sign change): each sample faint, the mean in `bins` quantile bins of the feature with its standard error (a
+    noise-dominated residual averages out there), and the fitted term over the same bins."""
+    ok = torch.isfinite(source) & torch.isfinite(residual) & torch.isfinite(term)
+    x, r, f = source[ok].double(), residual[ok].double(), term[ok].double()
+    fig, ax = subplots(figsize=(5.2, 3.6))
+    if x.numel() >= 2 * bins:
+        order = torch.argsort(x)
+        groups = torch.tensor_split(order, bins)
+        xm = torch.stack([x[g].mean() for g in groups]).numpy()  # the few bins
+        rm = torch.stack([r[g].mean() for g in groups]).numpy()
+        se = torch.stack([r[g].std() / math.sqrt(max(len(g), 1)) for g in groups]).numpy()
+        fm = torch.stack([f[g].mean() for g in groups]).numpy()
+        step = max(1, x.numel() // 4000)
+        ax.scatter(x[::step].numpy(), r[::step].numpy(), s=2, color="0.8", label="residual (samples)")
+        ax.errorbar(xm, rm, yerr=se, fmt="o", ms=3, color="tab:blue", label=f"residual, mean of {bins} bins ± se")
+        ax.plot(xm, fm, color="tab:red", label="the named effect (fitted)")
+        lo, hi = float(min(rm.min() - 3 * se.max(), fm.min())), float(max(rm.max() + 3 * se.max(), fm.max()))
+        pad = 0.15 * (hi - lo) if hi > lo else 1.0
+        ax.set_ylim(lo - pad, hi + pad)
+    ax.set(xlabel=xlabel, ylabel=ylabel, title=title)
+    ax.legend(fontsize=7)
+    return save_figure(fig, Path(path))

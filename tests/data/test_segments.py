@@ -108,3 +108,8 @@ def test_covers_merges_contiguous_segments_only():
     entries = [{"recording": "a.csv", "t0": t} for t in (0.0, 1.0, 3.0)]
     assert covers(entries, 1.0) == "a.csv 0–2 s, a.csv 3–4 s"
     assert covers([], 1.0) == "nothing"
+
+
+def test_covers_says_zero_for_a_start_a_hair_off_it():
+    # times written to 6 decimals at 8.6 Hz: the fitted uniform grid starts at -1.22e-09 s ("-1.22e-09–325 s")
+    assert covers([{"recording": "a.csv", "t0": -1.22e-9}], 5.0) == "a.csv 0–5 s"

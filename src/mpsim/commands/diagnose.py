@@ -119,6 +119,9 @@ def write_diagnosis(job: Job, result: LoopResult, fix: bool, options: EvalOption
     assert splits is not None
     out = summarise(job, result, true_effects(job), fix)
     out["freerun"] = free_run_before_after(job, result, options or EvalOptions())
+    if job.model is not None and (options is None or options.plots):
+        figures = report.feature_plots(job.model, result, splits.test, out_dir)
+        out["feature_plots"] = [str(p.relative_to(out_dir)) for p in figures]
     report.plots(result, splits.test.t, out_dir)
     write_json(out_dir / "diagnosis.json", out)
     atomic_write(out_dir / "diagnosis.md", lambda f: f.write(report.markdown(out)), mode="w")

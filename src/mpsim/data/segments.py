@@ -270,6 +270,8 @@ def covers(entries: Sequence[dict[str, Any]], seconds: float, origins: Mapping[s
             spans.append([name, start, start + seconds, origin])
     parts = []
     for name, start, end, origin in spans:
+        if abs(start) <= 1e-6 * max(seconds, 1e-12):  # a grid fitted to rounded times starts a hair off zero
+            start = 0.0
         if max(abs(start), abs(end)) >= LARGE_TIME:
             parts.append(f"{name} {start - origin:.4g}–{end - origin:.4g} s from its start")
         else:

@@ -6,6 +6,7 @@ loop's result for the plots, which need its tensors (`plots`).
 
 from __future__ import annotations
 
+import copy
 import math
 from pathlib import Path
 from typing import Any
@@ -15,8 +16,13 @@ import torch
 from mpsim import plotting
 from mpsim.console import fmt
 from mpsim.data.account import record_lines
+from mpsim.data.trajectories import Trajectories
 from mpsim.diagnose.heldout import EFFECTS_NAMED, NOTHING_MISSING
 from mpsim.diagnose.loop import LoopResult
+from mpsim.diagnose.residual import one_step_residual
+from mpsim.effects.base import EffectContext
+from mpsim.errors import DivergenceError
+from mpsim.models.base import Model
 
 
 def plots(result: LoopResult, t: torch.Tensor, out: Path) -> None:  # t: [T] held-out time grid
@@ -35,6 +41,47 @@ def plots(result: LoopResult, t: torch.Tensor, out: Path) -> None:  # t: [T] hel
     plotting.error_curves(t, curves, out / "plots" / "before_after.png")
 
 
+def feature_plots(given: Model, result: LoopResult, data: Trajectories, out: Path) -> list[Path]:
+    """plots/effect_<k>.png per named effect with a source state: the model as given, its one-step residual on the
+    effect's row of `data` (held-out records; latent states at their estimate) against the effect's source state,
+    binned, beside the fitted effect's term (`plotting.effect_against_feature`). None for a named effect of time
+    alone (a drive, a drift) or a constant (a bias: nothing to plot it against)."""
+    model = result.model if result.after is not None and result.model is not None else result.judgement.model
+    named = result.named
+    if model is None or not named or len(model.effects) < len(named):
+        return []
+    effects = list(model.effects)[-len(named) :]
+    try:
+        res = one_step_residual(given, data)
+    except DivergenceError:
+        return []
+    x = data.x[:, :-1].double()  # [B, T-1, N, D] the states each step starts from
+    b, steps, n, d = x.shape
+    flat = x.reshape(b * steps, n, d)
+    edges = data.edge_index if data.shared_graph else data.edge_index.repeat_interleave(steps, dim=0)
+    ctx = EffectContext.for_batch(edges, flat)
+    names, paths = data.state_names, []
+    for k, (trial, effect) in enumerate(zip(named, effects, strict=True), start=1):  # the few named effects
+        source, target = getattr(effect, "source", None), getattr(effect, "target", None)
+        if source is None or target is None or trial.kind in ("Bias", "PeriodicForcing", "ParameterDrift"):
+            continue
+        with torch.no_grad():
+            term = copy.deepcopy(effect).double()(torch.zeros((), dtype=torch.float64), flat, ctx)[..., target]
+        term = term.reshape(-1)
+        paths.append(
+            plotting.effect_against_feature(
+                x[..., source].reshape(-1),
+                res.r[..., target].double().reshape(-1),
+                term,
+                f"{names[source]} (the effect's source)",
+                f"d{names[target]}/dt residual of the model as given",
+                out / "plots" / f"effect_{k}.png",
+                title=trial.label,
+            )
+        )
+    return paths
+
+
 def values_text(values: dict[str, float], interval: dict[str, Any]) -> str:
     """Fitted values with their 95 % intervals: "coef 0.2 [0.19, 0.21], ..."."""
     return ", ".join(f"{k} {v:.4g} [{interval[k][0]:.4g}, {interval[k][1]:.4g}]" for k, v in values.items())
@@ -47,7 +94,14 @@ def truth_text(truth: dict[str, Any]) -> str:
 
 def markdown(s: dict[str, Any]) -> str:
     """diagnosis.md from the summary dict `s` (diagnosis.json's content)."""
-    lines = _verdict_section(s) + _free_run_section(s.get("freerun")) + _heldout_section(s["judgement"])
+    lines = _verdict_section(s) + _free_run_section(s.get("freerun"))
+    if s.get("feature_plots"):
+        lines += [
+            "",
+            "The residual of the model as given against each named effect's own feature, beside the fitted term: "
+            + ", ".join(f"![{p}]({p})" for p in s["feature_plots"]),
+        ]
+    lines += _heldout_section(s["judgement"])
     for k, f in enumerate(s["finetuned"], start=1):
         lines += _finetuned_section(k, f)
     lines += _screen_section(s["screen"]) + _fix_section(s) + _error_table(s["before"], s["after"] or {})
@@ -107,7 +161,7 @@ def _free_run_section(free: dict[str, Any] | None) -> list[str]:
         "| record | channel | RMSE before | fit before | " + ("RMSE after | fit after |" if after else ""),
         "|---|---|---|---|" + ("---|---|" if after else ""),
     ]
-    for r in free["rows"]:
+    for r in free["rows"]:  # the few held-out records and channels
         name = Path(str(r["record"])).name + (f" from {r['t0']:.4g} s" if isinstance(r.get("t0"), int | float) else "")
         cells = [name, r["channel"], fmt(r["before_rmse"]), f"{r['before_fit']:.1f} %"]
         if after:
