@@ -12,3 +12,14 @@ mpsim train model=equations model.spec=examples/measured/ced_wiener.yaml trainer
   "data.path=$DATA/ced_unif_*.csv" data.input_hold=zoh data.train_range=[0,400] data.test_range=[400,500] \
   data.segment="${SEGMENT:-1.0}" eval.init_samples=4 trainer.progress=false "paths.ckpt_dir=$OUT/checkpoints" \
   "hydra.run.dir=$OUT/train"
+# Issue 71, case e: `DIAGNOSE=1` then diagnoses the fitted model on the same split (held out: the test records'
+# 1 s segments), fix=true; the verdict and the free run before → after are in $OUT/diagnose/diagnosis.md.
+if [[ ${DIAGNOSE:-0} == 1 ]]; then
+  set +e
+  mpsim diagnose init="$OUT/train/checkpoints/best.ckpt" "data.path=$DATA/ced_unif_*.csv" data.input_hold=zoh \
+    data.train_range=[0,400] data.test_range=[400,500] data.segment="${SEGMENT:-1.0}" eval.init_samples=4 fix=true \
+    trainer=whitebox trainer.progress=false "paths.ckpt_dir=$OUT/checkpoints" "hydra.run.dir=$OUT/diagnose"
+  code=$?
+  set -e
+  echo "ced.sh: diagnose exit $code (0 effects named, 10 nothing missing, 11 unexplained)"
+fi

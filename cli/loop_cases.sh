@@ -7,7 +7,7 @@
 #   OUT=outputs/loop_cases CASES="a_osc_two b_tank_leak c_axis_stride" JOBS=2 bash cli/loop_cases.sh
 set -uo pipefail
 OUT=${OUT:-outputs/loop_cases}
-ALL="a_osc_two b_tank_leak c_axis_stride"
+ALL="a_osc_two a_osc_two_noisy b_tank_leak c_axis_stride"
 CASES=${CASES:-$ALL}
 JOBS=${JOBS:-2}
 HERE=$(cd "$(dirname "$0")" && pwd)
