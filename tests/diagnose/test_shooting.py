@@ -177,3 +177,12 @@ def test_standard_errors_where_every_rollout_fails_are_nan():
     coef = trial.effects[-1].coef
     assert all(math.isnan(v) for v in sandwich_stderr(trial, data, 10, [coef]))  # raised DivergenceError before
     assert float(coef.detach()[0]) == RUN_OFF  # no difference step left behind
+
+
+def test_few_heldout_records_are_scored_over_shorter_windows():
+    from mpsim.diagnose.shooting import scored_window
+
+    assert scored_window(4, 101, 100) == 33  # four 1 s segments of 100 steps: three windows each
+    assert scored_window(16, 101, 100) == 100  # enough records: the horizon
+    assert scored_window(4, 21, 100) == 10  # never below MIN_TEST_WINDOW steps
+    assert scored_window(4, 101, 8) == 8  # nor above the horizon

@@ -30,12 +30,13 @@ from mpsim.diagnose.findings import Diagnosis, Finding
 from mpsim.diagnose.library import Candidate
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.diagnose.shooting import (
+    PER_WINDOW_BELOW,
     heldout_errors,
     horizon_from_data,
     null_data,
     own_parameters,
+    scored_window,
     shooting_fit,
-    window_error,
 )
 from mpsim.diagnose.trial import FAILED, NOT_TESTED, Trial, TrialSetting, try_candidate
 from mpsim.errors import ConfigError, did_you_mean
@@ -112,6 +113,13 @@ def judge(
     missing* or *unexplained*: the caller tests the candidates another way (by finetuning a network). With
     unmeasured states the judgement says which states were measured and how the others were handled."""
     out = _judge(model, diag, library, train, test, params, seed, test_candidates)
+    window = scored_window(len(test), test.n_times, out.horizon)
+    if window < out.horizon:
+        out.notes.append(
+            f"{len(test)} held-out records (fewer than {PER_WINDOW_BELOW}): held-out errors are scored over windows of "
+            f"{window} steps, each window a unit of the test with its dependence on its neighbours estimated "
+            "(the fits use windows of the horizon)"
+        )
     out.measured = test.measured_states()
     if out.measured:
         out.notes.append(latent_note(out.measured))
@@ -220,14 +228,17 @@ def _levels(
     base = copy.deepcopy(model)
     shooting_fit(base, train, min(horizon, params.fit_window), own_parameters(base), params.shooting_iters, False)
     horizon, null_train = _null_twin(base, train, noise, horizon, params, seed + 11)
-    given = float(window_error(model, test, horizon).mean())
-    e_base = heldout_errors(base, test, horizon)
+    window = scored_window(len(test), test.n_times, horizon)  # few held-out records: shorter windows, more of them
+    given = float(heldout_errors(model, test, horizon, window).mean())
+    e_base = heldout_errors(base, test, horizon, window)
     if not float(e_base.mean()) <= given:  # the refit never makes the starting point worse
-        base, e_base = copy.deepcopy(model), heldout_errors(model, test, horizon)
+        base, e_base = copy.deepcopy(model), heldout_errors(model, test, horizon, window)
         null_train = null_data(base, train, noise, seed + 11, segment=horizon)
     null_test = null_data(base, test, noise, seed + 12, segment=horizon)
-    e_null = heldout_errors(base, null_test, horizon)
-    setting = TrialSetting(base, e_base, e_null, train, test, null_train, null_test, horizon, params, diag.state_names)
+    e_null = heldout_errors(base, null_test, horizon, window)
+    setting = TrialSetting(
+        base, e_base, e_null, train, test, null_train, null_test, horizon, params, diag.state_names, window
+    )
     return setting, given
 
 

@@ -115,12 +115,28 @@ def window_errors(model: Model, data: Trajectories, length: int) -> torch.Tensor
 PER_WINDOW_BELOW = 8
 
 
-def heldout_errors(model: Model, data: Trajectories, length: int) -> torch.Tensor:
-    """The held-out test's errors: [B, K] per window (`window_errors`) when there are fewer than
-    `PER_WINDOW_BELOW` records, else [B] per record (`window_error`)."""
+#: with fewer than `PER_WINDOW_BELOW` held-out records each is cut into at least this many held-out windows (none
+#: shorter than `MIN_TEST_WINDOW` steps): four 1 s segments held out of one 25 s record give twelve windows
+WINDOWS_PER_RECORD = 3
+MIN_TEST_WINDOW = 10
+
+
+def scored_window(n_records: int, n_times: int, length: int) -> int:
+    """Steps of a held-out window: `length` (the horizon), shortened so that each of fewer than `PER_WINDOW_BELOW`
+    records gives `WINDOWS_PER_RECORD` windows, but to no fewer than `MIN_TEST_WINDOW` steps."""
+    if n_records >= PER_WINDOW_BELOW:
+        return length
+    return max(min(length, (n_times - 1) // WINDOWS_PER_RECORD), min(length, MIN_TEST_WINDOW))
+
+
+def heldout_errors(model: Model, data: Trajectories, length: int, window: int | None = None) -> torch.Tensor:
+    """The held-out test's errors over windows of `window` steps (None: `length`, the horizon; see `scored_window`):
+    [B, K] per window (`window_errors`) when there are fewer than `PER_WINDOW_BELOW` records, else [B] per record
+    (`window_error`). Null records, cut window by window, are scored over the same windows as the data's."""
+    steps = length if window is None else min(window, length)
     if len(data) < PER_WINDOW_BELOW:
-        return window_errors(model, data, length)
-    return window_error(model, data, length)
+        return window_errors(model, data, steps)
+    return window_error(model, data, steps)
 
 
 def horizon_from_data(model: Model, data: Trajectories, threshold: float, above_first: float = 0.0) -> int:

@@ -101,6 +101,7 @@ class TrialSetting:
     horizon: int  # steps of a held-out window
     params: DiagnoseParams
     names: list[str]  # state names
+    window: int | None = None  # steps of a scored held-out window (`shooting.scored_window`; None: the horizon)
 
 
 def try_candidate(
@@ -141,7 +142,7 @@ def _try_candidate(
     if phased:  # phases belong to recordings: held-out ones get theirs from a warm-up window
         e_current, e_after, _ = phased_heldout(current, trial, s.test, s.horizon, s.params.shooting_iters)
     else:
-        e_after = heldout_errors(trial, s.test, s.horizon)
+        e_after = heldout_errors(trial, s.test, s.horizon, s.window)
     # the test is on log error ratios per held-out recording: errors differ by orders of magnitude between
     # recordings, a multiplicative improvement does not
     floor = max(float(s.e_null.mean()), 1e-14)
@@ -271,7 +272,7 @@ def _null_gain(
     if current is not s.base:  # null data of the model the candidate is added to (its integrator included)
         noise = (null_train.x - null_train.x).new_zeros(null_train.state_dim)  # clean: the comparison is paired
         null_train, null_test = null_data(current, null_train, noise, 21), null_data(current, null_test, noise, 22)
-        e_null = heldout_errors(current, null_test, s.horizon)
+        e_null = heldout_errors(current, null_test, s.horizon, s.window)
     # a phased drive carries one phase per fitted recording: the null records (window by window for short
     # horizons) get theirs from the same starting pairs, repeated
     null_coef = (coef * math.ceil(2 * len(null_train) / len(coef)))[: 2 * len(null_train)] if phased else coef
@@ -281,7 +282,7 @@ def _null_gain(
     if phased:
         before, after, _ = phased_heldout(current, null_trial, null_test, s.horizon, iters)
         return float((before - after).mean()), log_ratio(before, after, floor)[0]
-    null_after = heldout_errors(null_trial, null_test, s.horizon)
+    null_after = heldout_errors(null_trial, null_test, s.horizon, s.window)
     return float((e_null - null_after).mean()), log_ratio(e_null, null_after, floor)[0]
 
 
