@@ -86,7 +86,7 @@ def _cases() -> dict[str, tuple[Case, Case, dict[str, Any]]]:
             tanks,
             {
                 "effects": [{"kind": "LinearDamping", "target": "h1", "source": "h1", "coef": LEAK}],
-                "keys": ["data.observed=[h2]", "data.input_hold=zoh", "data.segment=400", "eval.init_samples=25"],
+                "keys": ["data.observed=[h2]", "data.input_hold=zoh", "data.segment=200", "eval.init_samples=25"],
             },
         ),
     }
