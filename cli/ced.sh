@@ -12,12 +12,13 @@ mpsim train model=equations model.spec=examples/measured/ced_wiener.yaml trainer
   "data.path=$DATA/ced_unif_*.csv" data.input_hold=zoh data.train_range=[0,400] data.test_range=[400,500] \
   data.segment="${SEGMENT:-1.0}" eval.init_samples=4 trainer.progress=false "paths.ckpt_dir=$OUT/checkpoints" \
   "hydra.run.dir=$OUT/train"
-# Issue 71, case e: `DIAGNOSE=1` then diagnoses the fitted model on the same split (held out: the test records'
-# 1 s segments), fix=true; the verdict and the free run before → after are in $OUT/diagnose/diagnosis.md.
+# Issue 71, case e: `DIAGNOSE=1` then diagnoses the fitted model on the same split (held out: the test records cut
+# into DIAG_SEGMENT=0.5 s segments, six: 1 s segments leave one per record, and diagnose needs three), fix=true;
+# the verdict and the free run before → after are in $OUT/diagnose/diagnosis.md.
 if [[ ${DIAGNOSE:-0} == 1 ]]; then
   set +e
   mpsim diagnose init="$OUT/train/checkpoints/best.ckpt" "data.path=$DATA/ced_unif_*.csv" data.input_hold=zoh \
-    data.train_range=[0,400] data.test_range=[400,500] data.segment="${SEGMENT:-1.0}" eval.init_samples=4 fix=true \
+    data.train_range=[0,400] data.test_range=[400,500] data.segment="${DIAG_SEGMENT:-0.5}" eval.init_samples=4 fix=true \
     trainer=whitebox trainer.progress=false "paths.ckpt_dir=$OUT/checkpoints" "hydra.run.dir=$OUT/diagnose"
   code=$?
   set -e

@@ -182,7 +182,7 @@ def test_standard_errors_where_every_rollout_fails_are_nan():
 def test_few_heldout_records_are_scored_over_shorter_windows():
     from mpsim.diagnose.shooting import scored_window
 
-    assert scored_window(4, 101, 100) == 33  # four 1 s segments of 100 steps: three windows each
+    assert scored_window(4, 101, 100) == 34  # four 1 s segments of 100 steps: three windows each (34, 34, 32)
     assert scored_window(16, 101, 100) == 100  # enough records: the horizon
     assert scored_window(4, 21, 100) == 10  # never below MIN_TEST_WINDOW steps
     assert scored_window(4, 101, 8) == 8  # nor above the horizon

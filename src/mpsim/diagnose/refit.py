@@ -178,6 +178,9 @@ def joint_refit(
         f.effect = library[labels[f.label.split(": ", 1)[1]]].effect_config(coef, f.target, diag.state_names)
     # the first of the shared columns (then the model's effects, not shifted)
     names = model.sensitivity_names() if isinstance(model, Interpretable) else []
-    if base is not None and names:
-        diag.parameter_shifts = {name: float(v) for name, v in zip(names, sol[at : at + len(names)], strict=True)}
+    shifts = sol[at : at + n_shared]
+    # the shared columns are the model's own parameters only when there is one per named parameter (a spec with
+    # `outputs:` or latent states can hand fewer: its sensitivities are then not reported as shifts)
+    if base is not None and names and len(names) == n_shared == len(shifts):
+        diag.parameter_shifts = {name: float(v) for name, v in zip(names, shifts, strict=True)}
     return True

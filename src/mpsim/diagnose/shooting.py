@@ -126,7 +126,8 @@ def scored_window(n_records: int, n_times: int, length: int) -> int:
     records gives `WINDOWS_PER_RECORD` windows, but to no fewer than `MIN_TEST_WINDOW` steps."""
     if n_records >= PER_WINDOW_BELOW:
         return length
-    return max(min(length, (n_times - 1) // WINDOWS_PER_RECORD), min(length, MIN_TEST_WINDOW))
+    whole = -(-(n_times - 1) // WINDOWS_PER_RECORD)  # ceil: no stub of a step or two left at the record's end
+    return max(min(length, whole), min(length, MIN_TEST_WINDOW))
 
 
 def heldout_errors(model: Model, data: Trajectories, length: int, window: int | None = None) -> torch.Tensor:
