@@ -20,7 +20,15 @@ from mpsim.data.dataset import Splits
 from mpsim.data.trajectories import Trajectories
 from mpsim.diagnose.findings import Diagnosis
 from mpsim.diagnose.finetuned import FinetuneAll, FinetuneJudgement, judge_by_finetune, serial
-from mpsim.diagnose.heldout import EFFECTS_NAMED, EXIT_CODES, NOTHING_MISSING, Judgement, dynamic_rows, judge
+from mpsim.diagnose.heldout import (
+    EFFECTS_NAMED,
+    EXIT_CODES,
+    NOTHING_MISSING,
+    Judgement,
+    dynamic_rows,
+    judge,
+    state_rows,
+)
 from mpsim.diagnose.latent import fitted_latent
 from mpsim.diagnose.library import Candidate, build_library
 from mpsim.diagnose.nuisance import drift_candidates
@@ -103,7 +111,9 @@ def screen(model: Model, data: Trajectories, params: DiagnoseParams, seed: int) 
     dt = float(data.t[1] - data.t[0])
     kinds = tuple(k for k in params.kinds if k not in diag.represented + diag.not_considered)
     library = build_library(data, diag.omegas, delays or [m * dt for m in (1, 2, 4, 8)], kinds, diag.phased_omegas)
-    return diag, with_per_node(library, diag) + drift_candidates(model, data, kinds)
+    library = with_per_node(library, diag) + drift_candidates(model, data, kinds)
+    states = state_rows(model, data)  # a spec's `outputs:` columns are read by sensors: no effect reads them
+    return diag, [c for c in library if c.source is None or c.source < states]
 
 
 def white_box(model: Model) -> bool:
