@@ -239,7 +239,7 @@ def effect_against_feature(
     title: str = "",
     bins: int = 30,
 ) -> Path:
-    """The residual against the named effect's own feature (force against position shows a cubic, against velocity
+    """A partial residual against the named effect's own feature (force against position shows a cubic, against velocity
     a sign change): each sample faint, the mean in `bins` quantile bins of the feature with its standard error (a
     noise-dominated residual averages out there), and the fitted term over the same bins."""
     ok = torch.isfinite(source) & torch.isfinite(residual) & torch.isfinite(term)
@@ -253,8 +253,8 @@ def effect_against_feature(
         se = torch.stack([r[g].std() / math.sqrt(max(len(g), 1)) for g in groups]).numpy()
         fm = torch.stack([f[g].mean() for g in groups]).numpy()
         step = max(1, x.numel() // 4000)
-        ax.scatter(x[::step].numpy(), r[::step].numpy(), s=2, color="0.8", label="residual (samples)")
-        ax.errorbar(xm, rm, yerr=se, fmt="o", ms=3, color="tab:blue", label=f"residual, mean of {bins} bins ± se")
+        ax.scatter(x[::step].numpy(), r[::step].numpy(), s=2, color="0.8", label="partial residual (samples)")
+        ax.errorbar(xm, rm, yerr=se, fmt="o", ms=3, color="tab:blue", label=f"partial residual, mean of {bins} bins ± se")
         ax.plot(xm, fm, color="tab:red", label="the named effect (fitted)")
         lo, hi = float(min(rm.min() - 3 * se.max(), fm.min())), float(max(rm.max() + 3 * se.max(), fm.max()))
         pad = 0.15 * (hi - lo) if hi > lo else 1.0

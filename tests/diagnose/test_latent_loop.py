@@ -39,7 +39,7 @@ def test_dry_friction_on_the_unmeasured_velocity_is_named(tmp_path):
     assert j.measured["observed"] == ["q"] and "Savitzky–Golay" in j.measured["estimated"]["v"]
     assert any("measured states ['q']" in note for note in j.notes)
     # issue 71, item 8: the residual against the named effect's own feature (v: a sign change), as a picture
-    (figure,) = feature_plots(model, result, splits.test, tmp_path)
+    (figure,) = feature_plots(result, splits.test, tmp_path)
     assert figure == tmp_path / "plots" / "effect_1.png" and figure.read_bytes()[:4] == b"\x89PNG"
 
 

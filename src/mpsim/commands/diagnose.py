@@ -128,7 +128,7 @@ def write_diagnosis(job: Job, result: LoopResult, fix: bool, options: EvalOption
     out = summarise(job, result, true_effects(job), fix)
     out["freerun"] = freerun
     if job.model is not None and (options is None or options.plots):
-        figures = report.feature_plots(job.model, result, splits.test, out_dir)
+        figures = report.feature_plots(result, splits.test, out_dir)
         out["feature_plots"] = [str(p.relative_to(out_dir)) for p in figures]
     report.plots(result, splits.test.t, out_dir)
     write_json(out_dir / "diagnosis.json", out)

@@ -22,7 +22,6 @@ from mpsim.diagnose.loop import LoopResult
 from mpsim.diagnose.residual import one_step_residual
 from mpsim.effects.base import EffectContext
 from mpsim.errors import DivergenceError
-from mpsim.models.base import Model
 
 
 def plots(result: LoopResult, t: torch.Tensor, out: Path) -> None:  # t: [T] held-out time grid
@@ -41,10 +40,12 @@ def plots(result: LoopResult, t: torch.Tensor, out: Path) -> None:  # t: [T] hel
     plotting.error_curves(t, curves, out / "plots" / "before_after.png")
 
 
-def feature_plots(given: Model, result: LoopResult, data: Trajectories, out: Path) -> list[Path]:
-    """plots/effect_<k>.png per named effect with a source state: the model as given, its one-step residual on the
-    effect's row of `data` (held-out records; latent states at their estimate) against the effect's source state,
-    binned, beside the fitted effect's term (`plotting.effect_against_feature`). None for a named effect of time
+def feature_plots(result: LoopResult, data: Trajectories, out: Path) -> list[Path]:
+    """plots/effect_<k>.png per named effect with a source state: the partial residual — the one-step residual of
+    the fitted model (every named effect in it, its own parameters refit) on the effect's row of `data` (held-out
+    records; latent states at their estimate), plus this effect's term — against the effect's source state,
+    binned, beside the fitted term (`plotting.effect_against_feature`). Where the effect is right the bins follow
+    the term; a model as given would show it mixed with what its own parameters absorbed. None for a named effect of time
     alone (a drive, a drift) or a constant (a bias: nothing to plot it against)."""
     model = result.model if result.after is not None and result.model is not None else result.judgement.model
     named = result.named
@@ -52,7 +53,7 @@ def feature_plots(given: Model, result: LoopResult, data: Trajectories, out: Pat
         return []
     effects = list(model.effects)[-len(named) :]
     try:
-        res = one_step_residual(given, data)
+        res = one_step_residual(model, data)  # the fitted model, every named effect in it
     except DivergenceError:
         return []
     x = data.x[:, :-1].double()  # [B, T-1, N, D] the states each step starts from
@@ -71,10 +72,10 @@ def feature_plots(given: Model, result: LoopResult, data: Trajectories, out: Pat
         paths.append(
             plotting.effect_against_feature(
                 x[..., source].reshape(-1),
-                res.r[..., target].double().reshape(-1),
+                res.r[..., target].double().reshape(-1) + term,  # the partial residual: what is left, plus the effect
                 term,
                 f"{names[source]} (the effect's source)",
-                f"d{names[target]}/dt residual of the model as given",
+                f"d{names[target]}/dt: residual + the effect's term",
                 out / "plots" / f"effect_{k}.png",
                 title=trial.label,
             )
@@ -98,8 +99,8 @@ def markdown(s: dict[str, Any]) -> str:
     if s.get("feature_plots"):
         lines += [
             "",
-            "The residual of the model as given against each named effect's own feature, beside the fitted term: "
-            + ", ".join(f"![{p}]({p})" for p in s["feature_plots"]),
+            "Each named effect's partial residual (the fitted model's residual plus the effect's term) against the "
+            "effect's own feature, beside the fitted term: " + ", ".join(f"![{p}]({p})" for p in s["feature_plots"]),
         ]
     lines += _heldout_section(s["judgement"])
     for k, f in enumerate(s["finetuned"], start=1):
