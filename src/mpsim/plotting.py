@@ -254,7 +254,9 @@ def effect_against_feature(
         fm = torch.stack([f[g].mean() for g in groups]).numpy()
         step = max(1, x.numel() // 4000)
         ax.scatter(x[::step].numpy(), r[::step].numpy(), s=2, color="0.8", label="partial residual (samples)")
-        ax.errorbar(xm, rm, yerr=se, fmt="o", ms=3, color="tab:blue", label=f"partial residual, mean of {bins} bins ± se")
+        ax.errorbar(
+            xm, rm, yerr=se, fmt="o", ms=3, color="tab:blue", label=f"partial residual, mean of {bins} bins ± se"
+        )
         ax.plot(xm, fm, color="tab:red", label="the named effect (fitted)")
         lo, hi = float(min(rm.min() - 3 * se.max(), fm.min())), float(max(rm.max() + 3 * se.max(), fm.max()))
         pad = 0.15 * (hi - lo) if hi > lo else 1.0
