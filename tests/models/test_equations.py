@@ -486,3 +486,26 @@ def test_a_spec_with_outputs_appends_what_its_sensors_read():
     assert float((step - out[:, 1:]).abs().max()) < 1e-3
     with pytest.raises(ConfigError, match=r"3 states \['d', 's', 'r'\] and 1 outputs \['y'\] but the data has 3"):
         EquationsModel(3, control_dim=1, spec=spec)
+
+
+def test_a_delayed_effect_on_a_spec_with_outputs_reads_the_states_history_only():
+    # the residual loop's delayed candidates hand the record before a window as `Inputs.past`, all the data's columns
+    # (states and the sensor's reading); the delay's history is the states' (a size mismatch on the coupled drives)
+    from mpsim import effects as fx
+    from mpsim.data.trajectories import Inputs
+
+    spec = {"states": ["d", "s", "r"], "inputs": ["u"], "outputs": {"y": "abs(s)"},
+            "equations": {"d": "6.7*(1.8*u - d)", "s": "r", "r": "400*(d - s) - 13*r"}}  # fmt: skip
+    model = EquationsModel(4, control_dim=1, spec=spec).double()
+    model.bind_inputs(["u"])
+    model.bind_effects(["d", "s", "r", "y"])
+    model.effects.append(fx.DelayedFeedback(-1.0, delay=0.04, target="r", source="s").bind(["d", "s", "r", "y"]))
+    t = 0.02 * torch.arange(20, dtype=torch.float64)
+    u = torch.ones(1, 20, 1, 1, dtype=torch.float64)
+    past = torch.zeros(1, 3, 1, 4, dtype=torch.float64)  # [B, P, N, D + outputs] the record before the window
+    inputs = Inputs(
+        torch.zeros(2, 0, dtype=torch.long), u=u, meta={"control_names": ["u"], "input_hold": "zoh"}, past=past
+    )
+    out = model.rollout(torch.zeros(1, 1, 4, dtype=torch.float64), t, inputs)
+    assert out.shape == (1, 20, 1, 4) and bool(torch.isfinite(out).all())
+    assert torch.allclose(out[..., 3], out[..., 1].abs())

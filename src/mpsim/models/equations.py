@@ -241,6 +241,8 @@ class EquationsModel(Model):
         A spec with `outputs:` integrates its states and appends what its sensors read at every time."""
         if self.output_field is None:
             return self._rollout(x0, t, inputs)
+        if inputs.past is not None:  # a delayed effect's history: the states, not what the sensors read
+            inputs = replace(inputs, past=inputs.past[..., : self.spec.state_dim])
         xs = self._rollout(x0[..., : self.spec.state_dim], t, inputs)
         return torch.cat([xs, self.outputs_of(xs, t, inputs)], dim=-1)
 
