@@ -26,6 +26,7 @@ lc = _load("latent_cases")
 loop = _load("loop_cases")
 
 
+@pytest.mark.slow  # six numpy simulations of 1000–4000 samples at 20 RK4 steps each: ~10 s
 def test_each_recording_differs_from_its_twin_by_its_effects_only(tmp_path):
     for name, (_plant, clean, expected) in loop.CASES.items():
         info = loop.write_case(tmp_path, name, seed=2)
