@@ -467,14 +467,20 @@ def test_a_driven_twin_trains_on_the_command_line_and_its_checkpoint_round_trips
     assert out["test"]["rmse"] < 1e-2
 
 
-def test_a_spec_with_outputs_appends_what_its_sensors_read():
-    from mpsim.data.trajectories import Inputs
-
-    spec = {"states": ["d", "s", "r"], "inputs": ["u"], "outputs": {"y": "abs(s) + 0.5*u"},
+def _belt_with_sensor(reads: str):
+    """(spec, model) of a belt drive (states d, s, r; input u) whose sensor y reads `reads`."""
+    spec = {"states": ["d", "s", "r"], "inputs": ["u"], "outputs": {"y": reads},
             "equations": {"d": "6.7*(1.8*u - d)", "s": "r", "r": "400*(d - s) - 13*r"}}  # fmt: skip
     model = EquationsModel(4, control_dim=1, spec=spec).double()
     model.bind_inputs(["u"])
     model.bind_effects(["d", "s", "r", "y"])
+    return spec, model
+
+
+def test_a_spec_with_outputs_appends_what_its_sensors_read():
+    from mpsim.data.trajectories import Inputs
+
+    spec, model = _belt_with_sensor("abs(s) + 0.5*u")
     t = 0.02 * torch.arange(40, dtype=torch.float64)
     u = torch.sign(torch.sin(3 * t)).reshape(1, 40, 1, 1)
     inputs = Inputs(torch.zeros(2, 0, dtype=torch.long), u=u, meta={"control_names": ["u"], "input_hold": "zoh"})
@@ -494,11 +500,7 @@ def test_a_delayed_effect_on_a_spec_with_outputs_reads_the_states_history_only()
     from mpsim import effects as fx
     from mpsim.data.trajectories import Inputs
 
-    spec = {"states": ["d", "s", "r"], "inputs": ["u"], "outputs": {"y": "abs(s)"},
-            "equations": {"d": "6.7*(1.8*u - d)", "s": "r", "r": "400*(d - s) - 13*r"}}  # fmt: skip
-    model = EquationsModel(4, control_dim=1, spec=spec).double()
-    model.bind_inputs(["u"])
-    model.bind_effects(["d", "s", "r", "y"])
+    _, model = _belt_with_sensor("abs(s)")
     model.effects.append(fx.DelayedFeedback(-1.0, delay=0.04, target="r", source="s").bind(["d", "s", "r", "y"]))
     t = 0.02 * torch.arange(20, dtype=torch.float64)
     u = torch.ones(1, 20, 1, 1, dtype=torch.float64)
