@@ -358,9 +358,9 @@ def _greedy(
                 aside[id(t[0])] = _indistinguishable_text(t[2], chosen[2], best_err, floor)
         current, e_current = chosen[3], chosen[4]
         chosen[2].reason += f" (added {len(added)}{'st' if len(added) == 1 else 'nd' if len(added) == 2 else 'th'})"
-        if chosen[2].kind == "PeriodicForcing" and "phases" in chosen[2].effect:
+        if (chosen[2].kind == "PeriodicForcing" and "phases" in chosen[2].effect) or chosen[2].kind == "InputGain":
             e_current = torch.full_like(s.e_base, chosen[2].error_after)  # measured after the warm-up window
-            break  # its phases belong to the held-in recordings: nothing more is added on top of it
+            break  # its phases (gains) belong to the held-in recordings: nothing more is added on top of it
         if float(e_current.mean()) <= floor:  # at the null level: nothing is left for another effect to explain
             for t in passing:
                 if t is not chosen:

@@ -23,8 +23,9 @@ from mpsim.effects import EffectContext
 
 #: effect kinds of the default library, by class name (one list: `mpsim.diagnose.params`)
 DEFAULT_KINDS = tuple(_KINDS)
-#: kinds whose columns come from the model, not the data alone (`nuisance.drift_candidates`)
-MODEL_KINDS = ("ParameterDrift",)
+#: kinds whose columns come from the model, not the data alone (`nuisance.drift_candidates`,
+#: `nuisance.input_gain_candidates`)
+MODEL_KINDS = ("ParameterDrift", "InputGain")
 NEEDS_GRAPH = ("DiffusiveCoupling", "SineCoupling", "CosineCoupling")
 #: couplings of phases offered at every harmonic k of `params.HARMONICS`: sin/cos(k(θ_j − θ_i))
 HARMONIC_KINDS = ("SineCoupling", "CosineCoupling")
@@ -97,6 +98,8 @@ class Candidate:
             extra = f"ω={self.params['omega']:.4g}" + (", a phase per recording" if self.params.get("phased") else "")
         if "delay" in self.params:
             extra = f"τ={self.params['delay']:.4g}"
+        if self.kind == "InputGain":
+            extra = f"{self.params['input']}, a gain per recording"
         if self.harmonic > 1:
             extra = f"k={self.harmonic}"
         if self.nodes is not None:
@@ -108,6 +111,8 @@ class Candidate:
     def effect_config(self, coef: list[float], target: int, state_names: list[str]) -> dict[str, Any]:
         """The Hydra config of this effect with fitted coefficients (for `model.effects`)."""
         cfg: dict[str, Any] = {"_target_": f"mpsim.effects.{self.kind}", "target": state_names[target]}
+        if self.kind == "InputGain":  # (1 + c_b)·u: one gain per recording
+            return {**cfg, "input": self.params["input"], "gains": [1.0 + float(c) for c in coef]}
         if self.kind == "ParameterDrift":  # p·(1 + s·t): the rate s of the named parameter
             return {**cfg, "param": self.params["param"], "rate": coef[0]}
         if self.params.get("phased"):  # one (a, b) pair per recording: a shared amplitude, a phase each

@@ -31,7 +31,7 @@ from mpsim.diagnose.heldout import (
 )
 from mpsim.diagnose.latent import fitted_latent
 from mpsim.diagnose.library import Candidate, build_library
-from mpsim.diagnose.nuisance import drift_candidates
+from mpsim.diagnose.nuisance import drift_candidates, input_gain_candidates
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.diagnose.pernode import with_per_node
 from mpsim.diagnose.residual import one_step_residual
@@ -112,6 +112,7 @@ def screen(model: Model, data: Trajectories, params: DiagnoseParams, seed: int) 
     kinds = tuple(k for k in params.kinds if k not in diag.represented + diag.not_considered)
     library = build_library(data, diag.omegas, delays or [m * dt for m in (1, 2, 4, 8)], kinds, diag.phased_omegas)
     library = with_per_node(library, diag) + drift_candidates(model, data, kinds)
+    library += input_gain_candidates(model, data, kinds)
     states = state_rows(model, data)  # a spec's `outputs:` columns are read by sensors: no effect reads them
     return diag, [c for c in library if c.source is None or c.source < states]
 
@@ -172,14 +173,16 @@ def run_loop(
         return _black_box_fix(model, splits, params, horizons, seed, runs, log, result, library)
     if finetune is None or save is None or judgement.verdict != EFFECTS_NAMED:
         return result
-    if any(t.effect["_target_"].endswith("PhasedDrive") for t in judgement.named):
+    own = [t for t in judgement.named if t.effect["_target_"].endswith(("PhasedDrive", "InputGain"))]
+    if own:
+        what = "phase" if own[0].effect["_target_"].endswith("PhasedDrive") else "input gain"
         result.rejected.append(
             {
                 "round": 1,
                 "added": [t.label for t in judgement.named],
                 "why": (
-                    "a drive with its own phase in every recording is named but not added: a model cannot know the phase of "
-                    "a new recording (the held-out test estimated it from a warm-up window)"
+                    f"{own[0].label} has its own {what} in every recording: named but not added, as a model cannot "
+                    f"know the {what} of a new recording (the held-out test estimated it from a warm-up window)"
                 ),
             }
         )

@@ -104,6 +104,45 @@ def drift_candidates(model: Model, data: Trajectories, kinds: tuple[str, ...]) -
     ]
 
 
+@torch.no_grad()
+def input_gain_candidates(model: Model, data: Trajectories, kinds: tuple[str, ...]) -> list[Candidate]:
+    """The `InputGain` candidates of a driven white-box model (`model=equations`): one per input, on every state
+    row, with one column per recording b: the step average of ∂f_d/∂u·u on b's samples (zero on the others) — the
+    first-order change of the field when the input reaches the system as (1 + c_b)·u, per unit c_b. Offered with
+    two recordings or more (with one it is the input's own coefficient in the equations, no finding); under a
+    zero-order hold step k's input is u_k at both of its ends."""
+    sens_of = getattr(model, "input_sensitivity", None)
+    names = list(getattr(getattr(model, "spec", None), "inputs", ()) or ())
+    if "InputGain" not in kinds or sens_of is None or data.u is None or not names or len(data) < 2:
+        return []
+    b, n_t, n, d = data.x.shape
+    device, dtype = model.state_mean.device, model.state_mean.dtype
+
+    def at(x: torch.Tensor, t: torch.Tensor, u: torch.Tensor, c: int) -> torch.Tensor:  # x: [B, T', N, D]
+        m = x.shape[0] * x.shape[1]
+        times = t[None, :].expand(b, -1).reshape(m, 1).to(device=device, dtype=dtype)
+        flat = x.reshape(m, n, d).to(device=device, dtype=dtype)
+        with torch.enable_grad():
+            col = sens_of(times, flat, data.edge_index, u.reshape(m, n, -1).to(device=device, dtype=dtype), c)
+        return col.detach().double().cpu().reshape(b, x.shape[1], n, d)
+
+    out = []
+    eye = torch.eye(b, dtype=torch.float64)
+    for c, name in enumerate(names):  # the spec's few inputs
+        if input_hold(data.meta) == "zoh":
+            col = 0.5 * (
+                at(data.x[:, :-1], data.t[:-1], data.u[:, :-1], c) + at(data.x[:, 1:], data.t[1:], data.u[:, :-1], c)
+            )
+        else:
+            full = at(data.x, data.t, data.u, c)
+            col = 0.5 * (full[:, 1:] + full[:, :-1])  # [B, T-1, N, D]
+        if not bool(col.abs().amax() > 0):  # the input enters no row
+            continue
+        feats = col[..., None] * eye[:, None, None, None, :]  # [B, T-1, N, D, B]: recording b's column is b's own
+        out.append(Candidate("InputGain", None, {"input": name}, feats, per_row=True))
+    return out
+
+
 def nuisance_columns(model: Model, data: Trajectories, represented: tuple[str, ...]) -> tuple[torch.Tensor | None, int]:
     """([B, T−1, N, D, P] columns refit but never named, how many of them are the model's own coefficients).
 

@@ -22,6 +22,7 @@ KIND_COMPLEXITY = {
     "CosineCoupling": 1,
     "PeriodicForcing": 2,
     "ParameterDrift": 2,
+    "InputGain": 2,
     "DelayedFeedback": 3,
 }
 DEFAULT_KINDS = list(KIND_COMPLEXITY)

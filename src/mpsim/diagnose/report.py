@@ -64,7 +64,7 @@ def feature_plots(result: LoopResult, data: Trajectories, out: Path) -> list[Pat
     names, paths = data.state_names, []
     for k, (trial, effect) in enumerate(zip(named, effects, strict=True), start=1):  # the few named effects
         source, target = getattr(effect, "source", None), getattr(effect, "target", None)
-        if source is None or target is None or trial.kind in ("Bias", "PeriodicForcing", "ParameterDrift"):
+        if source is None or target is None or trial.kind in ("Bias", "PeriodicForcing", "ParameterDrift", "InputGain"):
             continue
         with torch.no_grad():
             term = copy.deepcopy(effect).double()(torch.zeros((), dtype=torch.float64), flat, ctx)[..., target]

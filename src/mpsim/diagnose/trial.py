@@ -3,6 +3,7 @@ by its paired gain on held-out records against the same fit on null data (`heldo
 
 from __future__ import annotations
 
+import copy
 import math
 import re
 from dataclasses import dataclass
@@ -29,6 +30,7 @@ from mpsim.diagnose.shooting import (
     with_effect,
 )
 from mpsim.diagnose.stats import Paired, level_text, log_ratio, paired, units_text
+from mpsim.effects.inputs import InputGain
 from mpsim.errors import DataError
 from mpsim.models.base import Model
 from mpsim.models.capabilities import Interpretable
@@ -128,19 +130,22 @@ def _try_candidate(
     # the error the given model (own parameters refit) had above the null level: what effects may explain
     excess = max(float(s.e_base.mean()) - float(s.e_null.mean()), 0.0)
     phased = bool(cand.params.get("phased"))
+    own = per_record(cand)  # coefficients per recording: a drive's phase, an input's gain
     shortest = min(s.test.n_times, s.null_test.n_times)  # null records may be cut window by window
-    if phased and phase_warmup(s.horizon, shortest) is None:  # not testable here: rejected, the others go on
+    if own and phase_warmup(s.horizon, shortest) is None:  # not testable here: rejected, the others go on
         return (
-            _untested(finding, f"{NOT_TESTED}: {_too_short_for_phases(shortest, s.horizon)}", e_current),
+            _untested(finding, f"{NOT_TESTED}: {_too_short_for_phases(shortest, s.horizon, cand)}", e_current),
             current,
             e_current,
         )
-    coef = list(finding.coef)[: 2 * len(s.train)] if phased else list(finding.coef)  # the fit's recordings only
+    coef = record_coef(cand, list(finding.coef), len(s.train))  # the fit's recordings only
     effect = cand.make_effect(coef, finding.target, s.names)
     trial, fit = fit_with(current, effect, s.train, min(s.horizon, s.params.fit_window), s.params.shooting_iters)
     stage[0] = "rolling the model with it out over held-out records"
     if phased:  # phases belong to recordings: held-out ones get theirs from a warm-up window
         e_current, e_after, _ = phased_heldout(current, trial, s.test, s.horizon, s.params.shooting_iters)
+    elif own:  # so do gains
+        e_current, e_after, _ = gain_heldout(current, trial, s.test, s.horizon, s.params.shooting_iters)
     else:
         e_after = heldout_errors(trial, s.test, s.horizon, s.window)
     # the test is on log error ratios per held-out recording: errors differ by orders of magnitude between
@@ -267,7 +272,7 @@ def _null_gain(
     s: TrialSetting, current: Model, cand: Candidate, finding: Finding, coef: list[float], floor: float
 ) -> tuple[float, float]:
     """(mean held-out MSE gain, mean log error ratio) of the same fit on null records, where nothing is missing."""
-    phased = bool(cand.params.get("phased"))
+    phased, own = bool(cand.params.get("phased")), per_record(cand)
     null_train, null_test, e_null = s.null_train, s.null_test, s.e_null
     if current is not s.base:  # null data of the model the candidate is added to (its integrator included)
         noise = (null_train.x - null_train.x).new_zeros(null_train.state_dim)  # clean: the comparison is paired
@@ -275,12 +280,13 @@ def _null_gain(
         e_null = heldout_errors(current, null_test, s.horizon, s.window)
     # a phased drive carries one phase per fitted recording: the null records (window by window for short
     # horizons) get theirs from the same starting pairs, repeated
-    null_coef = (coef * math.ceil(2 * len(null_train) / len(coef)))[: 2 * len(null_train)] if phased else coef
+    null_coef = record_coef(cand, coef, len(null_train)) if own else coef
     iters = max(5, s.params.shooting_iters // 3)
     null_effect = cand.make_effect(null_coef, finding.target, s.names)
     null_trial, _ = fit_with(current, null_effect, null_train, min(s.horizon, s.params.fit_window), iters, False)
-    if phased:
-        before, after, _ = phased_heldout(current, null_trial, null_test, s.horizon, iters)
+    if own:
+        heldout = phased_heldout if phased else gain_heldout
+        before, after, _ = heldout(current, null_trial, null_test, s.horizon, iters)
         return float((before - after).mean()), log_ratio(before, after, floor)[0]
     null_after = heldout_errors(null_trial, null_test, s.horizon, s.window)
     return float((e_null - null_after).mean()), log_ratio(e_null, null_after, floor)[0]
@@ -336,7 +342,16 @@ def reported(effect, values: list[float], stderr: list[float]) -> tuple[dict[str
     """The parameters a report shows for a fitted effect, with 95 % intervals around exactly these values: the
     coefficient(s) (a parameter drift's rate `s`), for a delayed feedback c and its delay τ (fitted as log τ), or
     for a drive its amplitude, angular frequency and phase (delta method from a, b, log ω)."""
-    if type(effect).__name__ == "PhasedDrive":  # amplitude, log ω, then one phase per recording
+    if type(effect).__name__ == "InputGain":  # g_b − 1 per recording: the gains' mean and range
+        g = [1.0 + v for v in values]
+        lo, hi = min(range(len(g)), key=g.__getitem__), max(range(len(g)), key=g.__getitem__)
+        vals = {"gain mean": sum(g) / len(g), "gain min": g[lo], "gain max": g[hi]}
+        ses = {
+            "gain mean": math.sqrt(sum(e * e for e in stderr)) / len(g),
+            "gain min": stderr[lo],
+            "gain max": stderr[hi],
+        }
+    elif type(effect).__name__ == "PhasedDrive":  # amplitude, log ω, then one phase per recording
         amp, omega = values[0], _exp(values[1])
         vals = {"amplitude": amp, "omega": omega}
         ses = {"amplitude": stderr[0], "omega": omega * stderr[1]}
@@ -428,12 +443,52 @@ def phase_warmup(horizon: int, n_times: int) -> int | None:
     return warm if n_times >= warm + 2 else None
 
 
-def _too_short_for_phases(n_times: int, horizon: int) -> str:
+def per_record(cand: Candidate) -> bool:
+    """Whether the candidate has coefficients of its own in every recording (a drive's phase, an input's gain):
+    held-out records get theirs from a warm-up window."""
+    return bool(cand.params.get("phased")) or getattr(cand, "kind", "") == "InputGain"
+
+
+def record_coef(cand: Candidate, coef: list[float], n_records: int) -> list[float]:
+    """A per-recording candidate's coefficients for `n_records` recordings from those of others (the screen's,
+    the held-in fit's): the first ones, repeated where there are more recordings (a drive's (a, b) pair each, a
+    gain's c each); any other candidate's as they are."""
+    if not per_record(cand):
+        return list(coef)
+    width = 2 if cand.params.get("phased") else 1
+    return (list(coef) * math.ceil(width * n_records / max(len(coef), 1)))[: width * n_records]
+
+
+def _too_short_for_phases(n_times: int, horizon: int, cand: Candidate | None = None) -> str:
+    what, kind = (
+        ("an input's gain", "InputGain")
+        if getattr(cand, "kind", "") == "InputGain"
+        else ("a periodic drive's phase", "PeriodicForcing")
+    )
     return (
         f"the held-out windows are {n_times - 1} steps (the model tracks the data for only {horizon} before its "
-        "error passes diagnose.vpt_threshold), too short to fit a periodic drive's phase per recording and then "
-        "test it; give diagnose.horizon=3 or more, or leave PeriodicForcing out of diagnose.kinds"
+        f"error passes diagnose.vpt_threshold), too short to fit {what} per recording and then test it; give "
+        f"diagnose.horizon=3 or more, or leave {kind} out of diagnose.kinds"
     )
+
+
+def gain_heldout(current: Model, trial: Model, data: Trajectories, horizon: int, iters: int):
+    """([B] MSE without, [B] MSE with a per-recording input gain, the model with it) on `data` after a warm-up
+    window: each held-out recording's gain is fitted by multiple shooting over its first quarter (at most one
+    horizon), started from the held-in recordings' mean gain, the model's own parameters as `trial` has them;
+    both errors are measured on the rest of the record only."""
+    gain = cast(Any, trial.effects[-1])  # the candidate gain (a Module list holds Modules)
+    warm = phase_warmup(horizon, data.n_times)
+    if warm is None:  # no step left to test on after the warm-up (`try_candidate` skips the candidate before this)
+        raise DataError(f"diagnose: {_too_short_for_phases(data.n_times, horizon)}")
+    head, tail = data.time_slice(0, warm + 1), data.time_slice(warm, data.n_times)
+    mean = sum(gain.gains) / len(gain.gains)
+    test_gain = InputGain(gain.input_ref, [mean] * len(data), target=gain.target, learnable=True)
+    test_gain.bind(getattr(gain, "state_names", None) or [str(i) for i in range(data.state_dim)])
+    model = copy.deepcopy(trial)
+    model.effects[-1] = test_gain.to(dtype=trial.state_mean.dtype, device=trial.state_mean.device)
+    shooting_fit(model, head, warm, [cast(InputGain, model.effects[-1]).coef], iters, stderr=False)
+    return window_error(current, tail, horizon), window_error(model, tail, horizon), model
 
 
 def phased_heldout(current: Model, trial: Model, data: Trajectories, horizon: int, iters: int):

@@ -23,6 +23,7 @@ some nodes only, with a coefficient each: `nodes=[2]` (or `[0, 2]`) and `coef` o
 | `CosineCoupling(c, k)` | c·Σ_j A_ij cos(k(s_j − s_i))  (with `SineCoupling`: a phase lag α; k as above) |
 | `DelayedFeedback(c, τ)` | c·s(t − τ) |
 | `ParameterDrift(p, s)` | the model's parameter p becomes p·(1 + s·t)  (`model=equations` only) |
+| `InputGain(u, g_b)` | the input u reaches the system as g_b·u, a gain per recording b  (`model=equations` only) |
 
 with s the source variable of node i and A the coupling graph. A phase lag in Kuramoto coupling is the pair
 `SineCoupling` + `CosineCoupling`: K·sin(s_j − s_i − α) = K cos α·sin(s_j − s_i) − K sin α·cos(s_j − s_i).
@@ -43,6 +44,7 @@ from mpsim.effects.base import (
     total,
 )
 from mpsim.effects.couplings import CosineCoupling, DiffusiveCoupling, SineCoupling
+from mpsim.effects.inputs import InputGain
 from mpsim.effects.temporal import DelayedFeedback, ParameterDrift, PeriodicForcing, max_delay, min_delay
 
 __all__ = [
@@ -54,6 +56,7 @@ __all__ = [
     "DryFriction",
     "Effect",
     "EffectContext",
+    "InputGain",
     "LinearDamping",
     "PER_NODE_KINDS",
     "ParameterDrift",

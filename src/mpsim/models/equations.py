@@ -59,6 +59,7 @@ class _Field(HeldField):
         self.u = signal.u if isinstance(signal, GridInput) and signal.hold == "zoh" else None
         # fixed for the rollout: sorted once, not at every evaluation of the field
         self.terms, self.drifting = model.terms(), bool(model.drifts())
+        self.gains = model.input_gains()
 
     @property
     def held(self) -> int | None:
@@ -71,6 +72,8 @@ class _Field(HeldField):
 
     def forward(self, t: torch.Tensor, x: torch.Tensor, history=None) -> torch.Tensor:  # x: [B, N, D] raw
         u = None if self.signal is None else self.signal(t)  # [B, N, C] at the solver's (local) time
+        if u is not None and self.gains:
+            u = self.model.gained(u)
         if self.offset is not None:
             t = t + self.offset
         values = self.model.drifted(self.values, t) if self.drifting else self.values
@@ -168,8 +171,22 @@ class EquationsModel(Model):
         return [e for e in self.effects if getattr(e, "acts_on_parameters", False)]
 
     def terms(self) -> list[Effect]:
-        """The carried effects that add a term to dx/dt (all but the parameter drifts)."""
-        return [e for e in self.effects if not getattr(e, "acts_on_parameters", False)]
+        """The carried effects that add a term to dx/dt (all but the parameter drifts and input gains)."""
+        return [
+            e
+            for e in self.effects
+            if not getattr(e, "acts_on_parameters", False) and not getattr(e, "acts_on_inputs", False)
+        ]
+
+    def input_gains(self) -> list[Effect]:
+        """The carried `InputGain` effects: an input scaled per recording before the equations read it."""
+        return [e for e in self.effects if getattr(e, "acts_on_inputs", False)]
+
+    def gained(self, u: torch.Tensor) -> torch.Tensor:  # u: [M, N, C] inputs, recording-major rows
+        """[M, N, C] the inputs as the equations read them: each carried input gain applied."""
+        for e in self.input_gains():  # one or two named gains
+            u = cast(Any, e).scale(u, cast(Any, e).channel(self.spec.inputs))
+        return u
 
     def drifted(
         self,
@@ -205,6 +222,10 @@ class EquationsModel(Model):
             if name in seen:
                 raise ConfigError(f"model.effects: two ParameterDrift effects of {name!r}; keep one.")
             seen.add(name)
+        for e in self.input_gains():
+            if not self.spec.inputs:
+                raise ConfigError("model.effects: InputGain scales an input, but model.spec declares no inputs:.")
+            cast(Any, e).channel(self.spec.inputs)
 
     def bind_inputs(self, control_names: Sequence[str]) -> None:
         """Check the data's control names against the spec's inputs (same names, same order).
@@ -259,7 +280,7 @@ class EquationsModel(Model):
         values = {k: v.to(xs) for k, v in self.parameters_now().items()}
         u = None
         if self.spec.inputs:
-            u = self._signal(xs[:, 0], t, inputs).u.reshape(b * n_t, n, -1)  # type: ignore[union-attr]
+            u = self.gained(self._signal(xs[:, 0], t, inputs).u.reshape(b * n_t, n, -1))  # type: ignore[union-attr]
         tt = t.to(xs).repeat(b)[:, None]  # [B·T, 1] each row's time
         out = self.output_field(tt, xs.reshape(b * n_t, n, d), values, None, u)
         return out.reshape(b, n_t, n, -1)
@@ -322,7 +343,7 @@ class EquationsModel(Model):
         history, per-recording drives, a drifting parameter in a neighbour sum) rather than in one batch."""
         dts = t[1:] - t[:-1]
         uniform = t.numel() > 1 and bool((dts - dts[0]).abs().max() <= 1e-9 * dts[0].abs().clamp(min=1e-300))
-        special = min_delay(self.effects) > 0 or any(type(e).__name__ == "PhasedDrive" for e in self.effects)
+        special = min_delay(self.effects) > 0 or any(e.per_record for e in self.effects)  # a phase or gain each
         special = special or bool(self.drifts() and self.field.uses_graph)  # a [M, 1] parameter in a neighbour sum
         return not uniform or special
 
@@ -400,6 +421,27 @@ class EquationsModel(Model):
         if not columns:
             return None
         return torch.stack(columns, dim=-1)
+
+    def input_sensitivity(
+        self,
+        t: torch.Tensor,  # [M, 1] or [] times
+        x: torch.Tensor,  # [M, N, D] states (raw units)
+        edge_index: torch.Tensor,  # [2, E] graph
+        u: torch.Tensor,  # [M, N, C] the inputs with those states
+        channel: int,
+    ) -> torch.Tensor:
+        """[M, N, D] ∂f/∂u_c·u_c: the first-order change of the field when input c is scaled by 1 + g, per unit g
+        (the column of a per-recording `InputGain`)."""
+        u = u.to(x)
+        values = {n: v.detach().to(x) for n, v in self.parameters_now().items()}
+        graph = self._graph(edge_index, x) if self.field.uses_graph else None
+        tangent = torch.zeros_like(u)
+        tangent[..., channel] = u[..., channel]
+
+        def f(v: torch.Tensor) -> torch.Tensor:  # v: [M, N, C] the inputs
+            return self.field(t, x, self.drifted(values, t), graph, v)
+
+        return torch.func.jvp(f, (u,), (tangent,))[1]
 
     def sensitivity_names(self) -> list[str]:
         return [label for label, _, _ in self._entries()]

@@ -1,0 +1,102 @@
+"""Effects on the input path: what reaches the system is not quite the input that was recorded.
+
+`InputGain`: the input u_c reaches the system as g_b·u_c, with a gain g_b of its own in every recording b (an
+amplifier's or a motor constant's scale that differs between sessions; the DFKI pendulum's torque). Like a
+parameter drift it is not a term of dx/dt: the model scales its own input before its equations read it, so only a
+model that reads its inputs applies it (`model=equations`: `EquationsModel`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from torch import nn
+
+from mpsim.effects.base import Effect
+from mpsim.errors import ConfigError
+
+
+class InputGain(Effect):
+    """u_c → g_b·u_c: the input `input` reaches the system with a gain g_b of its own in every recording b.
+
+    The gains belong to the recordings, not to the model (a new recording brings its own): rollouts must batch
+    the recordings in the order of `gains` (the residual loop fits the gains of held-in records, and estimates
+    those of held-out records from a warm-up window). With one recording, or gains that agree, it is the input's
+    coefficient in the equations, not a finding. The coefficients are g_b − 1 (zero: the nominal input).
+
+    Args:
+        input: the input's name (or index) among the spec's `inputs:`.
+        gains: g_b, one per recording (default: one recording, gain 1).
+        target: the state row the residual loop found it on (the gain acts wherever the equations read u).
+    """
+
+    basis = ("u",)
+    #: reads the record's place in the batch: window rollouts run one start at a time, never tiled
+    uses_time = per_record = True
+    #: applied by the model to its own inputs, not added to dx/dt (`EquationsModel`)
+    acts_on_inputs = True
+
+    def __init__(
+        self,
+        input: str | int = 0,
+        gains: Sequence[float] | None = None,
+        target: str | int = 0,
+        source: str | int | None = None,
+        learnable: bool = True,
+    ) -> None:
+        super().__init__(0.0, target, source, learnable)
+        values = [float(g) - 1.0 for g in (gains if gains is not None else [1.0])]
+        if not values:
+            raise ConfigError("InputGain.gains must list one gain per recording; got an empty list.")
+        self.coef = nn.Parameter(torch.tensor(values, dtype=torch.float64), requires_grad=learnable)
+        self.input_ref = input
+
+    @property
+    def gains(self) -> list[float]:
+        return [1.0 + float(c) for c in self.coef.detach()]
+
+    def channel(self, input_names: Sequence[str]) -> int:
+        """The index of `input` among the model's inputs (ConfigError naming them when it is not one)."""
+        ref = self.input_ref
+        if isinstance(ref, int) and 0 <= ref < len(input_names):
+            return ref
+        if isinstance(ref, str) and ref in input_names:
+            return list(input_names).index(ref)
+        raise ConfigError(f"InputGain.input={ref!r} is not an input of the model; its inputs: {list(input_names)}.")
+
+    def scale(
+        self,
+        u: torch.Tensor,  # [M, N, C] inputs, M = recordings × rows per recording (recording-major)
+        channel: int,
+    ) -> torch.Tensor:
+        """[M, N, C] u with channel `channel` of recording b's rows times g_b."""
+        b = self.coef.numel()
+        if u.shape[0] % b:
+            raise ValueError(f"InputGain has {b} gains (one per recording) but the batch has {u.shape[0]} rows.")
+        rel = self.coef.to(u).repeat_interleave(u.shape[0] // b)  # [M] g − 1 of each row's recording
+        mask = torch.zeros(u.shape[-1], dtype=u.dtype, device=u.device)
+        mask[channel] = 1.0  # [C] only the named input is scaled
+        return u * (1.0 + rel[:, None, None] * mask)
+
+    def features(self, t, x, ctx):
+        raise ConfigError(
+            f"InputGain({self.input_ref}) scales a model's own input: only model=equations applies it (it is no "
+            "term a system or another model can add to dx/dt)."
+        )
+
+    def forward(self, t, x, ctx):
+        return self.features(t, x, ctx)
+
+    def describe(self) -> str:
+        gains = ", ".join(f"{g:.4g}" for g in self.gains)
+        return f"{self.input_ref} → g·{self.input_ref}, a gain per recording: {gains}"
+
+    def config(self) -> dict[str, Any]:
+        cfg = super().config()
+        del cfg["source"], cfg["coef"]
+        return {**cfg, "input": self.input_ref, "gains": self.gains}
+
+    def extra_repr(self) -> str:
+        return f"input={self.input_ref}, gains={[round(g, 6) for g in self.gains]}"
