@@ -62,6 +62,7 @@ def test_default_train_writes_every_output(tmp_path):
     assert (tmp_path / "checkpoints" / "pendulum2.ckpt").is_file()
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_same_seed_same_summary(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
     for ws in (a, b):
@@ -77,6 +78,7 @@ def test_same_seed_same_summary(tmp_path):
     assert sc["final"] != sa["final"]  # the seed matters: equal summaries above are not a constant
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_lorenz3_then_finetune_zeroshot_eval_simulate(lorenz_ws):
     ws = lorenz_ws
     assert (ws / "checkpoints" / "lorenz3.ckpt").is_file()
@@ -119,6 +121,7 @@ def test_lorenz3_then_finetune_zeroshot_eval_simulate(lorenz_ws):
     assert list(frame.columns) == ["traj", "t", "node", "x", "y", "z"] and len(frame) == 2 * 6 * 10
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_trained_file_data_round_trip(tmp_path):
     # simulate → CSV → train on the file as measured data
     run_mpsim_ok(["simulate", "system=pendulum2", "format=csv", "n=9", "data.horizon=10"], tmp_path)
@@ -138,6 +141,7 @@ def test_trained_file_data_round_trip(tmp_path):
     assert json.loads((_runs(tmp_path, "eval")[-1] / "summary.json").read_text())["data"]["n_test"] == 9
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_sweep_gives_every_job_its_own_directory(lorenz_ws):
     ws = lorenz_ws
     args = ["train", "-m", *TINY_TRAIN, "eval.plots=false", "system=lorenz10", "data.n_train=4,6"]
@@ -183,6 +187,7 @@ def test_joblib_launcher_runs_jobs_in_parallel_processes(tmp_path):
     assert "Joblib.Parallel(n_jobs=2" in output and "Launching 2 jobs locally" not in output, output[-3000:]
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_resume_after_interrupt_matches_an_uninterrupted_run(tmp_path, monkeypatch):
     from mpsim.training.trainer import Trainer
 
@@ -216,6 +221,7 @@ def test_resume_after_interrupt_matches_an_uninterrupted_run(tmp_path, monkeypat
     assert sa["min_test_error"] == sb["min_test_error"] and sa["test"]["rmse"] == sb["test"]["rmse"]
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_a_finished_run_trains_on_with_a_larger_max_epochs_and_matches_a_longer_run(tmp_path):
     """`resume=true trainer.max_epochs=6` finds the finished 3-epoch run (when it stops is not what it is) and
     trains it on: its curve is the 6-epoch run's, row for row."""
@@ -364,6 +370,7 @@ def test_bench_writes_table_and_plot(tmp_path):
     assert "fwd_bwd_s" in (run / "bench.md").read_text() and (run / "plots" / "mpnode_scaling.png").is_file()
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_simulate_applies_data_burn_in_as_train_does(tmp_path):
     # data.burn_in was ignored by mpsim simulate (its files began at t=0 while train's data began after the burn-in)
     args = ["simulate", "system=pendulum2", "n=2", "format=npz", "eval.plots=false"]

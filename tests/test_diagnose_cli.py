@@ -54,6 +54,7 @@ def test_hidden_damping_found_added_and_error_drops(tmp_path):
     assert result["fixed_checkpoint"] and Path(result["fixed_checkpoint"]).is_file()
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_clean_data_gives_nothing_missing(tmp_path):
     clean = ["experiment=pendulum_damped", "system.effects=[]", "system.name=pendulum2_clean"]
     run_mpsim_ok(["train", *clean, "trainer.max_epochs=15", *SMALL[:-1]], tmp_path)

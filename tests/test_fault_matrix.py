@@ -939,6 +939,7 @@ def test_single_run_keeps_the_export_it_replaces(ws, tmp_path):
     assert "replaced an earlier export, kept as" in res.out and kept[0].name in res.out
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_sweep_jobs_keep_their_models_in_their_run_directories(ws, tmp_path):
     res = run_mpsim(["train", "-m", *TINY_TRAIN, "eval.plots=false", "seed=0,1"], tmp_path)
     assert res.code == 0, res.err
@@ -1065,6 +1066,7 @@ def test_the_matrix_is_large_enough():
     assert len(CASES) >= 45
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_a_moved_run_resumes_where_it_is_now_and_writes_where_it_is_told(ws, tmp_path):
     """paths.* say where a run writes, not what it computes: a run directory copied to another place (another
     disk, another checkout) resumes there with new paths; anything else that differs is still refused."""
@@ -1087,6 +1089,7 @@ def test_a_moved_run_resumes_where_it_is_now_and_writes_where_it_is_told(ws, tmp
     assert not any(key in line.split(". A resumed")[0] for key in ("paths.ckpt_dir=", "trainer.progress", "log_every"))
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_a_run_moved_from_a_gpu_machine_resumes_on_the_cpu_when_told_to(ws, tmp_path):
     """The hardware a run computes on (device, threads) is not what it computes: a run whose record says
     device=cuda (started on a GPU machine, its folder copied here, where there is no CUDA) is refused with the
@@ -1146,6 +1149,7 @@ def test_a_run_on_a_data_file_resumes_with_the_file_moved_along_only_if_it_holds
     assert "recorded no digest" in unchecked.err
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_resume_uses_the_runs_own_overrides_and_keeps_its_record(ws, tmp_path):
     run_dir = tmp_path / "run"
     shutil.copytree(lorenz_run(ws), run_dir)

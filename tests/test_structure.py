@@ -109,6 +109,7 @@ def test_public_api_imports_with_an_example(name):
     assert name in mpsim.__all__
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_the_script_prints_its_figures(capsys):
     assert main() == 0
     out = capsys.readouterr().out

@@ -81,6 +81,7 @@ def _summary(run, model: str, graph: str, n: int, system: str) -> None:
     (run / "summary.json").write_text(json.dumps(summary))
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_table_reads_runs_and_measures_cost(tmp_path) -> None:
     _summary(tmp_path / "runs" / "a", "DeltaGN", "hierarchical", 100, "nbody100")
     _summary(tmp_path / "runs" / "b", "DeltaGN", "knn", 40, "nbody40")

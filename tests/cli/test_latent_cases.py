@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 _spec = importlib.util.spec_from_file_location("latent_cases", ROOT / "cli" / "latent_cases.py")
@@ -18,6 +19,7 @@ sys.modules["latent_cases"] = lc  # dataclasses look their module up
 _spec.loader.exec_module(lc)
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_each_case_records_only_its_sensor_and_is_deterministic(tmp_path):
     for name, case in lc.CASES.items():
         info = lc.write_case(tmp_path, name, seed=3)

@@ -25,6 +25,7 @@ def _train(cfg_factory, tmp_path, name, *overrides):
     return run_train(cfg_factory("train", *overrides), output_dir=tmp_path / name, overrides=overrides)
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_node_trains_then_refuses_another_graph_size(cfg_factory, tmp_path):
     summary = _train(cfg_factory, tmp_path, "node", "system=gene_ba_small", "model=node")
     assert summary["model"]["model"] == "NODE" and summary["model"]["n_nodes"] == 16
@@ -38,6 +39,7 @@ def test_node_trains_then_refuses_another_graph_size(cfg_factory, tmp_path):
     assert zero["mode"] == "zeroshot" and math.isfinite(zero["test"]["rmse"])
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_mpnode_on_quadrotors_finetunes_from_three_to_six(cfg_factory, tmp_path):
     # the Table 2 quadrotor column's path: controls (4 rotor thrusts per node), then a larger swarm
     pre = _train(cfg_factory, tmp_path, "quad3", "system=quad3", "solver=rk4", "model.message_size=7")

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from tests.helpers import run_mpsim, run_mpsim_ok
 
@@ -49,6 +50,7 @@ learnable: [c, k]
 """
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_train_on_a_wide_csv_with_positions_only(tmp_path):
     _record(tmp_path / "rec.csv")
     (tmp_path / "osc.yaml").write_text(SPEC)
@@ -80,6 +82,7 @@ def test_recording_keys_on_a_batch_file_are_one_message(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_a_pattern_run_says_what_it_read_and_keeps_it(tmp_path):
     """Console, summary.json and the checkpoint say which files and seconds were read, skipped, split and scored;
     the run is named after the pattern; a model fitted to zoh inputs warns when run on linear ones."""
@@ -111,6 +114,7 @@ def test_a_pattern_run_says_what_it_read_and_keeps_it(tmp_path):
     assert "fitted to inputs held 'zoh' between samples, but these data hold them 'linear'" in res.out + res.err
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_a_benchmark_split_is_scored_by_free_run_of_each_test_record(tmp_path):
     """data.train_range / data.test_range as a benchmark states them; every test record simulated whole from its
     first samples, scored in the signal's units, drawn; the summary says which samples were scored."""

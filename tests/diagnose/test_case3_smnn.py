@@ -72,6 +72,7 @@ def test_model_declares_what_it_can_express_and_steps_from_one_state(cubic_data)
     assert steps.shape == (2, 5, 1, 3) and torch.allclose(steps, ref, atol=1e-6)
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_residual_names_the_missing_cubic_term(cubic_data):
     model = discovered(cubic_data)
     before = one_step_residual(model, cubic_data).r.var(dim=(0, 1, 2))

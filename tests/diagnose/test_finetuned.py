@@ -46,6 +46,7 @@ def damped():
     return train, test, model, screen(model, train, PARAMS, 0)
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_names_what_the_control_finetune_cannot_learn(damped):
     train, test, model, (diag, library) = damped
     tags: list[str] = []

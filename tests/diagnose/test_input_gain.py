@@ -54,14 +54,10 @@ def shaker(gains: list[float], seed: int) -> Trajectories:
         if s == STEPS * EVERY:
             break
         force = g * u[:, s // EVERY]  # zero-order hold over the logging interval
-
-        def f(y: np.ndarray) -> np.ndarray:  # y: [n, 2]
-            return np.stack([y[:, 1], (force - K * y[:, 0] - C * y[:, 1]) / M], axis=1)
-
-        k1 = f(y)
-        k2 = f(y + 0.5 * H * k1)
-        k3 = f(y + 0.5 * H * k2)
-        k4 = f(y + H * k3)
+        k1 = _field(y, force)
+        k2 = _field(y + 0.5 * H * k1, force)
+        k3 = _field(y + 0.5 * H * k2, force)
+        k4 = _field(y + H * k3, force)
         y = y + H / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
     return Trajectories(
         t=torch.as_tensor(t_log),
@@ -70,6 +66,10 @@ def shaker(gains: list[float], seed: int) -> Trajectories:
         u=torch.as_tensor(u)[:, :, None, None],
         meta={"state_names": ["z", "v"], "control_names": ["u"], "input_hold": "zoh", "source": "shaker.csv"},
     )
+
+
+def _field(y: np.ndarray, force: np.ndarray) -> np.ndarray:  # y: [n, 2], force: [n]
+    return np.stack([y[:, 1], (force - K * y[:, 0] - C * y[:, 1]) / M], axis=1)
 
 
 def nominal(train: Trajectories, effects=()) -> EquationsModel:

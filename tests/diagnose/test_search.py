@@ -13,6 +13,7 @@ from mpsim.systems import CoupledPendulums
 from tests.helpers import declared_pendulums
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_names_hidden_damping_with_its_coefficient():
     data = CoupledPendulums(effects=[LinearDamping(0.2, target="omega")]).generate(24, seed=0)
     diag = find_effects(declared_pendulums(data), data, n_boot=30)

@@ -45,6 +45,7 @@ def test_float32_gives_the_float64_estimate():
     torch.testing.assert_close(single.mean.double(), double.mean, atol=2e-3, rtol=0)
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_a_sensor_of_the_absolute_value_with_the_unscented_smoother():
     """Belt drive read by |s|: the sign comes from the dynamics and the known input. The iterated unscented smoother
     gets the sign of every sample with |s| > 3σ_noise right in at least 99 % of them, and s to under 6 % of its spread

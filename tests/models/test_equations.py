@@ -431,6 +431,7 @@ def test_linear_damping_acts_on_the_rows_of_a_driven_model(tmp_path):
     assert float(model.effects[0].coef.detach()[0]) == pytest.approx(0.4, rel=0.01)
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_a_driven_twin_trains_on_the_command_line_and_its_checkpoint_round_trips(cfg_factory, tmp_path):
     spec_file = tmp_path / "driven.yaml"
     spec_file.write_text(

@@ -65,6 +65,7 @@ def _positions_only(records: Trajectories) -> Trajectories:
                         meta={**records.meta, "observed": ["q"], "estimated": {"v": "a poor guess"}})  # fmt: skip
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_the_chunked_run_is_the_whole_run_and_the_latent_start_is_found():
     records = _positions_only(whole_records([_truth(1201, 0.05, 1.0, 0.3), _truth(1001, 0.05, 2.0, -0.5)]))
     chunked = free_run(_model(), records, chunk=200)

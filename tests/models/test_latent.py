@@ -67,6 +67,7 @@ def test_the_upper_tank_is_estimated_from_the_lower_one(tmp_path):
     assert after.meta["estimated"]["h1"].startswith("unscented Kalman smoother over the nominal model")
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_a_velocity_at_8_6_samples_a_period_is_left_to_the_model_and_beats_the_derivative(tmp_path):
     before, after, truth, info = _estimated(tmp_path, "oscillator", "q", "linear", 300, 5.0)
     assert before.meta["pending"] == ["v"] and "gain of 0.7" in before.meta["pending_why"]["v"]

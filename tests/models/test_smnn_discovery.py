@@ -67,6 +67,7 @@ def test_whitening_makes_the_library_orthonormal():
     assert torch.allclose(model.deriv_scale, rate.std(0))
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_recovers_a_linear_ode_and_thresholds_the_absent_terms():
     torch.manual_seed(0)
     data = linear_data()

@@ -123,6 +123,7 @@ def test_stacked_outputs_equal_torchdiffeqs_odeint_and_its_gradients(method, opt
         assert torch.allclose(mine, ref, rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_stacked_outputs_keep_the_backward_linear_in_the_number_of_outputs():
     # torchdiffeq's preallocated output makes autograd clone the whole [T, ...] gradient once per output; stacking
     # does not: count the elements the backward copies for T outputs

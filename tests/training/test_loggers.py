@@ -61,6 +61,7 @@ def test_unknown_logger_key_is_refused(cfg_factory, tmp_path):
         run_train(cfg_factory("train", *TINY_TRAIN, "+logger.csv.file_name=x.csv"), output_dir=tmp_path / "run")
 
 
+@pytest.mark.slow  # 4–13 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_tensorboard_and_mlflow_read_back(cfg_factory, tmp_path):
     pytest.importorskip("tensorboard")
     pytest.importorskip("mlflow")
