@@ -247,6 +247,15 @@ def _null_twin(
 Ranked = tuple[list[tuple[Finding, Candidate]], list[tuple[Finding, Candidate]]]
 
 
+#: kinds whose best candidate is tried on held-out data whatever share of the one-step residual it explains, and why
+ALWAYS_TRIED = {
+    "InputGain": (
+        ": tested on held-out data all the same: a gain per recording shows in the one-step residual only where the "
+        "input is large, and the part all recordings share is the model's own input coefficient (projected out)"
+    ),
+}
+
+
 def _ranked(diag: Diagnosis, library: list[Candidate], params: DiagnoseParams) -> Ranked:
     """The best candidate of each effect kind on each searched row; held-out data decide between them.
 
@@ -267,11 +276,16 @@ def _ranked(diag: Diagnosis, library: list[Candidate], params: DiagnoseParams) -
     noisy = noise_dominated(diag)
     for f in sorted(diag.findings, key=lambda f: (not f.accepted, not f.selected, -f.gain)):
         cand = labels.get(f.label.split(": ", 1)[1])
-        if cand is not None and (f.selected or f.alone >= params.min_gain or (f.target in noisy and f.alone > 0)):
+        always = cand is not None and cand.kind in ALWAYS_TRIED and f.alone > 0
+        if cand is not None and (
+            f.selected or f.alone >= params.min_gain or (f.target in noisy and f.alone > 0) or always
+        ):
             if (cand.family, f.target) not in best and not f.selected and f.alone < params.min_gain:
                 f.reason = f.reason.replace(
                     ": not tested on held-out data",
-                    ": tested on held-out data all the same, as its row's one-step residual is noise-dominated "
+                    ALWAYS_TRIED[cand.kind]
+                    if always
+                    else ": tested on held-out data all the same, as its row's one-step residual is noise-dominated "
                     f"(RMS within {NOISE_DOMINATED:g}× the null data's)",
                 )
             best.setdefault((cand.family, f.target), f)

@@ -455,6 +455,8 @@ def record_coef(cand: Candidate, coef: list[float], n_records: int) -> list[floa
     gain's c each); any other candidate's as they are."""
     if not per_record(cand):
         return list(coef)
+    if getattr(cand, "kind", "") == "InputGain":  # every gain starts at 1: the part all recordings share is the
+        return [0.0] * n_records  # model's own input coefficient, which the screen projected out (not identified)
     width = 2 if cand.params.get("phased") else 1
     return (list(coef) * math.ceil(width * n_records / max(len(coef), 1)))[: width * n_records]
 
