@@ -24,8 +24,8 @@ from mpsim.effects import EffectContext
 #: effect kinds of the default library, by class name (one list: `mpsim.diagnose.params`)
 DEFAULT_KINDS = tuple(_KINDS)
 #: kinds whose columns come from the model, not the data alone (`nuisance.drift_candidates`,
-#: `nuisance.input_gain_candidates`)
-MODEL_KINDS = ("ParameterDrift", "InputGain")
+#: `nuisance.input_candidates`)
+MODEL_KINDS = ("ParameterDrift", "InputGain", "DeadZone", "InputSaturation")
 NEEDS_GRAPH = ("DiffusiveCoupling", "SineCoupling", "CosineCoupling")
 #: couplings of phases offered at every harmonic k of `params.HARMONICS`: sin/cos(k(θ_j − θ_i))
 HARMONIC_KINDS = ("SineCoupling", "CosineCoupling")
@@ -100,6 +100,9 @@ class Candidate:
             extra = f"τ={self.params['delay']:.4g}"
         if self.kind == "InputGain":
             extra = f"{self.params['input']}, a gain per recording"
+        for key in ("width", "limit"):  # a dead zone's, a saturation's threshold
+            if key in self.params:
+                extra = f"{self.params['input']}, {key}={self.params[key]:.4g}"
         if self.harmonic > 1:
             extra = f"k={self.harmonic}"
         if self.nodes is not None:
@@ -113,6 +116,9 @@ class Candidate:
         cfg: dict[str, Any] = {"_target_": f"mpsim.effects.{self.kind}", "target": state_names[target]}
         if self.kind == "InputGain":  # (1 + c_b)·u: one gain per recording
             return {**cfg, "input": self.params["input"], "gains": [1.0 + float(c) for c in coef]}
+        if self.kind in ("DeadZone", "InputSaturation"):  # the threshold of the screen's grid; the fit moves it
+            key = "width" if self.kind == "DeadZone" else "limit"
+            return {**cfg, "input": self.params["input"], key: self.params[key]}
         if self.kind == "ParameterDrift":  # p·(1 + s·t): the rate s of the named parameter
             return {**cfg, "param": self.params["param"], "rate": coef[0]}
         if self.params.get("phased"):  # one (a, b) pair per recording: a shared amplitude, a phase each

@@ -31,7 +31,7 @@ from mpsim.diagnose.heldout import (
 )
 from mpsim.diagnose.latent import fitted_latent
 from mpsim.diagnose.library import Candidate, build_library
-from mpsim.diagnose.nuisance import drift_candidates, input_gain_candidates
+from mpsim.diagnose.nuisance import drift_candidates, input_candidates
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.diagnose.pernode import with_per_node
 from mpsim.diagnose.residual import one_step_residual
@@ -112,7 +112,7 @@ def screen(model: Model, data: Trajectories, params: DiagnoseParams, seed: int) 
     kinds = tuple(k for k in params.kinds if k not in diag.represented + diag.not_considered)
     library = build_library(data, diag.omegas, delays or [m * dt for m in (1, 2, 4, 8)], kinds, diag.phased_omegas)
     library = with_per_node(library, diag) + drift_candidates(model, data, kinds)
-    library += input_gain_candidates(model, data, kinds)
+    library += input_candidates(model, data, kinds)
     states = state_rows(model, data)  # a spec's `outputs:` columns are read by sensors: no effect reads them
     return diag, [c for c in library if c.source is None or c.source < states]
 

@@ -104,42 +104,82 @@ def drift_candidates(model: Model, data: Trajectories, kinds: tuple[str, ...]) -
     ]
 
 
+#: quantiles of |u| over the data where the input-path candidates put their threshold: a dead zone's width (the
+#: screen picks the best, the held-out fit moves it continuously) and a saturation's limit (≥ 3 % of the samples
+#: beyond it, so the data show it)
+DEAD_ZONE_QUANTILES = (0.05, 0.1, 0.2, 0.35)
+SATURATION_QUANTILES = (0.97, 0.9, 0.8)
+INPUT_KINDS = ("InputGain", "DeadZone", "InputSaturation")
+
+
 @torch.no_grad()
-def input_gain_candidates(model: Model, data: Trajectories, kinds: tuple[str, ...]) -> list[Candidate]:
-    """The `InputGain` candidates of a driven white-box model (`model=equations`): one per input, on every state
-    row, with one column per recording b: the step average of ∂f_d/∂u·u on b's samples (zero on the others) — the
-    first-order change of the field when the input reaches the system as (1 + c_b)·u, per unit c_b. Offered with
-    two recordings or more (with one it is the input's own coefficient in the equations, no finding); under a
-    zero-order hold step k's input is u_k at both of its ends."""
+def input_candidates(model: Model, data: Trajectories, kinds: tuple[str, ...]) -> list[Candidate]:
+    """The input-path candidates of a driven white-box model (`model=equations`), per input u, on every state row,
+    each column the step average of ∂f_d/∂u·δu (the first-order change of the field when what reaches the system
+    is u + δu; under a zero-order hold step k's input is u_k at both of its ends):
+
+    - `InputGain(u, a gain per recording)`: δu = c_b·u, one column per recording b (zero on the others' samples);
+      offered with two recordings or more (with one it is the input's own coefficient in the equations);
+    - `DeadZone(u, width=w)`: δu = −clip(u, −w, w), w at the quantiles `DEAD_ZONE_QUANTILES` of |u|;
+    - `InputSaturation(u, limit=U)`: δu = clip(u, −U, U) − u, U at the quantiles `SATURATION_QUANTILES` of |u|
+      (a limit the data never pass is no finding: it is not offered)."""
     sens_of = getattr(model, "input_sensitivity", None)
     names = list(getattr(getattr(model, "spec", None), "inputs", ()) or ())
-    if "InputGain" not in kinds or sens_of is None or data.u is None or not names or len(data) < 2:
+    wanted = [k for k in INPUT_KINDS if k in kinds]
+    if not wanted or sens_of is None or data.u is None or not names:
         return []
     b, n_t, n, d = data.x.shape
     device, dtype = model.state_mean.device, model.state_mean.dtype
+    zoh = input_hold(data.meta) == "zoh"
+    given = data.u.double()  # [B, T, N, C]
 
-    def at(x: torch.Tensor, t: torch.Tensor, u: torch.Tensor, c: int) -> torch.Tensor:  # x: [B, T', N, D]
+    def at(x: torch.Tensor, t: torch.Tensor, u: torch.Tensor, du: torch.Tensor) -> torch.Tensor:  # x: [B, T', N, D]
         m = x.shape[0] * x.shape[1]
         times = t[None, :].expand(b, -1).reshape(m, 1).to(device=device, dtype=dtype)
         flat = x.reshape(m, n, d).to(device=device, dtype=dtype)
+        uu, dd = (v.reshape(m, n, -1).to(device=device, dtype=dtype) for v in (u, du))
         with torch.enable_grad():
-            col = sens_of(times, flat, data.edge_index, u.reshape(m, n, -1).to(device=device, dtype=dtype), c)
+            col = sens_of(times, flat, data.edge_index, uu, dd)
         return col.detach().double().cpu().reshape(b, x.shape[1], n, d)
 
-    out = []
-    eye = torch.eye(b, dtype=torch.float64)
-    for c, name in enumerate(names):  # the spec's few inputs
-        if input_hold(data.meta) == "zoh":
-            col = 0.5 * (
-                at(data.x[:, :-1], data.t[:-1], data.u[:, :-1], c) + at(data.x[:, 1:], data.t[1:], data.u[:, :-1], c)
+    def column(c: int, change) -> torch.Tensor:  # change: u_c [B, T', N] -> δu_c: [B, T-1, N, D]
+        def direction(u: torch.Tensor) -> torch.Tensor:  # u: [B, T', N, C]
+            out = torch.zeros_like(u)
+            out[..., c] = change(u[..., c])
+            return out
+
+        u = given
+        if zoh:
+            held = u[:, :-1]
+            return 0.5 * (
+                at(data.x[:, :-1], data.t[:-1], held, direction(held))
+                + at(data.x[:, 1:], data.t[1:], held, direction(held))
             )
-        else:
-            full = at(data.x, data.t, data.u, c)
-            col = 0.5 * (full[:, 1:] + full[:, :-1])  # [B, T-1, N, D]
-        if not bool(col.abs().amax() > 0):  # the input enters no row
-            continue
-        feats = col[..., None] * eye[:, None, None, None, :]  # [B, T-1, N, D, B]: recording b's column is b's own
-        out.append(Candidate("InputGain", None, {"input": name}, feats, per_row=True))
+        full = at(data.x, data.t, u, direction(u))
+        return 0.5 * (full[:, 1:] + full[:, :-1])
+
+    out = []
+    for c, name in enumerate(names):  # the spec's few inputs
+        size = given[..., c].abs().flatten()
+        if "InputGain" in wanted and len(data) >= 2:
+            col = column(c, lambda v: v)
+            if bool(col.abs().amax() > 0):  # the input enters some row
+                eye = torch.eye(b, dtype=torch.float64)
+                feats = col[..., None] * eye[:, None, None, None, :]  # [B, T-1, N, D, B]: recording b's own column
+                out.append(Candidate("InputGain", None, {"input": name}, feats, per_row=True))
+        levels = {
+            "DeadZone": ("width", DEAD_ZONE_QUANTILES, lambda v, w: -v.clamp(-w, w)),
+            "InputSaturation": ("limit", SATURATION_QUANTILES, lambda v, w: v.clamp(-w, w) - v),
+        }
+        for kind, (key, quantiles, change) in levels.items():  # the two threshold kinds
+            if kind not in wanted:
+                continue
+            for w in sorted({float(q) for q in torch.quantile(size, torch.tensor(quantiles, dtype=torch.float64))}):
+                if not w > 0:
+                    continue
+                col = column(c, lambda v, w=w, change=change: change(v, w))
+                if bool(col.abs().amax() > 0):
+                    out.append(Candidate(kind, None, {"input": name, key: w}, col[..., None], per_row=True))
     return out
 
 
@@ -180,6 +220,8 @@ def effect_columns(model: Model, data: Trajectories) -> torch.Tensor | None:
     cols = []
     for effect in model.effects:
         effect = cast(Any, effect)  # an Effect (a Module list holds Modules)
+        if getattr(effect, "acts_on_inputs", False):  # an input gain or threshold: not linear, kept as fitted
+            continue
         if getattr(effect, "acts_on_parameters", False):  # a carried drift: t·p·∂f/∂p on every row, refit
             cols.append(_carried_drift(model, data, effect.param))
             continue

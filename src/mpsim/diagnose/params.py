@@ -23,6 +23,8 @@ KIND_COMPLEXITY = {
     "PeriodicForcing": 2,
     "ParameterDrift": 2,
     "InputGain": 2,
+    "DeadZone": 1,
+    "InputSaturation": 1,
     "DelayedFeedback": 3,
 }
 DEFAULT_KINDS = list(KIND_COMPLEXITY)

@@ -19,6 +19,7 @@ from mpsim.data.account import record_lines
 from mpsim.data.trajectories import Trajectories
 from mpsim.diagnose.heldout import EFFECTS_NAMED, NOTHING_MISSING
 from mpsim.diagnose.loop import LoopResult
+from mpsim.diagnose.nuisance import INPUT_KINDS
 from mpsim.diagnose.residual import one_step_residual
 from mpsim.effects.base import EffectContext
 from mpsim.errors import DivergenceError
@@ -64,7 +65,11 @@ def feature_plots(result: LoopResult, data: Trajectories, out: Path) -> list[Pat
     names, paths = data.state_names, []
     for k, (trial, effect) in enumerate(zip(named, effects, strict=True), start=1):  # the few named effects
         source, target = getattr(effect, "source", None), getattr(effect, "target", None)
-        if source is None or target is None or trial.kind in ("Bias", "PeriodicForcing", "ParameterDrift", "InputGain"):
+        if (
+            source is None
+            or target is None
+            or trial.kind in ("Bias", "PeriodicForcing", "ParameterDrift", *INPUT_KINDS)
+        ):
             continue
         with torch.no_grad():
             term = copy.deepcopy(effect).double()(torch.zeros((), dtype=torch.float64), flat, ctx)[..., target]

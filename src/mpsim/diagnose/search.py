@@ -29,7 +29,7 @@ from mpsim.diagnose.library import (
 from mpsim.diagnose.noise import noise_level
 from mpsim.diagnose.nuisance import (
     drift_candidates,
-    input_gain_candidates,
+    input_candidates,
     nuisance_columns,
     project,
     target_rows,
@@ -155,7 +155,7 @@ def find_effects(
     represented, undecidable, kinds = _split_kinds(model, kinds)
     equivalent: list[str] = []  # candidates left out: a simpler kind equals them on these data
     library = build_library(data, omegas, delays, kinds, phased, notes=equivalent)
-    library += drift_candidates(model, data, kinds) + input_gain_candidates(model, data, kinds)
+    library += drift_candidates(model, data, kinds) + input_candidates(model, data, kinds)
     base, n_shared = nuisance_columns(model, data, represented)
     noise = noise_level(data.x, res.r * res.dt[None, :, None, None])
     null_rms, null_level = _null_check(
@@ -401,7 +401,7 @@ def _null_check(model, data, omegas, delays, kinds, represented, sigma, seed, ph
     res = one_step_residual(model, null)
     keep = torch.isfinite(res.r).flatten(1).all(dim=1)
     library = build_library(null, omegas, delays, kinds, phased)
-    library += drift_candidates(model, null, kinds) + input_gain_candidates(model, null, kinds)
+    library += drift_candidates(model, null, kinds) + input_candidates(model, null, kinds)
     base, _ = nuisance_columns(model, null, represented)
     if jumps:  # a zero row (residual and columns) drops out of every least-squares fit
         res.r[:, jumps] = 0.0

@@ -199,6 +199,8 @@ def _try_candidate(
 def fitted_label(label: str, effect) -> str:
     """The screen's label with a delayed feedback's fitted delay in place of its grid value (the screen tries
     a few multiples of the sampling step; the multiple-shooting fit moves τ continuously)."""
+    if type(effect).__name__ in ("DeadZone", "InputSaturation"):
+        return re.sub(rf"{effect.key}=[^,)]*", f"{effect.key}={effect.threshold:.4g}", label)
     if type(effect).__name__ != "DelayedFeedback":
         return label
     return re.sub(r"τ=[^,)]*", f"τ={effect.delay:.4g}", label)
@@ -342,7 +344,10 @@ def reported(effect, values: list[float], stderr: list[float]) -> tuple[dict[str
     """The parameters a report shows for a fitted effect, with 95 % intervals around exactly these values: the
     coefficient(s) (a parameter drift's rate `s`), for a delayed feedback c and its delay τ (fitted as log τ), or
     for a drive its amplitude, angular frequency and phase (delta method from a, b, log ω)."""
-    if type(effect).__name__ == "InputGain":  # g_b − 1 per recording: the gains' mean and range
+    if type(effect).__name__ in ("DeadZone", "InputSaturation"):  # the log threshold
+        key = effect.key
+        vals, ses = {key: _exp(values[0])}, {key: _exp(values[0]) * stderr[0]}
+    elif type(effect).__name__ == "InputGain":  # g_b − 1 per recording: the gains' mean and range
         g = [1.0 + v for v in values]
         lo, hi = min(range(len(g)), key=g.__getitem__), max(range(len(g)), key=g.__getitem__)
         vals = {"gain mean": sum(g) / len(g), "gain min": g[lo], "gain max": g[hi]}

@@ -24,6 +24,8 @@ some nodes only, with a coefficient each: `nodes=[2]` (or `[0, 2]`) and `coef` o
 | `DelayedFeedback(c, τ)` | c·s(t − τ) |
 | `ParameterDrift(p, s)` | the model's parameter p becomes p·(1 + s·t)  (`model=equations` only) |
 | `InputGain(u, g_b)` | the input u reaches the system as g_b·u, a gain per recording b  (`model=equations` only) |
+| `DeadZone(u, w)` | the input u reaches the system as sign(u)·max(abs(u) − w, 0)  (`model=equations` only) |
+| `InputSaturation(u, U)` | the input u reaches the system as clip(u, −U, U)  (`model=equations` only) |
 
 with s the source variable of node i and A the coupling graph. A phase lag in Kuramoto coupling is the pair
 `SineCoupling` + `CosineCoupling`: K·sin(s_j − s_i − α) = K cos α·sin(s_j − s_i) − K sin α·cos(s_j − s_i).
@@ -44,19 +46,21 @@ from mpsim.effects.base import (
     total,
 )
 from mpsim.effects.couplings import CosineCoupling, DiffusiveCoupling, SineCoupling
-from mpsim.effects.inputs import InputGain
+from mpsim.effects.inputs import DeadZone, InputGain, InputSaturation
 from mpsim.effects.temporal import DelayedFeedback, ParameterDrift, PeriodicForcing, max_delay, min_delay
 
 __all__ = [
     "Bias",
     "CosineCoupling",
     "CubicStiffness",
+    "DeadZone",
     "DelayedFeedback",
     "DiffusiveCoupling",
     "DryFriction",
     "Effect",
     "EffectContext",
     "InputGain",
+    "InputSaturation",
     "LinearDamping",
     "PER_NODE_KINDS",
     "ParameterDrift",

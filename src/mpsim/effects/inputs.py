@@ -1,13 +1,18 @@
 """Effects on the input path: what reaches the system is not quite the input that was recorded.
 
 `InputGain`: the input u_c reaches the system as g_b·u_c, with a gain g_b of its own in every recording b (an
-amplifier's or a motor constant's scale that differs between sessions; the DFKI pendulum's torque). Like a
-parameter drift it is not a term of dx/dt: the model scales its own input before its equations read it, so only a
-model that reads its inputs applies it (`model=equations`: `EquationsModel`).
+amplifier's or a motor constant's scale that differs between sessions; the DFKI pendulum's torque).
+`DeadZone`: sign(u)·max(|u| − w, 0), an amplifier or valve that passes nothing below w.
+`InputSaturation`: clip(u, −U, U), an actuator that cannot deliver more than U.
+None is a term of dx/dt: the model passes its own input through them (`through`) before its equations read it, so
+only a model that reads its inputs applies them (`model=equations`: `EquationsModel`). The thresholds are fitted
+as they are (continuous, piecewise linear in the threshold: over many samples the loss is smooth enough for
+L-BFGS), as their logarithm (they stay positive); the reported value is the threshold itself.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -66,7 +71,7 @@ class InputGain(Effect):
             return list(input_names).index(ref)
         raise ConfigError(f"InputGain.input={ref!r} is not an input of the model; its inputs: {list(input_names)}.")
 
-    def scale(
+    def through(
         self,
         u: torch.Tensor,  # [M, N, C] inputs, M = recordings × rows per recording (recording-major)
         channel: int,
@@ -81,13 +86,10 @@ class InputGain(Effect):
         return u * (1.0 + rel[:, None, None] * mask)
 
     def features(self, t, x, ctx):
-        raise ConfigError(
-            f"InputGain({self.input_ref}) scales a model's own input: only model=equations applies it (it is no "
-            "term a system or another model can add to dx/dt)."
-        )
+        return _only_equations(self)
 
     def forward(self, t, x, ctx):
-        return self.features(t, x, ctx)
+        return _only_equations(self)
 
     def describe(self) -> str:
         gains = ", ".join(f"{g:.4g}" for g in self.gains)
@@ -100,3 +102,126 @@ class InputGain(Effect):
 
     def extra_repr(self) -> str:
         return f"input={self.input_ref}, gains={[round(g, 6) for g in self.gains]}"
+
+
+def _only_equations(effect: Effect) -> torch.Tensor:
+    raise ConfigError(
+        f"{type(effect).__name__}({getattr(effect, 'input_ref', '')}) acts on a model's own input: only "
+        "model=equations applies it (it is no term a system or another model can add to dx/dt)."
+    )
+
+
+class _Threshold(Effect):
+    """An input-path effect with one positive threshold (fitted as its log) on input `input`."""
+
+    basis = ("u",)
+    acts_on_inputs = True
+    #: the threshold's name in configs and reports
+    key = "threshold"
+
+    def __init__(
+        self,
+        input: str | int = 0,
+        threshold: float = 1.0,
+        target: str | int = 0,
+        source: str | int | None = None,
+        learnable: bool = True,
+    ) -> None:
+        super().__init__(0.0, target, source, learnable)
+        if not threshold > 0:
+            raise ConfigError(f"{type(self).__name__}.{self.key} must be > 0; got {threshold}.")
+        # the log threshold is the one fitted coefficient (coef holds it: the loop's fits free `coef`)
+        self.coef = nn.Parameter(torch.tensor([math.log(threshold)], dtype=torch.float64), requires_grad=learnable)
+        self.input_ref = input
+
+    @property
+    def threshold(self) -> float:
+        return float(self.coef.detach()[0].exp())
+
+    channel = InputGain.channel
+
+    def shape(self, v: torch.Tensor, w: torch.Tensor) -> torch.Tensor:  # v: [M, N] one input; w: [] threshold
+        """[M, N] what reaches the system of the input v."""
+        raise NotImplementedError
+
+    def through(
+        self,
+        u: torch.Tensor,  # [M, N, C] inputs
+        channel: int,
+    ) -> torch.Tensor:
+        """[M, N, C] u with channel `channel` shaped (`shape`), the others as they are."""
+        w = self.coef[0].to(u).exp()
+        shaped = self.shape(u[..., channel], w)
+        return torch.cat([u[..., :channel], shaped[..., None], u[..., channel + 1 :]], dim=-1)
+
+    def features(self, t, x, ctx):
+        return _only_equations(self)
+
+    def forward(self, t, x, ctx):
+        return _only_equations(self)
+
+    def config(self) -> dict[str, Any]:
+        cfg = super().config()
+        del cfg["source"], cfg["coef"]
+        return {**cfg, "input": self.input_ref, self.key: self.threshold}
+
+    def extra_repr(self) -> str:
+        return f"input={self.input_ref}, {self.key}={self.threshold:.6g}"
+
+
+class DeadZone(_Threshold):
+    """u → sign(u)·max(|u| − w, 0): the input `input` passes nothing below the width w and w less above it.
+
+    Args:
+        input: the input's name (or index) among the spec's `inputs:`.
+        width: w > 0.
+        target: the state row the residual loop found it on (it acts wherever the equations read u).
+    """
+
+    key = "width"
+
+    def __init__(
+        self,
+        input: str | int = 0,
+        width: float = 1.0,
+        target: str | int = 0,
+        source: str | int | None = None,
+        learnable: bool = True,
+    ) -> None:
+        super().__init__(input, width, target, source, learnable)
+
+    def shape(self, v, w):
+        return v - torch.maximum(torch.minimum(v, w), -w)  # v − clip(v, −w, w)
+
+    def describe(self) -> str:
+        return (
+            f"{self.input_ref} → sign({self.input_ref})·max(|{self.input_ref}| − {self.threshold:.4g}, 0) (a dead zone)"
+        )
+
+
+class InputSaturation(_Threshold):
+    """u → clip(u, −U, U): the input `input` cannot reach the system beyond the limit U.
+
+    Args:
+        input: the input's name (or index) among the spec's `inputs:`.
+        limit: U > 0.
+        target: the state row the residual loop found it on (it acts wherever the equations read u).
+    """
+
+    key = "limit"
+
+    def __init__(
+        self,
+        input: str | int = 0,
+        limit: float = 1.0,
+        target: str | int = 0,
+        source: str | int | None = None,
+        learnable: bool = True,
+    ) -> None:
+        super().__init__(input, limit, target, source, learnable)
+
+    def shape(self, v, w):
+        return torch.maximum(torch.minimum(v, w), -w)
+
+    def describe(self) -> str:
+        return f"{self.input_ref} → clip({self.input_ref}, ±{self.threshold:.4g}) (a saturation)"

@@ -179,13 +179,14 @@ class EquationsModel(Model):
         ]
 
     def input_gains(self) -> list[Effect]:
-        """The carried `InputGain` effects: an input scaled per recording before the equations read it."""
+        """The carried effects on the input path (`InputGain`, `DeadZone`, `InputSaturation`), in order: what the
+        inputs pass through before the equations read them."""
         return [e for e in self.effects if getattr(e, "acts_on_inputs", False)]
 
     def gained(self, u: torch.Tensor) -> torch.Tensor:  # u: [M, N, C] inputs, recording-major rows
-        """[M, N, C] the inputs as the equations read them: each carried input gain applied."""
-        for e in self.input_gains():  # one or two named gains
-            u = cast(Any, e).scale(u, cast(Any, e).channel(self.spec.inputs))
+        """[M, N, C] the inputs as the equations read them: through each carried input-path effect."""
+        for e in self.input_gains():  # one or two named effects
+            u = cast(Any, e).through(u, cast(Any, e).channel(self.spec.inputs))
         return u
 
     def drifted(
@@ -224,7 +225,9 @@ class EquationsModel(Model):
             seen.add(name)
         for e in self.input_gains():
             if not self.spec.inputs:
-                raise ConfigError("model.effects: InputGain scales an input, but model.spec declares no inputs:.")
+                raise ConfigError(
+                    f"model.effects: {type(e).__name__} acts on an input, but model.spec declares no inputs:."
+                )
             cast(Any, e).channel(self.spec.inputs)
 
     def bind_inputs(self, control_names: Sequence[str]) -> None:
@@ -428,20 +431,18 @@ class EquationsModel(Model):
         x: torch.Tensor,  # [M, N, D] states (raw units)
         edge_index: torch.Tensor,  # [2, E] graph
         u: torch.Tensor,  # [M, N, C] the inputs with those states
-        channel: int,
+        direction: torch.Tensor,  # [M, N, C] a change of the inputs
     ) -> torch.Tensor:
-        """[M, N, D] ∂f/∂u_c·u_c: the first-order change of the field when input c is scaled by 1 + g, per unit g
-        (the column of a per-recording `InputGain`)."""
+        """[M, N, D] ∂f/∂u·δu: the first-order change of the field when the inputs change by `direction` (δu = u_c on
+        channel c: a gain of input c, the column of `InputGain`; δu = −clip(u_c, −w, w): a dead zone of width w)."""
         u = u.to(x)
         values = {n: v.detach().to(x) for n, v in self.parameters_now().items()}
         graph = self._graph(edge_index, x) if self.field.uses_graph else None
-        tangent = torch.zeros_like(u)
-        tangent[..., channel] = u[..., channel]
 
         def f(v: torch.Tensor) -> torch.Tensor:  # v: [M, N, C] the inputs
             return self.field(t, x, self.drifted(values, t), graph, v)
 
-        return torch.func.jvp(f, (u,), (tangent,))[1]
+        return torch.func.jvp(f, (u,), (direction.to(x),))[1]
 
     def sensitivity_names(self) -> list[str]:
         return [label for label, _, _ in self._entries()]
