@@ -23,6 +23,7 @@ from mpsim.diagnose.library import Candidate
 from mpsim.diagnose.loop import screen
 from mpsim.diagnose.nuisance import input_candidates
 from mpsim.diagnose.params import DiagnoseParams
+from mpsim.diagnose.trial import gains_text
 from mpsim.errors import ConfigError
 from mpsim.models.equations import EquationsModel
 from mpsim.solvers.odeint import ODESolver
@@ -220,3 +221,10 @@ def test_a_saturating_force_is_named_with_its_limit():
 def test_a_cubic_stiffness_is_not_named_a_saturation():
     j = _loop([1.0] * 12, cubic=100.0)
     assert [t.kind for t in j.named] == ["CubicStiffness"], [(t.label, t.reason) for t in j.trials]
+
+
+def test_gains_that_agree_are_said_to_be_one_gain_of_the_input():
+    agree = gains_text([-0.2, -0.2001, -0.1999], [0.01, 0.01, 0.01])
+    assert "mean 0.8" in agree and "one gain for every record" in agree
+    spread = gains_text([-0.2, 0.2, 0.0], [0.01, 0.01, 0.01])
+    assert "spread (sd) 0.2" in spread and "one gain" not in spread

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+import yaml
 from omegaconf import DictConfig
 
 from mpsim import plotting
@@ -31,14 +32,16 @@ from mpsim.data.account import data_record
 from mpsim.data.dataset import Splits
 from mpsim.diagnose import report
 from mpsim.diagnose.finetuned import serial
+from mpsim.diagnose.fixed import written_spec
 from mpsim.diagnose.heldout import EFFECTS_NAMED, NOTHING_MISSING, UNEXPLAINED
 from mpsim.diagnose.loop import LoopResult, holdout_metrics, run_loop
 from mpsim.diagnose.params import DiagnoseParams
-from mpsim.diagnose.shooting import null_data
+from mpsim.diagnose.shooting import null_data, window_error
 from mpsim.errors import ConfigError, DataError, DivergenceError
 from mpsim.files import atomic_write, write_json
 from mpsim.models.base import Model
 from mpsim.models.capabilities import LatentState
+from mpsim.models.equations import EquationsModel
 from mpsim.models.freerun import free_run, summary_of
 from mpsim.solvers.odeint import ODESolver
 from mpsim.training.checkpoint import checkpoint_base, save_checkpoint
@@ -127,6 +130,7 @@ def write_diagnosis(job: Job, result: LoopResult, fix: bool, options: EvalOption
             result.judgement.notes.append(why)
     out = summarise(job, result, true_effects(job), fix)
     out["freerun"] = freerun
+    out["fixed_spec"] = write_fixed_spec(job, result, out_dir) if fix else None
     if job.model is not None and (options is None or options.plots):
         figures = report.feature_plots(result, splits.test, out_dir)
         out["feature_plots"] = [str(p.relative_to(out_dir)) for p in figures]
@@ -351,6 +355,38 @@ def free_run_before_after(job: Job, result: LoopResult, options: EvalOptions) ->
         "substeps": options.freerun_substeps,
         "rows": rows,
     }
+
+
+def write_fixed_spec(job: Job, result: LoopResult, out_dir: Path) -> dict[str, Any] | None:
+    """`fixed.yaml` of a fixed `model=equations` model (None for any other): the user's spec with every effect the
+    returned model carries written into its equations (`mpsim.diagnose.fixed`), read back as a plain spec and
+    checked: its held-out MSE beside the fixed model's (the same windows), and what could not be written."""
+    fixed = result.model
+    if not isinstance(fixed, EquationsModel) or fixed is job.model or result.after is None or job.splits is None:
+        return None
+    spec, left_out = written_spec(fixed)
+    path = out_dir / "fixed.yaml"
+    header = (
+        "# The model diagnose fix=true returned, as a spec: the named effects written into the equations, their\n"
+        "# coefficients as parameters at the fitted values. Train or evaluate it with\n"
+        f"#   mpsim train model=equations model.spec={path.name}\n"
+        + "".join(f"# NOT written (carry it as model.effects): {why}\n" for why in left_out)
+    )
+    text = header + yaml.safe_dump(spec, sort_keys=False, allow_unicode=True)
+    atomic_write(path, lambda f: f.write(text), mode="w")
+    check: dict[str, Any] = {"path": path.name, "left_out": left_out}
+    try:
+        rebuilt = EquationsModel(fixed.state_dim, fixed.control_dim, spec=spec, solver=fixed.solver)
+        rebuilt = rebuilt.to(dtype=fixed.state_mean.dtype)
+        rebuilt.bind_effects(job.splits.test.state_names)
+        rebuilt.set_normalisation(fixed.state_mean.detach(), fixed.state_std.detach())
+        horizon = result.judgement.horizon
+        check["heldout_mse"] = float(window_error(rebuilt, job.splits.test, horizon).mean())
+        check["fixed_model_heldout_mse"] = float(window_error(fixed, job.splits.test, horizon).mean())
+    except (ConfigError, DivergenceError) as err:  # written, but it does not read back: said, not hidden
+        check["read_back_error"] = str(err)
+        log.warning(f"fixed.yaml does not read back as a spec: {err}")
+    return check
 
 
 #: *nothing missing* on measured data also needs every held-out record's free-run RMSE within this factor of the

@@ -304,6 +304,18 @@ def _fix_section(s: dict[str, Any]) -> list[str]:
             for e in s["fixed_effects"]
         ]
         lines.append(f"- checkpoint: `{s['fixed_checkpoint']}`")
+        spec = s.get("fixed_spec")
+        if spec:
+            lines.append(
+                f"- as equations: `{spec['path']}` (`mpsim train model=equations model.spec={spec['path']}`)"
+                + (
+                    f"; read back, its held-out MSE {spec['heldout_mse']:.4g} (the fixed model's "
+                    f"{spec['fixed_model_heldout_mse']:.4g})"
+                    if "heldout_mse" in spec
+                    else f"; it does not read back: {spec.get('read_back_error')}"
+                )
+            )
+            lines += [f"- not written into it (carry as model.effects): {why}" for why in spec["left_out"]]
     return lines
 
 

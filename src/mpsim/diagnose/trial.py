@@ -308,7 +308,26 @@ def _reported_values(
             values, interval, derived = {**values, **lag[0]}, {**interval, **lag[1]}, lag[2]
         else:
             derived = "phase lag not separated: the model has no single sin-coupling parameter to pair with c"
+    if cand.kind == "InputGain":
+        derived = gains_text(fit.values[:k], fit.stderr[:k])
     return values, interval, derived
+
+
+def gains_text(rel: list[float], stderr: list[float]) -> str:
+    """How a per-recording gain's fitted gains (g_b − 1 in `rel`) spread, and whether they agree: gains that agree
+    within their errors are one gain of the input for every record — where the spec fits the input's coefficient
+    (a 1/J, 1/m), indistinguishable from it on these data, not a per-recording finding."""
+    g = torch.tensor(rel, dtype=torch.float64) + 1.0
+    se = torch.tensor(stderr, dtype=torch.float64)
+    sd = float(g.std()) if g.numel() > 1 else 0.0
+    typical = float(se[torch.isfinite(se)].median()) if bool(torch.isfinite(se).any()) else math.inf
+    text = f"gains of {g.numel()} held-in records: mean {float(g.mean()):.4g}, spread (sd) {sd:.3g}"
+    if sd <= 2 * typical:
+        text += (
+            f" — within twice their standard error ({typical:.3g}): one gain for every record; where the spec fits "
+            "the input's coefficient, indistinguishable from it on these data"
+        )
+    return text
 
 
 def _failed_checks(p: Paired, null_log: float, excess: float, params: DiagnoseParams) -> list[str]:
