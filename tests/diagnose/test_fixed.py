@@ -35,7 +35,7 @@ def _carrying(data):
 
 
 def test_the_written_spec_rolls_out_as_the_model_with_its_effects():
-    data = shaker([1.0, 1.0], seed=5)
+    data = shaker([1.0, 1.0], seed=5).time_slice(0, 101)  # 2 s: the rollouts at a tight tolerance are slow
     model = _carrying(data)
     spec, left_out = written_spec(model)
     assert left_out == []

@@ -23,7 +23,7 @@ from mpsim.diagnose.library import Candidate
 from mpsim.diagnose.loop import screen
 from mpsim.diagnose.nuisance import input_candidates
 from mpsim.diagnose.params import DiagnoseParams
-from mpsim.diagnose.trial import gains_text
+from mpsim.diagnose.perrecord import gains_text
 from mpsim.errors import ConfigError
 from mpsim.models.equations import EquationsModel
 from mpsim.solvers.odeint import ODESolver

@@ -54,7 +54,7 @@ def test_windows_too_short_for_a_phased_drive_say_so():
     import torch
 
     from mpsim.data.trajectories import Trajectories
-    from mpsim.diagnose.trial import phased_heldout
+    from mpsim.diagnose.perrecord import phased_heldout
     from mpsim.errors import DataError
 
     data = Trajectories(t=torch.arange(3) * 0.1, x=torch.zeros(2, 3, 2, 1), edge_index=torch.zeros(2, 0).long())
@@ -71,7 +71,8 @@ def test_a_phased_drive_that_cannot_be_tested_is_rejected_with_its_reason_and_th
     import torch
 
     from mpsim.diagnose.heldout import _best_text
-    from mpsim.diagnose.trial import Trial, TrialSetting, phase_warmup, try_candidate
+    from mpsim.diagnose.perrecord import phase_warmup
+    from mpsim.diagnose.trial import Trial, TrialSetting, try_candidate
 
     assert phase_warmup(2, 3) is None and phase_warmup(3, 13) == 3 and phase_warmup(50, 201) == 50
     finding = SimpleNamespace(label="dv/dt: PeriodicForcing(ω=3.1, a phase per recording)", kind="PeriodicForcing",

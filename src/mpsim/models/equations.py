@@ -433,8 +433,7 @@ class EquationsModel(Model):
         u: torch.Tensor,  # [M, N, C] the inputs with those states
         direction: torch.Tensor,  # [M, N, C] a change of the inputs
     ) -> torch.Tensor:
-        """[M, N, D] ∂f/∂u·δu: the first-order change of the field when the inputs change by `direction` (δu = u_c on
-        channel c: a gain of input c, the column of `InputGain`; δu = −clip(u_c, −w, w): a dead zone of width w)."""
+        """[M, N, D] ∂f/∂u·δu, the field's first-order change when the inputs change by δu = `direction`."""
         u = u.to(x)
         values = {n: v.detach().to(x) for n, v in self.parameters_now().items()}
         graph = self._graph(edge_index, x) if self.field.uses_graph else None
