@@ -13,6 +13,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from mpsim.data.clipped import clipped_text
+
 #: files named one by one before "and N more"
 SHOWN_FILES = 8
 
@@ -75,6 +77,7 @@ def _file_line(f: Mapping[str, Any], account: Mapping[str, Any], grid: str) -> s
             f"a gap of {g['seconds']:.4g} s ({g['steps']:.3g} steps) before row {g['row'] + 1} (t = "
             f"{g['t'] - origin:.6g} s) {what}"
         )
+    texts += [clipped_text(c) for c in f.get("clipped", [])]
     if grid:
         texts.append(grid)
     pieces = f.get("pieces", [])

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from mpsim.data.account import account_lines
+from mpsim.data.clipped import clipped_channels, clipped_text
 from mpsim.data.gaps import split_at_gaps
 from mpsim.data.grid import HOLDS, check_resample_step, resample, stride, uniform_or_refuse
 from mpsim.data.latent import MIN_WINDOW, estimate_latent
@@ -206,6 +207,11 @@ def one_recording(
     rec = replace(rec, meta={**rec.meta, "input_hold": how.input_hold, "noise": noise_summary(rec)})
     for warning in hold_warnings(rec, how.input_hold):
         log.warning(warning)
+    observed = set(_observed_names(how)) or set(rec.state_names)
+    measured = [d for d, name in enumerate(rec.state_names) if name in observed]
+    clipped = clipped_channels(rec.x[0, :, 0][:, measured].double(), [rec.state_names[d] for d in measured])
+    for c in clipped:
+        log.warning(f"{path.name}: {clipped_text(c)}.")
     digest = _digest(rec)
     if rows is not None:
         rec = take_rows(rec, rows)
@@ -223,6 +229,8 @@ def one_recording(
         entry["range"] = [int(rows[0]), int(rows[1])]
     if table.time_origin is not None:
         entry["time_origin"] = table.time_origin
+    if clipped:
+        entry["clipped"] = clipped
     for alone in (a for g in gaps for a in g.get("alone", [])):  # a sample alone between gaps: named, not used
         entry["pieces"].append(
             {"piece": alone["piece"], "rows": 1, "span": [alone["t"], alone["t"]], "skipped": "a single sample"}
