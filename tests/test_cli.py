@@ -270,6 +270,7 @@ def test_an_interrupted_command_other_than_train_is_told_to_run_again_not_to_res
     assert "resume=true" not in cut.err and "run the same command again" in cut.err  # resume= is train's alone
 
 
+@pytest.mark.slow  # 3–6 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_bad_inputs_end_with_one_clear_message(lorenz_ws, tmp_path):
     ws = lorenz_ws
     _fails(["train", "system=lorenz4"], ws, "Could not find 'system/lorenz4'")

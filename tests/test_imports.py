@@ -433,6 +433,7 @@ print(json.dumps({"changed": changed, "backend": matplotlib.get_backend(), "vers
 """
 
 
+@pytest.mark.slow  # 3–6 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_import_has_no_process_wide_side_effects():
     """`import mpsim` (and its plotting and command modules) sets no environment variable and keeps the caller's
     matplotlib backend; only the entry point (`mpsim.process.configure_process`) sets the process up."""

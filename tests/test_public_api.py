@@ -41,6 +41,7 @@ def test_each_public_name_has_an_example_that_runs(name, tmp_path, monkeypatch):
     assert attempted >= 3 and failed == 0, f"mpsim.{name}: {failed} of {attempted} example lines failed (see stdout)"
 
 
+@pytest.mark.slow  # 3–6 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_importing_mpsim_or_its_cli_does_not_import_torch_until_a_public_name_is_used():
     probe = (
         "import sys\n"

@@ -111,6 +111,7 @@ def test_the_csv_reads_back_as_the_recording(name, tmp_path):
     assert np.allclose(np.round(rec.y / truth["sensor"]["quantum_m"]) * truth["sensor"]["quantum_m"], rec.y, atol=1e-15)
 
 
+@pytest.mark.slow  # 3–6 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_cases_are_deterministic_and_sized_as_stated(tmp_path):
     for name in mc.CASES:  # the missing term: a few % to ~20 % of dv/dt (RMS), full length
         assert 0.03 < mc.make_case(name)["info"]["share_of_dvdt_rms"] < 0.22, name

@@ -34,6 +34,7 @@ def test_no_effect_in_clean_data():
     assert diag.accepted == []
 
 
+@pytest.mark.slow  # 3–6 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_works_from_a_hand_written_csv(tmp_path):
     # the data file carries no record of the effect: only states, times, nodes and an edge list
     data = CoupledPendulums(effects=[LinearDamping(0.2, target="omega")]).generate(16, seed=2)

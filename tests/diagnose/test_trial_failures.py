@@ -49,6 +49,7 @@ def _blown_up(diag: Diagnosis) -> Finding:
     return cubic
 
 
+@pytest.mark.slow  # 3–6 s on 2 cores: the default suite stays under 4 minutes (.ci/run runs it)
 def test_a_candidate_that_makes_dopri5_fail_is_rejected_with_its_reason_and_the_true_effect_is_named(tmp_path):
     data = pendulum(24, seed=0)
     splits = Splits(data.subset(slice(0, 14)), data.subset(slice(14, 16)), data.subset(slice(16, 24)))
