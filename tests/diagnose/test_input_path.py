@@ -24,6 +24,7 @@ from mpsim.diagnose.loop import screen
 from mpsim.diagnose.nuisance import input_candidates
 from mpsim.diagnose.params import DiagnoseParams
 from mpsim.diagnose.perrecord import gains_text
+from mpsim.diagnose.shooting import window_error
 from mpsim.errors import ConfigError
 from mpsim.models.equations import EquationsModel
 from mpsim.solvers.odeint import ODESolver
@@ -125,15 +126,18 @@ def test_the_gains_round_trip_through_their_config_and_the_model_applies_them():
     assert cfg["gains"] == pytest.approx(gains)
     effect = cand.make_effect([g - 1 for g in gains], 1, data.state_names)
     rebuilt = fx.InputGain(**{k: v for k, v in effect.config().items() if k != "_target_"})
-    assert rebuilt.gains == pytest.approx(gains) and rebuilt.per_record and rebuilt.uses_time
+    assert rebuilt.gains == pytest.approx(gains) and rebuilt.per_record and not rebuilt.uses_time
     model = nominal(data, effects=[rebuilt])
     assert model.terms() == [] and model.input_gains() == [rebuilt]
     pred = model.rollout(data.x[:, 0], data.t, _inputs(data)).detach()
     assert float((pred - data.x).abs().max()) < 1e-5  # each recording with its own gain reproduces the generator
     plain = nominal(data).rollout(data.x[:, 0], data.t, _inputs(data)).detach()
     assert float((plain - data.x)[0].abs().max()) > 100 * float((pred - data.x).abs().max())  # and without: not
-    steps = model.one_step(data.x, data.t, _inputs(data)).detach()
+    steps = model.one_step(data.x, data.t, _inputs(data)).detach()  # one batch of every step: rows say their record
     assert float((steps - data.x[:, 1:]).abs().max()) < 1e-6
+    assert model.time_invariant  # windows batch window-major, each row told its recording
+    assert float(window_error(model, data, 30).max()) < 1e-8
+    assert float(window_error(nominal(data), data, 30).max()) > 1e-4
     with pytest.raises(ConfigError, match="only model=equations"):
         rebuilt(data.t[0], data.x[:, 0], None)  # a system or another model cannot carry it
     with pytest.raises(ConfigError, match="not an input of the model"):

@@ -100,7 +100,9 @@ def _batched(
         feats = feats.repeat(k, 1, 1)
     before = past_samples(model, data, first)  # [K, P] or None
     past = None if before is None else data.x.to(device, dtype)[:, before].transpose(0, 1).flatten(0, 1)
-    inputs = Inputs(edge_index=edges, u=u, node_features=feats, meta=given.meta, past=past)  # past: [K·B, P, N, D]
+    rows = given.meta.get("record_index")  # which recording each row is, window-major (a per-recording gain)
+    meta = {**given.meta, "record_index": (torch.arange(b) if rows is None else torch.as_tensor(rows)).repeat(k)}
+    inputs = Inputs(edge_index=edges, u=u, node_features=feats, meta=meta, past=past)  # past: [K·B, P, N, D]
     start = x0[:, index].transpose(0, 1).flatten(0, 1)  # [K·B, N, D]
     pred = model.rollout(start, t[first[0] : first[0] + length + 1], inputs)  # [K·B, L+1, N, D]
     return [(s, p) for s, p in zip(first, pred.unflatten(0, (k, b)).unbind(0), strict=True)]

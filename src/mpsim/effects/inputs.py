@@ -38,8 +38,9 @@ class InputGain(Effect):
     """
 
     basis = ("u",)
-    #: reads the record's place in the batch: window rollouts run one start at a time, never tiled
-    uses_time = per_record = True
+    #: reads the record's place in the batch: a batch that reorders or tiles records says which row is which
+    #: (`Inputs.meta["record_index"]`); it reads no time, so windows still batch
+    per_record = True
     #: applied by the model to its own inputs, not added to dx/dt (`EquationsModel`)
     acts_on_inputs = True
 
@@ -73,14 +74,27 @@ class InputGain(Effect):
 
     def through(
         self,
-        u: torch.Tensor,  # [M, N, C] inputs, M = recordings × rows per recording (recording-major)
+        u: torch.Tensor,  # [M, N, C] inputs, one row per batch row
         channel: int,
+        records: torch.Tensor | None = None,  # [M] the recording of each row (None: row b is recording b)
     ) -> torch.Tensor:
-        """[M, N, C] u with channel `channel` of recording b's rows times g_b."""
+        """[M, N, C] u with channel `channel` of each row times its recording's gain g_b. A batch whose rows are not
+        the recordings in order (windows batched window-major, one-step batches, outputs at every time) names each
+        row's recording in `records`; without it the rows must be the recordings, one each."""
         b = self.coef.numel()
-        if u.shape[0] % b:
-            raise ValueError(f"InputGain has {b} gains (one per recording) but the batch has {u.shape[0]} rows.")
-        rel = self.coef.to(u).repeat_interleave(u.shape[0] // b)  # [M] g − 1 of each row's recording
+        if records is None:
+            if u.shape[0] != b:
+                raise ValueError(
+                    f"InputGain has {b} gains (one per recording) but the batch has {u.shape[0]} rows and does not "
+                    "say which recording each row is."
+                )
+            rel = self.coef.to(u)
+        else:
+            if records.numel() != u.shape[0] or (records.numel() and int(records.max()) >= b):
+                raise ValueError(
+                    f"InputGain has {b} gains; the batch's record index does not fit its {u.shape[0]} rows."
+                )
+            rel = self.coef.to(u)[records.to(u.device)]  # [M] g − 1 of each row's recording
         mask = torch.zeros(u.shape[-1], dtype=u.dtype, device=u.device)
         mask[channel] = 1.0  # [C] only the named input is scaled
         return u * (1.0 + rel[:, None, None] * mask)
@@ -148,6 +162,7 @@ class _Threshold(Effect):
         self,
         u: torch.Tensor,  # [M, N, C] inputs
         channel: int,
+        records: torch.Tensor | None = None,  # [M] each row's recording (unused: the same threshold for all)
     ) -> torch.Tensor:
         """[M, N, C] u with channel `channel` shaped (`shape`), the others as they are."""
         w = self.coef[0].to(u).exp()

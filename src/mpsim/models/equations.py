@@ -53,9 +53,11 @@ class _Field(HeldField):
         graph: BatchedGraph | None,
         offset: torch.Tensor | None = None,  # [B, 1] start time of each sample (one-step batches), else None
         signal: GridInput | IntervalInput | None = None,
+        records: torch.Tensor | None = None,  # [B] each row's recording (a per-recording input gain), else None
     ) -> None:
         super().__init__()
         self.model, self.values, self.graph, self.offset, self.signal = model, values, graph, offset, signal
+        self.records = records
         self.u = signal.u if isinstance(signal, GridInput) and signal.hold == "zoh" else None
         # fixed for the rollout: sorted once, not at every evaluation of the field
         self.terms, self.drifting = model.terms(), bool(model.drifts())
@@ -73,7 +75,7 @@ class _Field(HeldField):
     def forward(self, t: torch.Tensor, x: torch.Tensor, history=None) -> torch.Tensor:  # x: [B, N, D] raw
         u = None if self.signal is None else self.signal(t)  # [B, N, C] at the solver's (local) time
         if u is not None and self.gains:
-            u = self.model.gained(u)
+            u = self.model.gained(u, self.records)
         if self.offset is not None:
             t = t + self.offset
         values = self.model.drifted(self.values, t) if self.drifting else self.values
@@ -183,10 +185,14 @@ class EquationsModel(Model):
         inputs pass through before the equations read them."""
         return [e for e in self.effects if getattr(e, "acts_on_inputs", False)]
 
-    def gained(self, u: torch.Tensor) -> torch.Tensor:  # u: [M, N, C] inputs, recording-major rows
+    def gained(
+        self,
+        u: torch.Tensor,  # [M, N, C] inputs
+        records: torch.Tensor | None = None,  # [M] each row's recording (None: row b is recording b)
+    ) -> torch.Tensor:
         """[M, N, C] the inputs as the equations read them: through each carried input-path effect."""
         for e in self.input_gains():  # one or two named effects
-            u = cast(Any, e).through(u, cast(Any, e).channel(self.spec.inputs))
+            u = cast(Any, e).through(u, cast(Any, e).channel(self.spec.inputs), records)
         return u
 
     def drifted(
@@ -283,7 +289,8 @@ class EquationsModel(Model):
         values = {k: v.to(xs) for k, v in self.parameters_now().items()}
         u = None
         if self.spec.inputs:
-            u = self.gained(self._signal(xs[:, 0], t, inputs).u.reshape(b * n_t, n, -1))  # type: ignore[union-attr]
+            rows = _record_index(inputs, b).repeat_interleave(n_t)  # [B·T] recording-major
+            u = self.gained(self._signal(xs[:, 0], t, inputs).u.reshape(b * n_t, n, -1), rows)  # type: ignore[union-attr]
         tt = t.to(xs).repeat(b)[:, None]  # [B·T, 1] each row's time
         out = self.output_field(tt, xs.reshape(b * n_t, n, d), values, None, u)
         return out.reshape(b, n_t, n, -1)
@@ -298,7 +305,8 @@ class EquationsModel(Model):
         check_nodes(self.spec, x0.shape[1], "model.spec")
         values = {k: v.to(x0) for k, v in self.parameters_now().items()}
         signal = self._signal(x0, t, inputs)
-        field = _Field(self, values, self._graph(inputs.edge_index, x0), signal=signal)
+        records = inputs.meta.get("record_index") if self.input_gains() else None
+        field = _Field(self, values, self._graph(inputs.edge_index, x0), signal=signal, records=records)
         if field.u is not None and min_delay(self.effects) == 0:  # zero-order hold: no step straddles a jump
             if getattr(self.solver, "restarts", False):  # dopri5 steps to every sample and restarts there
                 return self.solver(field, x0, t, restart=True)
@@ -346,7 +354,7 @@ class EquationsModel(Model):
         history, per-recording drives, a drifting parameter in a neighbour sum) rather than in one batch."""
         dts = t[1:] - t[:-1]
         uniform = t.numel() > 1 and bool((dts - dts[0]).abs().max() <= 1e-9 * dts[0].abs().clamp(min=1e-300))
-        special = min_delay(self.effects) > 0 or any(e.per_record for e in self.effects)  # a phase or gain each
+        special = min_delay(self.effects) > 0 or any(e.per_record and e.uses_time for e in self.effects)  # a phase
         special = special or bool(self.drifts() and self.field.uses_graph)  # a [M, 1] parameter in a neighbour sum
         return not uniform or special
 
@@ -371,7 +379,8 @@ class EquationsModel(Model):
             u0 = grid.u[:, :-1].reshape(b * (n_t - 1), n, -1)  # [B·(T−1), N, C] each interval's first sample
             du = None if grid.hold == "zoh" else (grid.u[:, 1:] - grid.u[:, :-1]).reshape(u0.shape)
             signal = IntervalInput(u0, du, dts[0].to(x))
-        field = _Field(self, values, self._graph(ei, x0), offset, signal)
+        records = _record_index(inputs, b).repeat_interleave(n_t - 1) if self.input_gains() else None
+        field = _Field(self, values, self._graph(ei, x0), offset, signal, records)
         local = torch.stack([torch.zeros_like(dts[0]), dts[0]]).to(x)
         return self.integrate(field, x0, local, self.solver)[:, 1].reshape(b, n_t - 1, n, d)
 
@@ -493,6 +502,12 @@ def _short(v: torch.Tensor) -> str:
     flat = v.detach().flatten().tolist()
     body = ", ".join(f"{x:.4g}" for x in flat[:8]) + (", ..." if len(flat) > 8 else "")
     return f"[{body}]"
+
+
+def _record_index(inputs: Inputs, b: int) -> torch.Tensor:
+    """[B] the recording of each of the batch's B rows (`inputs.meta["record_index"]`, else row b is recording b)."""
+    given = inputs.meta.get("record_index")
+    return torch.arange(b) if given is None else torch.as_tensor(given)
 
 
 def _after_first(inputs: Inputs) -> Inputs:

@@ -205,7 +205,8 @@ def _run(
 ) -> tuple[torch.Tensor, int, list[bool]]:
     """[R, T, N, D] the free run from `x0` ([R, N, D]): chunked (parareal) when the model allows, else whole."""
     steps = data.n_times - 1
-    if steps <= chunk or not model.time_invariant or isinstance(model, LatentState):
+    per_record = any(getattr(e, "per_record", False) for e in model.effects)  # chunks would reorder the records
+    if steps <= chunk or not model.time_invariant or isinstance(model, LatentState) or per_record:
         return _finite(_whole(model, data, x0), 0)
     k = math.ceil(steps / chunk)
     pad = k * chunk - steps
