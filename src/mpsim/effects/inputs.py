@@ -240,3 +240,21 @@ class InputSaturation(_Threshold):
 
     def describe(self) -> str:
         return f"{self.input_ref} → clip({self.input_ref}, ±{self.threshold:.4g}) (a saturation)"
+
+
+def through_all(
+    effects: Sequence[Effect],
+    input_names: Sequence[str],
+    u: torch.Tensor,  # [M, N, C] inputs
+    records: torch.Tensor | None = None,  # [M] each row's recording (None: row b is recording b)
+) -> torch.Tensor:
+    """[M, N, C] the inputs as a model's equations read them: through each of its input-path effects, in order."""
+    for e in effects:  # one or two named effects
+        u = e.through(u, e.channel(input_names), records)  # type: ignore[operator]
+    return u
+
+
+def record_index(meta: dict[str, Any], b: int) -> torch.Tensor:
+    """[B] the recording of each of a batch's B rows (`meta["record_index"]`, else row b is recording b)."""
+    given = meta.get("record_index")
+    return torch.arange(b) if given is None else torch.as_tensor(given)

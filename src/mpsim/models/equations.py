@@ -24,6 +24,7 @@ from torch import nn
 
 from mpsim.data.trajectories import Inputs
 from mpsim.effects import Effect, EffectContext, min_delay, total
+from mpsim.effects.inputs import record_index, through_all
 from mpsim.errors import ConfigError, IncompatibleError
 from mpsim.graphs.batch import BatchedGraph, batch_graph
 from mpsim.models.base import Model
@@ -75,7 +76,7 @@ class _Field(HeldField):
     def forward(self, t: torch.Tensor, x: torch.Tensor, history=None) -> torch.Tensor:  # x: [B, N, D] raw
         u = None if self.signal is None else self.signal(t)  # [B, N, C] at the solver's (local) time
         if u is not None and self.gains:
-            u = self.model.gained(u, self.records)
+            u = through_all(self.model.input_gains(), self.model.spec.inputs, u, self.records)
         if self.offset is not None:
             t = t + self.offset
         values = self.model.drifted(self.values, t) if self.drifting else self.values
@@ -181,19 +182,8 @@ class EquationsModel(Model):
         ]
 
     def input_gains(self) -> list[Effect]:
-        """The carried effects on the input path (`InputGain`, `DeadZone`, `InputSaturation`), in order: what the
-        inputs pass through before the equations read them."""
+        """The carried input-path effects (`InputGain`, `DeadZone`, `InputSaturation`), in the order u meets them."""
         return [e for e in self.effects if getattr(e, "acts_on_inputs", False)]
-
-    def gained(
-        self,
-        u: torch.Tensor,  # [M, N, C] inputs
-        records: torch.Tensor | None = None,  # [M] each row's recording (None: row b is recording b)
-    ) -> torch.Tensor:
-        """[M, N, C] the inputs as the equations read them: through each carried input-path effect."""
-        for e in self.input_gains():  # one or two named effects
-            u = cast(Any, e).through(u, cast(Any, e).channel(self.spec.inputs), records)
-        return u
 
     def drifted(
         self,
@@ -289,8 +279,9 @@ class EquationsModel(Model):
         values = {k: v.to(xs) for k, v in self.parameters_now().items()}
         u = None
         if self.spec.inputs:
-            rows = _record_index(inputs, b).repeat_interleave(n_t)  # [B·T] recording-major
-            u = self.gained(self._signal(xs[:, 0], t, inputs).u.reshape(b * n_t, n, -1), rows)  # type: ignore[union-attr]
+            rows = record_index(inputs.meta, b).repeat_interleave(n_t)  # [B·T] recording-major
+            u = self._signal(xs[:, 0], t, inputs).u.reshape(b * n_t, n, -1)  # type: ignore[union-attr]
+            u = through_all(self.input_gains(), self.spec.inputs, u, rows)
         tt = t.to(xs).repeat(b)[:, None]  # [B·T, 1] each row's time
         out = self.output_field(tt, xs.reshape(b * n_t, n, d), values, None, u)
         return out.reshape(b, n_t, n, -1)
@@ -379,7 +370,7 @@ class EquationsModel(Model):
             u0 = grid.u[:, :-1].reshape(b * (n_t - 1), n, -1)  # [B·(T−1), N, C] each interval's first sample
             du = None if grid.hold == "zoh" else (grid.u[:, 1:] - grid.u[:, :-1]).reshape(u0.shape)
             signal = IntervalInput(u0, du, dts[0].to(x))
-        records = _record_index(inputs, b).repeat_interleave(n_t - 1) if self.input_gains() else None
+        records = record_index(inputs.meta, b).repeat_interleave(n_t - 1) if self.input_gains() else None
         field = _Field(self, values, self._graph(ei, x0), offset, signal, records)
         local = torch.stack([torch.zeros_like(dts[0]), dts[0]]).to(x)
         return self.integrate(field, x0, local, self.solver)[:, 1].reshape(b, n_t - 1, n, d)
@@ -502,12 +493,6 @@ def _short(v: torch.Tensor) -> str:
     flat = v.detach().flatten().tolist()
     body = ", ".join(f"{x:.4g}" for x in flat[:8]) + (", ..." if len(flat) > 8 else "")
     return f"[{body}]"
-
-
-def _record_index(inputs: Inputs, b: int) -> torch.Tensor:
-    """[B] the recording of each of the batch's B rows (`inputs.meta["record_index"]`, else row b is recording b)."""
-    given = inputs.meta.get("record_index")
-    return torch.arange(b) if given is None else torch.as_tensor(given)
 
 
 def _after_first(inputs: Inputs) -> Inputs:
